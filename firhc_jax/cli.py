@@ -1,0 +1,42 @@
+"""Command line: ``python -m firhc_jax <subcommand>``.
+
+Each application module registers its own subcommand through
+``register(subparsers)`` and sets ``func`` on its parser.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# Subcommand modules, in the order shown by --help.
+_APPS = ("firhc_jax.apps.example", "firhc_jax.apps.hopper", "firhc_jax.apps.tanks", "firhc_jax.apps.bench")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m firhc_jax",
+        description="Finite-input receding horizon control with exact sorted depth-first search (JAX).")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in _APPS:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as e:
+            if e.name != name:  # a real missing dependency, not an app that is not there yet
+                raise
+            continue
+        module.register(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 0
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
