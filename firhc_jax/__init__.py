@@ -7,10 +7,12 @@ Public API (see each object's docstring; notation in ``firhc_jax.problem``):
 * ``exhaustive``: vectorised exhaustive search (the reference).
 * ``FIRHC``: the receding horizon law (eq. 4) and its closed loop.
 """
+from .controller import FIRHC, ClosedLoop, InfeasibleError
 from .exhaustive import exhaustive
 from .problem import Problem, quadratic_cost
 from .result import SearchResult
 from .sdfs import sdfs
 
-__all__ = ["Problem", "quadratic_cost", "sdfs", "exhaustive", "SearchResult"]
+__all__ = ["Problem", "quadratic_cost", "sdfs", "exhaustive", "SearchResult", "FIRHC", "ClosedLoop",
+           "InfeasibleError"]
 __version__ = "0.1.0"

@@ -33,9 +33,9 @@ class Progress:
         self._last = now
         frac = min(done / self.total, 1.0)
         elapsed = now - self.start
-        eta = elapsed / frac - elapsed if frac > 0 else float("nan")
+        eta = f"{elapsed / frac - elapsed:6.1f}s" if frac > 0 else "     ?"
         bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
-        self.stream.write(f"\r{self.label} [{bar}] {done}/{self.total}  {elapsed:6.1f}s  eta {eta:6.1f}s")
+        self.stream.write(f"\r{self.label} [{bar}] {done}/{self.total}  {elapsed:6.1f}s  eta {eta}")
         self.stream.flush()
 
     def __enter__(self):
@@ -48,16 +48,17 @@ class Progress:
         _active.remove(self)
         if self.enabled:
             self._last = -1.0
-            self.update(self.total)
+            self.update(self.total)  # final state, elapsed time of the whole run
             self.stream.write("\n")
             self.stream.flush()
 
 
-def _tick(step):
+def tick_python(step) -> None:
+    """From a Python loop: report that step ``step`` (0-based) is done."""
     if _active:
         _active[-1].update(int(step) + 1)
 
 
 def tick(step) -> None:
     """Inside a jitted loop body: report that step ``step`` (0-based) is done."""
-    jax.debug.callback(_tick, step)
+    jax.debug.callback(tick_python, step)
