@@ -35,13 +35,13 @@ from .result import SearchResult, finish, raise_on_errors
 
 class Stack(NamedTuple):
     """Fixed-capacity node stack. Rows ``[0, K)`` are sentinels (depth -1);
-    live nodes occupy rows ``[K, K + size)``, top last."""
+    live nodes occupy rows ``[K, K + size)``, top last. At most one peer batch
+    per depth is live, so its start is kept per depth, not per row."""
 
     x: jax.Array  # [R, n] node states
     cost: jax.Array  # [R] accumulated costs
-    depth: jax.Array  # [R] int32 depth (root 0), -1 for sentinels
-    path: jax.Array  # [R, N] int32 input indices from the root (first `depth` used)
-    base: jax.Array  # [R] int32 stack size below the node's peer batch
+    meta: jax.Array  # [R, 1 + N] int32: depth (root 0, sentinel -1), then the path from the root
+    level_base: jax.Array  # [N + 1] int32 stack size below the live batch of each depth
     size: jax.Array  # [] int32 number of live nodes
 
 
@@ -66,22 +66,25 @@ def _check_pop_width(pop_width) -> int:
     return pop_width
 
 
-def _descending_slots(cost, keep):
-    """Slot of each of ``L`` children in a sorted push block, without a sort.
+def _descending_order(cost, keep):
+    """Order of ``L`` children in a sorted push block, without a sort kernel.
 
-    Kept children get slots ``0 .. count-1`` by descending cost (the cheapest,
+    Kept children take slots ``0 .. count-1`` by descending cost (the cheapest,
     and among equal costs the lowest index, in the top slot); the others fill
-    the slots above. Pairwise comparisons: ``L^2`` cheap ops, no sort kernel.
-    Returns (order, count): ``order[s]`` is the child in slot ``s``.
+    the slots above. Pairwise comparisons (``L^2`` cheap, fusible ops) give each
+    child its slot; a scatter into a fresh ``[L]`` array (not a loop-carried
+    buffer) inverts that into ``order[s]``, the child in slot ``s``.
+    Returns ``(order, count)``.
     """
     L = cost.shape[0]
-    idx = jnp.arange(L)
+    idx = jnp.arange(L, dtype=jnp.int32)
+    later = idx[None, :] > idx[:, None]  # [L, L] j after i
     ci, cj = cost[:, None], cost[None, :]
-    below = keep[None, :] & ((cj > ci) | ((cj == ci) & (idx[None, :] > idx[:, None])))
+    below = keep[None, :] & ((cj > ci) | ((cj == ci) & later))
     count = jnp.sum(keep, dtype=jnp.int32)
-    dropped_before = jnp.cumsum(~keep) - (~keep)
-    slot = jnp.where(keep, jnp.sum(below, axis=1), count + dropped_before).astype(jnp.int32)
-    order = jnp.zeros(L, jnp.int32).at[slot].set(idx.astype(jnp.int32), unique_indices=True)
+    dropped_before = jnp.sum(~keep[None, :] & ~later & (idx[None, :] != idx[:, None]), axis=1, dtype=jnp.int32)
+    slot = jnp.where(keep, jnp.sum(below, axis=1, dtype=jnp.int32), count + dropped_before)
+    order = jnp.zeros(L, jnp.int32).at[slot].set(idx, unique_indices=True)
     return order, count
 
 
@@ -95,9 +98,8 @@ def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> Se
     stack = Stack(
         x=jnp.zeros((rows, n), x0.dtype).at[K].set(x0),
         cost=jnp.zeros((rows,), dtype),
-        depth=jnp.full((rows,), -1, jnp.int32).at[K].set(0),
-        path=jnp.zeros((rows, N), jnp.int32),
-        base=jnp.zeros((rows,), jnp.int32),
+        meta=jnp.zeros((rows, 1 + N), jnp.int32).at[:, 0].set(-1).at[K, 0].set(0),
+        level_base=jnp.zeros((N + 1,), jnp.int32),
         size=jnp.array(1, jnp.int32),
     )
     carry = _Carry(stack, inf, jnp.full((N,), -1, jnp.int32), jnp.array(0, jnp.int32),
@@ -107,50 +109,51 @@ def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> Se
         better = ws_cost < inf
         carry = carry._replace(best_cost=ws_cost, best_path=jnp.where(better, warm_start, carry.best_path),
                                nodes=jnp.array(N, jnp.int32), negative_cost=ws_neg, nan_encountered=ws_nan)
+    levels = jnp.arange(N + 1)
+    modes = jnp.tile(jnp.arange(M, dtype=jnp.int32), K)  # [L] input of each child
+    parent = jnp.repeat(jnp.arange(K, dtype=jnp.int32), M)  # [L] popped node of each child
 
     def body(c: _Carry) -> _Carry:
         s = c.stack
         start = s.size  # rows [size, size + K) are the top K rows
         px = jax.lax.dynamic_slice_in_dim(s.x, start, K)  # [K, n]
         pc = jax.lax.dynamic_slice_in_dim(s.cost, start, K)  # [K]
-        pd = jax.lax.dynamic_slice_in_dim(s.depth, start, K)  # [K]
-        ppath = jax.lax.dynamic_slice_in_dim(s.path, start, K)  # [K, N]
-        top_base = s.base[start + K - 1]
+        pmeta = jax.lax.dynamic_slice_in_dim(s.meta, start, K)  # [K, 1 + N]
+        pd, ppath = pmeta[:, 0], pmeta[:, 1:]
         depth = pd[K - 1]
         peer = pd == depth  # popped rows from the top batch (sentinels have depth -1)
-        threshold = c.best_cost if prune else inf
-        alive = peer & (pc < threshold) if prune else peer
-        popped = jnp.sum(peer, dtype=jnp.int32)
-        # The batch is sorted: if its top is pruned, all of it is.
-        size = jnp.where(alive[K - 1], s.size - popped, top_base) if prune else s.size - popped
+        if prune:
+            alive = peer & (pc < c.best_cost)
+            # The batch is sorted: if its top is pruned, so is all the rest of it.
+            size = jnp.where(alive[K - 1], s.size - jnp.sum(peer, dtype=jnp.int32), s.level_base[depth])
+        else:
+            alive = peer
+            size = s.size - jnp.sum(peer, dtype=jnp.int32)
 
         ch = expand(problem, px, pc, check_terminal=problem.terminal is not None)
         ok = (alive[:, None] & ~ch.bad).reshape(L)
         cost = ch.cost.reshape(L)
         child_depth = depth + 1
-        modes = jnp.tile(jnp.arange(M, dtype=jnp.int32), K)
-        parent = jnp.repeat(jnp.arange(K, dtype=jnp.int32), M)
 
         # Leaves: the cheapest feasible one below the incumbent (first in (pop, mode) order).
         leaf_cost = jnp.where(ok & ch.terminal_ok.reshape(L) & (child_depth == N), cost, inf)
         i = jnp.argmin(leaf_cost)
         improve = leaf_cost[i] < c.best_cost
-        leaf_path = ppath[parent[i]].at[N - 1].set(modes[i])
         best_cost = jnp.where(improve, leaf_cost[i], c.best_cost)
-        best_path = jnp.where(improve, leaf_path, c.best_path)
+        best_path = jnp.where(improve, ppath[parent[i]].at[N - 1].set(modes[i]), c.best_path)
 
         # Non-leaves below the incumbent: one sorted batch on top of the stack.
         keep = ok & (child_depth < N) & ((cost < best_cost) if prune else True)
-        order, count = _descending_slots(cost, keep)
-        src = parent[order]
-        child_paths = jnp.where(jnp.arange(N)[None, :] == depth, modes[order][:, None], ppath[src])
+        order, count = _descending_order(cost, keep)
+        col = jnp.arange(1 + N)[None, :]
+        child_meta = jnp.where(col == 0, child_depth, jnp.where(col == depth + 1, modes[order][:, None],
+                                                                 pmeta[parent[order]]))
         at = K + size
         new = Stack(
             x=jax.lax.dynamic_update_slice_in_dim(s.x, ch.x.reshape(L, n)[order], at, 0),
             cost=jax.lax.dynamic_update_slice_in_dim(s.cost, cost[order], at, 0),
-            depth=jax.lax.dynamic_update_slice_in_dim(s.depth, jnp.full((L,), child_depth, jnp.int32), at, 0),
-            path=jax.lax.dynamic_update_slice_in_dim(s.path, child_paths, at, 0),
-            base=jax.lax.dynamic_update_slice_in_dim(s.base, jnp.full((L,), size, jnp.int32), at, 0),
+            meta=jax.lax.dynamic_update_slice_in_dim(s.meta, child_meta, at, 0),
+            level_base=jnp.where(levels == child_depth, size, s.level_base),
             size=size + count,
         )
         alive_m = alive[:, None]

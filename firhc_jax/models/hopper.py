@@ -1,0 +1,361 @@
+"""Pneumatic vertical hopping robot (the paper's Sec. III and IV.1).
+
+A vertical double-acting cylinder: the body M rides on the piston, the foot m
+is the cylinder end that touches the ground. Chamber a pushes the body up,
+chamber b (rod side) pulls it down. Each chamber has one on/off three-way
+valve, command ``+1`` supply, ``0`` closed, ``-1`` exhaust to atmosphere.
+
+Coordinates (m, positive up): ``x`` body, ``y`` foot (``y < 0`` is ground
+penetration), both zero in the static stance with the piston at mid-stroke.
+``s = x - y`` is the piston's stroke from mid-position; the chamber volumes are
+``V_a = V_mida + A_a s`` and ``V_b = V_midb - A_b s``.
+
+Plant state ``[6]``: ``[x, xdot, y, ydot, P_a, P_b]`` (m, m/s, m, m/s, Pa, Pa;
+pressures absolute). Motion eqs. (21)-(22) with viscous seal friction, ground
+eq. (23), adiabatic pressure eqs. (13)-(14), orifice flow eq. (15).
+
+Prediction model state ``[4]``: ``[x, xdot, P_a, P_b]``, the loss-free contact
+model of eqs. (7), (13)-(15) with the foot on the ground (``y = 0``, so ``x``
+is the stroke). It is what the controller predicts with; friction is absent on
+purpose (the controller must hold the energy despite it, as in the paper).
+
+All functions are elementwise arithmetic (no matmuls), so a search gives the
+same bits for the same sequence whatever its batch size.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.optimize import brentq
+
+PSI = 6894.757  # Pa per psi
+
+
+@dataclasses.dataclass(frozen=True)
+class HopperParams:
+    """Plant parameters, SI units (pressures absolute).
+
+    Sources: masses, friction and ground from the paper (Sec. IV.1); gas data
+    and supply pressure from the issue; the actuator is ours because the
+    paper's ref. [4] is not available: an ISO 6432 mini cylinder (bore 12 mm,
+    rod 6 mm, standard stroke 160 mm) with external dead volumes, and valve
+    flow constants from Richer & Hurmuzlu (2000), ASME JDSMC 122(3):416-425.
+
+    Design rule for the free choices (see ``docs/hopper.md``): the nominal
+    pressure of chamber a is the geometric mean of atmosphere and supply (equal
+    pressure ratios for charging and exhausting); chamber b's follows from the
+    static force balance; the dead volumes make the stance stiffness of the two
+    air springs equal ``M (pi / T_2)^2`` for the specified gait (T_hop = 0.4 s,
+    T_air = 0.2 s, so T_2 = 0.1615 s, eq. 17), with the quadratic terms of the
+    two springs cancelling so the stance oscillation is as harmonic as eqs.
+    (17)-(18) assume. ``stance_stiffness`` checks the first condition.
+    """
+
+    M: float = 0.54  # kg, body on the piston (paper)
+    m: float = 0.05  # kg, foot (paper)
+    b: float = 2.0  # N s/m, viscous seal friction (paper eqs. 21-22)
+    k_ground: float = 1.0e6  # N/m, ground stiffness (paper eq. 23)
+    b_ground: float = 1000.0  # N s/m, ground damping (paper eq. 23)
+    g: float = 9.81  # m/s^2
+    gamma: float = 1.4  # -, ratio of specific heats of air
+    R: float = 287.0  # J/(kg K), gas constant of air
+    T: float = 293.0  # K, air and flow temperature
+    P_atm: float = 101325.0  # Pa
+    P_supply: float = 101325.0 + 80.0 * PSI  # Pa, 80 psi gauge (paper)
+    bore: float = 0.012  # m, piston diameter (ISO 6432)
+    rod: float = 0.006  # m, rod diameter (ISO 6432 for a 12 mm bore)
+    stroke: float = 0.160  # m, full stroke, mid-position at s = 0 (ISO 6432 standard stroke)
+    V_dead_a: float = 31.3e-6  # m^3, dead volume of chamber a incl. tubing and reservoir (design rule)
+    V_dead_b: float = 18.7e-6  # m^3, dead volume of chamber b incl. tubing and reservoir (design rule)
+    orifice: float = 0.8e-3  # m, valve orifice diameter (small 3/2 solenoid valve)
+    C_f: float = 0.25  # -, discharge coefficient (Richer & Hurmuzlu order of magnitude)
+    P_a0: float = 2.5e5  # Pa, static stance pressure of chamber a (design rule)
+
+    # -- derived geometry ------------------------------------------------------
+    @property
+    def A_a(self) -> float:
+        """m^2, piston area (chamber a)."""
+        return math.pi * self.bore**2 / 4
+
+    @property
+    def A_r(self) -> float:
+        """m^2, rod area A_a - A_b."""
+        return math.pi * self.rod**2 / 4
+
+    @property
+    def A_b(self) -> float:
+        """m^2, annulus area (chamber b)."""
+        return self.A_a - self.A_r
+
+    @property
+    def A_v(self) -> float:
+        """m^2, valve orifice area."""
+        return math.pi * self.orifice**2 / 4
+
+    @property
+    def V_mida(self) -> float:
+        """m^3, chamber a volume at mid-stroke."""
+        return self.V_dead_a + self.A_a * self.stroke / 2
+
+    @property
+    def V_midb(self) -> float:
+        """m^3, chamber b volume at mid-stroke."""
+        return self.V_dead_b + self.A_b * self.stroke / 2
+
+    @property
+    def P_b0(self) -> float:
+        """Pa, static stance pressure of chamber b: P_a0 A_a - P_b0 A_b - P_atm A_r = M g."""
+        return (self.P_a0 * self.A_a - self.P_atm * self.A_r - self.M * self.g) / self.A_b
+
+    # -- orifice constants (Richer & Hurmuzlu 2000) ------------------------------
+    @property
+    def C1(self) -> float:
+        """sqrt(kg K/J), choked flow constant (0.040418 for air)."""
+        g = self.gamma
+        return math.sqrt(g / self.R * (2 / (g + 1)) ** ((g + 1) / (g - 1)))
+
+    @property
+    def C2(self) -> float:
+        """sqrt(kg K/J), subsonic flow constant (0.156174 for air)."""
+        return math.sqrt(2 * self.gamma / (self.R * (self.gamma - 1)))
+
+    @property
+    def P_crit(self) -> float:
+        """-, critical pressure ratio (0.528 for air)."""
+        g = self.gamma
+        return (2 / (g + 1)) ** (g / (g - 1))
+
+    def stance_stiffness(self) -> float:
+        """N/m, stiffness of the two air springs at the static stance (closed chambers)."""
+        g = self.gamma
+        return g * self.P_a0 * self.A_a**2 / self.V_mida + g * self.P_b0 * self.A_b**2 / self.V_midb
+
+
+class Gait(NamedTuple):
+    """The desired gait of Sec. III.2."""
+
+    T_hop: float  # s, hopping period (specified)
+    T_air: float  # s, flight time (specified)
+    T2: float  # s, compression period, eq. (17)
+    x_t1: float  # m, body position at lift-off, eq. (18)
+    xdot_t1: float  # m/s, body velocity at lift-off, eq. (19)
+    E_d: float  # J, desired energy, eq. (20)
+
+
+# ---------------------------------------------------------------------------
+# Thermodynamics
+# ---------------------------------------------------------------------------
+
+def orifice_flow(p_up, p_down, p: HopperParams):
+    """Mass flow (kg/s) through a valve orifice from ``p_up`` to ``p_down``, eq. (15).
+
+    Standard form (Richer & Hurmuzlu): choked, ``C_f A_v C1 P_u / sqrt(T)``,
+    when ``P_d / P_u <= 0.528``; subsonic, ``C_f A_v C2 P_u / sqrt(T) r^(1/k)
+    sqrt(1 - r^((k-1)/k))`` with ``r = P_d / P_u``, above it. The paper's text
+    labels the two cases the other way round and prints C1 in both; this is the
+    physics (the two branches meet at the critical ratio). Flow reverses when
+    ``p_down > p_up`` (negative result).
+    """
+    hi, lo = jnp.maximum(p_up, p_down), jnp.minimum(p_up, p_down)
+    r = lo / hi
+    k = p.gamma
+    subsonic = p.C2 * r ** (1 / k) * jnp.sqrt(jnp.maximum(1 - r ** ((k - 1) / k), 0.0))
+    shape = jnp.where(r <= p.P_crit, p.C1, subsonic)
+    return jnp.sign(p_up - p_down) * p.C_f * p.A_v * hi / math.sqrt(p.T) * shape
+
+
+def valve_flow(cmd, P, p: HopperParams):
+    """Mass flow (kg/s) into a chamber at pressure ``P`` for valve ``cmd`` (+1 supply, 0 closed, -1 exhaust)."""
+    source = jnp.where(cmd > 0, p.P_supply, p.P_atm)
+    return jnp.where(cmd == 0, 0.0, orifice_flow(source, P, p))
+
+
+def chamber_volumes(s, p: HopperParams):
+    """Chamber volumes (m^3) at stroke ``s``: ``V_a = V_mida + A_a s``, ``V_b = V_midb - A_b s``."""
+    return p.V_mida + p.A_a * s, p.V_midb - p.A_b * s
+
+
+def pressure_rates(s, sdot, Pa, Pb, mdot_a, mdot_b, p: HopperParams):
+    """Adiabatic chamber pressure rates (Pa/s), eqs. (13)-(14), flow at temperature T."""
+    Va, Vb = chamber_volumes(s, p)
+    k = p.gamma
+    dPa = k * p.R * p.T / Va * mdot_a - k * Pa * (p.A_a * sdot) / Va
+    dPb = k * p.R * p.T / Vb * mdot_b + k * Pb * (p.A_b * sdot) / Vb
+    return dPa, dPb
+
+
+def piston_force(Pa, Pb, p: HopperParams):
+    """Net pneumatic force (N) pushing the body up and the foot down: P_a A_a - P_b A_b - P_atm A_r."""
+    return Pa * p.A_a - Pb * p.A_b - p.P_atm * p.A_r
+
+
+def chamber_energy(P, V, p: HopperParams):
+    """PE of one chamber, eq. (6): ``P V / (1 - k) ((P / P_atm)^((1 - k) / k) - 1)`` (J)."""
+    k = p.gamma
+    return P * V / (1 - k) * ((P / p.P_atm) ** ((1 - k) / k) - 1)
+
+
+def energy(x, xdot, Pa, Pb, p: HopperParams):
+    """Total conservative energy in contact, eq. (6) (J); ``x`` is the stroke (foot on the ground)."""
+    Va, Vb = chamber_volumes(x, p)
+    return (0.5 * p.M * xdot**2 + chamber_energy(Pa, Va, p) + chamber_energy(Pb, Vb, p)
+            + p.P_atm * p.A_r * x + p.M * p.g * x)
+
+
+def nominal_pressures(s, p: HopperParams):
+    """Pressures (Pa) at stroke ``s`` with the static charge of air, sealed: the adiabats through (P_a0, P_b0)."""
+    Va, Vb = chamber_volumes(s, p)
+    k = p.gamma
+    return p.P_a0 * (p.V_mida / Va) ** k, p.P_b0 * (p.V_midb / Vb) ** k
+
+
+def nominal_potential(x, p: HopperParams):
+    """Potential part of eq. (6) (J) at stroke ``x`` with the static charge of air."""
+    Pa, Pb = nominal_pressures(x, p)
+    return energy(x, 0.0, Pa, Pb, p)
+
+
+# ---------------------------------------------------------------------------
+# Plant: eqs. (13)-(15), (21)-(23)
+# ---------------------------------------------------------------------------
+
+def plant_rhs(state, cmd, p: HopperParams):
+    """Time derivative of the plant state ``[6]`` for valve commands ``cmd`` ``[2]`` (a, b).
+
+    The ground force (23) acts only while ``y < 0`` and is clipped at zero: the
+    ground pushes, it never pulls the foot back during lift-off.
+    """
+    x, xd, y, yd, Pa, Pb = state[0], state[1], state[2], state[3], state[4], state[5]
+    s, sd = x - y, xd - yd
+    F = piston_force(Pa, Pb, p)
+    friction = p.b * sd  # on the body; the opposite on the foot
+    ground = jnp.where(y < 0, jnp.maximum(-p.k_ground * y - p.b_ground * yd, 0.0), 0.0)
+    xdd = (F - friction) / p.M - p.g
+    ydd = (-F + friction + ground) / p.m - p.g
+    dPa, dPb = pressure_rates(s, sd, Pa, Pb, valve_flow(cmd[0], Pa, p), valve_flow(cmd[1], Pb, p), p)
+    return jnp.stack([xd, xdd, yd, ydd, dPa, dPb])
+
+
+def rk4(f, state, dt):
+    """One classical Runge-Kutta step of ``state' = f(state)``."""
+    k1 = f(state)
+    k2 = f(state + 0.5 * dt * k1)
+    k3 = f(state + 0.5 * dt * k2)
+    k4 = f(state + dt * k3)
+    return state + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+def plant_step(state, cmd, p: HopperParams, dt: float):
+    """Advance the plant ``[6]`` by ``dt`` with commands ``[2]`` held (RK4)."""
+    return rk4(lambda z: plant_rhs(z, cmd, p), state, dt)
+
+
+def simulate_open_loop(state0, cmd, p: HopperParams, dt: float, steps: int):
+    """Integrate ``steps`` fixed steps with commands ``[2]`` held; returns the states ``[steps + 1, 6]``."""
+    def body(z, _):
+        z = plant_step(z, cmd, p, dt)
+        return z, z
+
+    _, traj = jax.lax.scan(body, state0, None, length=steps)
+    return jnp.concatenate([state0[None], traj])
+
+
+def plant_energy(state, p: HopperParams):
+    """Mechanical + pneumatic energy of the plant (J), conserved without valves, friction and ground damping.
+
+    Eq. (6) with the stroke ``x - y`` in the chamber and rod terms, plus the
+    foot's kinetic and gravitational energy and the ground spring; in contact
+    with the foot at rest it reduces to eq. (6).
+    """
+    x, xd, y, yd, Pa, Pb = (state[..., i] for i in range(6))
+    s = x - y
+    Va, Vb = chamber_volumes(s, p)
+    return (0.5 * p.M * xd**2 + 0.5 * p.m * yd**2 + chamber_energy(Pa, Va, p) + chamber_energy(Pb, Vb, p)
+            + p.P_atm * p.A_r * s + p.M * p.g * x + p.m * p.g * y
+            + jnp.where(y < 0, 0.5 * p.k_ground * y**2, 0.0))
+
+
+# ---------------------------------------------------------------------------
+# Prediction model: eqs. (7), (13)-(15) in contact, no friction
+# ---------------------------------------------------------------------------
+
+def model_rhs(z, cmd, p: HopperParams):
+    """Derivative of the prediction state ``[4]`` = ``[x, xdot, P_a, P_b]`` (foot on the ground)."""
+    x, xd, Pa, Pb = z[0], z[1], z[2], z[3]
+    xdd = piston_force(Pa, Pb, p) / p.M - p.g
+    dPa, dPb = pressure_rates(x, xd, Pa, Pb, valve_flow(cmd[0], Pa, p), valve_flow(cmd[1], Pb, p), p)
+    return jnp.stack([xd, xdd, dPa, dPb])
+
+
+def model_step(z, cmd, p: HopperParams, period: float, substeps: int):
+    """Advance the prediction state ``[4]`` by one control period (``substeps`` RK4 steps, commands held)."""
+    dt = period / substeps
+    f = lambda w: model_rhs(w, cmd, p)  # noqa: E731
+    for _ in range(substeps):  # unrolled: a handful of steps
+        z = rk4(f, z, dt)
+    return z
+
+
+def model_energy(z, p: HopperParams):
+    """Eq. (6) of a prediction state ``[..., 4]`` (J)."""
+    return energy(z[..., 0], z[..., 1], z[..., 2], z[..., 3], p)
+
+
+# ---------------------------------------------------------------------------
+# Static states and the desired energy (Sec. III.2)
+# ---------------------------------------------------------------------------
+
+def flight_stroke(p: HopperParams) -> float:
+    """Stroke (m) at which the sealed springs exert no force: where the body rests relative to the foot in flight."""
+    def force(s):
+        Pa, Pb = nominal_pressures(s, p)
+        return float(piston_force(Pa, Pb, p))
+
+    half = p.stroke / 2
+    return brentq(force, -half, half, xtol=1e-15)
+
+
+def static_state(p: HopperParams) -> np.ndarray:
+    """Plant state ``[6]`` standing still on the ground, valves closed: mid-stroke, foot pressed in by (M + m) g."""
+    y = -(p.M + p.m) * p.g / p.k_ground
+    return np.array([y, 0.0, y, 0.0, p.P_a0, p.P_b0])
+
+
+def apex_state(p: HopperParams, height: float) -> np.ndarray:
+    """Plant state ``[6]`` at rest in the air, foot at ``height``, springs at their flight equilibrium."""
+    s = flight_stroke(p)
+    Pa, Pb = nominal_pressures(s, p)
+    return np.array([height + s, 0.0, height, 0.0, float(Pa), float(Pb)])
+
+
+def solve_T2(T_hop: float, T_air: float, M: float, m: float, g: float) -> float:
+    """Compression period T_2 (s) from eq. (17), by Brent's method."""
+    if not (0 < T_air < T_hop):
+        raise ValueError(f"need 0 < T_air < T_hop, got T_air={T_air}, T_hop={T_hop}")
+
+    def residual(T2):
+        w2 = (math.pi / T2) ** 2
+        arg = 8 * (M + m) * g / (8 * (M + m) * g + M * w2 * g * T_air**2)
+        return 2 * T2 / math.pi * math.asin(arg) + T_air + T2 - T_hop
+
+    return brentq(residual, 1e-9, T_hop - T_air, xtol=1e-14)
+
+
+def desired_energy(T_hop: float, T_air: float, params: HopperParams) -> Gait:
+    """Desired gait and energy (Sec. III.2): T_2 by eq. (17), x(t1) by (18), xdot(t1) by (19), E_d by (20).
+
+    The chamber terms of eq. (20) are taken on the adiabats of the static charge
+    (``nominal_pressures``): the loss-free orbit the energy describes.
+    """
+    p = params
+    T2 = solve_T2(T_hop, T_air, p.M, p.m, p.g)
+    x1 = (p.M + p.m) * p.g / (p.M * (math.pi / T2) ** 2)
+    v1 = T_air * p.g / 2
+    Pa, Pb = nominal_pressures(x1, p)
+    E_d = float(energy(x1, v1, Pa, Pb, p))
+    return Gait(T_hop, T_air, T2, x1, v1, E_d)

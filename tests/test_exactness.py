@@ -1,0 +1,172 @@
+"""Every search returns the brute-force optimum on random nonlinear problems."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import firhc_jax as fj
+from random_problems import make
+
+SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def _same_cost(a, b):
+    if np.isinf(b):
+        return np.isinf(a)
+    return np.isclose(a, b, rtol=1e-10, atol=1e-12)
+
+
+@st.composite
+def problems(draw):
+    n, m = draw(st.integers(1, 4)), draw(st.integers(1, 4))
+    M, N = draw(st.integers(1, 6)), draw(st.integers(1, 6))
+    if M**N > 20_000:  # keep the brute force and the compile cheap; both ends of the range stay covered
+        N = max(1, int(np.log(20_000) / np.log(max(M, 2))))
+    terminal = draw(st.sampled_from(["none", "loose", "tight"]))
+    rp = make(draw(st.integers(0, 2**31 - 1)), n, m, M, N, terminal)
+    x0 = np.asarray(draw(st.lists(st.floats(-1, 1), min_size=n, max_size=n)))
+    return rp, x0
+
+
+@SETTINGS
+@given(problems(), st.sampled_from([1, 2, 3, 5]))
+def test_every_search_matches_brute_force(case, pop_width):
+    rp, x0 = case
+    problem = rp.problem()
+    ref_cost, _ = rp.brute_force(x0)
+    results = {
+        "sdfs": fj.sdfs(problem, x0, pop_width=1),
+        f"sdfs K={pop_width}": fj.sdfs(problem, x0, pop_width=pop_width),
+        "exhaustive": fj.exhaustive(problem, x0),
+        f"exhaustive dfs K={pop_width}": fj.exhaustive(problem, x0, method="dfs", pop_width=pop_width),
+    }
+    for name, r in results.items():
+        assert _same_cost(float(r.cost), ref_cost), (name, float(r.cost), ref_cost)
+        assert bool(r.feasible) == np.isfinite(ref_cost), name
+        if np.isfinite(ref_cost):
+            # The returned sequence really achieves the returned cost.
+            again, _ = _rollout(rp, x0, np.asarray(r.sequence))
+            assert _same_cost(again, float(r.cost)), name
+            np.testing.assert_array_equal(r.first_input, rp.controls[int(r.sequence[0])])
+        else:
+            assert np.all(np.asarray(r.sequence) == -1) and np.all(np.isnan(r.first_input)), name
+    # Exhaustive searches visit the whole tree.
+    assert int(results["exhaustive"].nodes) == problem.tree_size()
+    assert int(results[f"exhaustive dfs K={pop_width}"].nodes) == problem.tree_size()
+    assert int(results["sdfs"].nodes) <= problem.tree_size()
+
+
+def _rollout(rp, x0, seq):
+    x, cost = np.asarray(x0, float), 0.0
+    for i in seq:
+        u = rp.controls[i]
+        x = rp.dynamics(x, u, xp=np)
+        cost += float(rp.stage_cost(x, u, xp=np))
+    if rp.radius is not None and not rp.terminal(x, xp=np):
+        cost = np.inf
+    return cost, x
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(problems())
+def test_warm_start_keeps_the_optimum(case):
+    rp, x0 = case
+    problem = rp.problem()
+    plain = fj.sdfs(problem, x0)
+    seq = np.random.default_rng(0).integers(0, rp.M, rp.N)
+    warm = fj.sdfs(problem, x0, warm_start=seq)
+    assert _same_cost(float(warm.cost), float(plain.cost))
+    # Warm-started with the optimum itself, the search returns it and counts its N nodes.
+    if bool(plain.feasible):
+        opt = fj.sdfs(problem, x0, warm_start=plain.sequence)
+        np.testing.assert_array_equal(opt.sequence, plain.sequence)
+        assert int(opt.nodes) <= int(plain.nodes) + rp.N
+
+
+def table1_reference(rp, x0):
+    """Plain-Python rendering of the paper's Table 1; returns (best_cost, best_path, nodes)."""
+    best_cost, best_path, nodes = np.inf, None, 0
+    stack = [(np.asarray(x0, float), 0.0, 0, ())]
+    while stack:
+        x, cost, depth, path = stack.pop()
+        if cost < best_cost:
+            temp = []
+            for mode in range(rp.M):
+                u = rp.controls[mode]
+                x_new = rp.dynamics(x, u, xp=np)
+                c_new = cost + float(rp.stage_cost(x_new, u, xp=np))
+                nodes += 1
+                if c_new < best_cost and depth + 1 != rp.N:
+                    temp.append((x_new, c_new, depth + 1, path + (mode,)))
+                if c_new < best_cost and depth + 1 == rp.N and (rp.radius is None or rp.terminal(x_new, xp=np)):
+                    best_cost, best_path = c_new, path + (mode,)
+            temp.sort(key=lambda node: node[1], reverse=True)  # push the cheapest last
+            stack.extend(temp)
+    return best_cost, best_path, nodes
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_node_count_equals_table1(seed):
+    rng = np.random.default_rng(seed)
+    n, m, M, N = rng.integers(1, 5), rng.integers(1, 4), rng.integers(2, 7), rng.integers(1, 6)
+    rp = make(seed, int(n), int(m), int(M), int(N), ["none", "loose", "tight"][seed % 3])
+    x0 = rng.uniform(-1, 1, n)
+    ref_cost, ref_path, ref_nodes = table1_reference(rp, x0)
+    r = fj.sdfs(rp.problem(), x0)
+    assert int(r.nodes) == ref_nodes
+    assert _same_cost(float(r.cost), ref_cost)
+    if ref_path is not None:
+        assert tuple(np.asarray(r.sequence)) == ref_path
+
+
+def test_node_count_on_a_deep_pruned_tree():
+    """A case where pruning matters (many nodes cut), compared with Table 1."""
+    rp = make(7, 3, 1, 5, 6, "loose")
+    x0 = np.array([0.3, -0.2, 0.1])
+    ref_cost, _, ref_nodes = table1_reference(rp, x0)
+    r = fj.sdfs(rp.problem(), x0)
+    assert int(r.nodes) == ref_nodes < rp.problem().tree_size()
+    assert _same_cost(float(r.cost), ref_cost)
+
+
+def test_exhaustive_chunking_changes_nothing():
+    rp = make(3, 2, 2, 4, 5, "loose")
+    p, x0 = rp.problem(), np.array([0.2, -0.4])
+    whole = fj.exhaustive(p, x0)
+    from firhc_jax.exhaustive import plan
+    assert plan(p, 200).chunks > 1 and (4**plan(p, 200).split) % plan(p, 200).chunk != 0  # padded last chunk
+    chunked = fj.exhaustive(p, x0, chunk_nodes=200)
+    assert float(chunked.cost) == float(whole.cost)
+    np.testing.assert_array_equal(chunked.sequence, whole.sequence)
+    assert int(chunked.nodes) == int(whole.nodes) == p.tree_size()
+
+
+def test_vmap_batch_equals_per_item():
+    rp = make(11, 3, 2, 4, 4, "loose")
+    p = rp.problem()
+    X0 = jnp.asarray(np.random.default_rng(1).uniform(-1, 1, (6, 3)))
+    for solve in (lambda x: fj.sdfs(p, x), lambda x: fj.sdfs(p, x, pop_width=3), lambda x: fj.exhaustive(p, x)):
+        batch = jax.vmap(solve)(X0)
+        for i in range(len(X0)):
+            one = solve(X0[i])
+            for field in ("cost", "sequence", "nodes", "feasible"):
+                np.testing.assert_array_equal(getattr(batch, field)[i], getattr(one, field))
+
+
+def test_jit_and_same_cost_bit_for_bit():
+    rp = make(5, 3, 2, 5, 4, "none")
+    p, x0 = rp.problem(), jnp.array([0.1, 0.5, -0.3])
+    a = jax.jit(lambda x: fj.sdfs(p, x))(x0)
+    b = fj.exhaustive(p, x0)
+    assert float(a.cost) == float(b.cost)  # same accumulation order; elementwise dynamics
+
+
+def test_edge_sizes_m1_n1():
+    rp = make(2, 2, 1, 1, 1, "none")
+    r = fj.sdfs(rp.problem(), np.array([0.1, 0.2]))
+    assert int(r.nodes) == 1 and int(r.sequence[0]) == 0
+    rp = make(2, 2, 1, 1, 5, "none")
+    r = fj.sdfs(rp.problem(), np.array([0.1, 0.2]))
+    assert int(r.nodes) == 5 and list(np.asarray(r.sequence)) == [0] * 5
