@@ -1,0 +1,242 @@
+"""``python -m firhc_jax tanks``: the three-tank experiment of the paper's Sec. IV.2.
+
+Runs the FIRHC closed loop on the 17-mode three-tank plant from the paper's
+initial levels {0.2, 0.18, 0.1} m to the set point {0.3, 0.25, 0.15} m for
+200 s (100 samples of 2 s), timing every search, and writes into ``--out``:
+
+* ``summary.json``: final levels, errors, settling time, nodes per step and
+  solve times (keys listed in ``summarize``);
+* ``tanks_N<N>_<solver>.png``: the three levels against their set points,
+  their errors in mm, and the applied mode sequence beneath.
+
+The plant is the prediction model itself (no model error), as in the paper.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import NamedTuple, Optional
+
+import numpy as np
+
+from firhc_jax.models import tanks as model
+
+MAX_HORIZON = 10  # 17^10 sequences: beyond this even sDFS's worst steps become impractical
+
+
+class TankRun(NamedTuple):
+    """One closed-loop run of T steps (NumPy arrays)."""
+
+    states: np.ndarray  # [T+1, 5] controller states x(0) .. x(T): levels (m), mode, toggles
+    modes: np.ndarray  # [T] int applied mode per step
+    nodes: np.ndarray  # [T] int nodes computed per step (fallback search included)
+    solve_times: np.ndarray  # [T] s wall time of each step's search
+    used_fallback: np.ndarray  # [T] bool the terminal box was out of reach: the unconstrained optimum was applied
+    compile_time: float  # s first search (tracing and compilation included), not in solve_times
+
+
+def closed_loop(problem, solver: str = "sdfs", steps: int = 100, levels=model.INITIAL_LEVELS,
+                progress: bool = False) -> TankRun:
+    """Run the FIRHC law for ``steps`` samples from ``levels`` (hold mode before t = 0).
+
+    A Python loop over the compiled search, so that every search is timed on
+    its own. Needs float64 (``jax_enable_x64``) for mm-accurate levels. With a
+    terminal box, steps where it cannot be reached apply the unconstrained
+    optimum instead (``used_fallback``).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    import firhc_jax as fj
+    from firhc_jax.progress import Progress
+
+    fallback = "unconstrained" if problem.terminal is not None else None
+    ctrl = fj.FIRHC(problem, solver, fallback=fallback)
+    plant = jax.jit(problem.dynamics)
+    x = jnp.asarray(model.initial_state(levels))  # [5]
+
+    t0 = time.perf_counter()
+    jax.block_until_ready(ctrl.solve(x))  # compile outside the timed loop
+    compile_time = time.perf_counter() - t0
+
+    states, modes, nodes, times, used = [np.asarray(x)], [], [], [], []
+    with Progress(steps, f"tanks N={problem.horizon} {solver}", enabled=progress) as bar:
+        for k in range(steps):
+            t0 = time.perf_counter()
+            result, fell_back = jax.block_until_ready(ctrl.solve(x))
+            times.append(time.perf_counter() - t0)
+            x = plant(x, result.first_input)
+            states.append(np.asarray(x))
+            modes.append(int(result.sequence[0]))
+            nodes.append(int(result.nodes))
+            used.append(bool(fell_back))
+            bar.update(k + 1)
+    return TankRun(np.array(states), np.array(modes), np.array(nodes), np.array(times), np.array(used),
+                   compile_time)
+
+
+def settling_time(errors: np.ndarray, ts: float, tolerance: float) -> Optional[float]:
+    """First time (s) from which every ``|error|`` stays within ``tolerance``;
+    ``None`` if the last sample is still outside. ``errors`` ``[T+1, 3]``."""
+    outside = np.flatnonzero(np.max(np.abs(errors), axis=1) > tolerance)
+    if outside.size == 0:
+        return 0.0
+    if outside[-1] == errors.shape[0] - 1:
+        return None
+    return float((outside[-1] + 1) * ts)
+
+
+def summarize(run: TankRun, problem, solver: str, params: model.TankParams, set_point=model.SET_POINT,
+              tolerance: float = 0.005, switch_penalty: float = 0.0, terminal_tol: Optional[float] = None) -> dict:
+    """The ``summary.json`` record of a run (lengths in m, times in s)."""
+    levels = run.states[:, :3]  # [T+1, 3]
+    errors = levels - np.asarray(set_point)  # [T+1, 3]
+    t = np.arange(levels.shape[0]) * params.ts  # [T+1]
+    last = t >= t[-1] - 20.0 - 1e-9
+    return {
+        "final_levels": levels[-1].tolist(),
+        "max_abs_error_last_20s": float(np.max(np.abs(errors[last]))),
+        "settling_time_s": settling_time(errors, params.ts, tolerance),
+        "nodes_min": int(run.nodes.min()),
+        "nodes_max": int(run.nodes.max()),
+        "nodes_mean": float(run.nodes.mean()),
+        "solve_time_mean_s": float(run.solve_times.mean()),
+        "horizon": problem.horizon,
+        "solver": solver,
+        "solve_time_max_s": float(run.solve_times.max()),
+        "compile_time_s": run.compile_time,
+        "exhaustive_nodes_per_step": problem.tree_size(),
+        "settling_tolerance_m": tolerance,
+        "set_point": list(set_point),
+        "initial_levels": levels[0].tolist(),
+        "seconds": float(t[-1]),
+        "sample_time_s": params.ts,
+        "switch_penalty": switch_penalty,
+        "terminal_tol": terminal_tol,
+        "fallback_steps": int(run.used_fallback.sum()),
+        "mode_changes": int(np.count_nonzero(np.diff(run.modes))),
+        "modes": run.modes.tolist(),
+    }
+
+
+def plot(run: TankRun, path: Path, params: model.TankParams, set_point=model.SET_POINT,
+         tolerance: float = 0.005, title: str = "") -> None:
+    """Levels against set points, errors in mm (with the tolerance band) and the mode sequence beneath."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    levels = run.states[:, :3]  # [T+1, 3]
+    t = np.arange(levels.shape[0]) * params.ts  # [T+1]
+    colors = ("tab:blue", "tab:orange", "tab:green")
+    fig, (ax_h, ax_e, ax_m) = plt.subplots(3, 1, figsize=(9, 9), sharex=True,
+                                           gridspec_kw={"height_ratios": [3, 2, 3]})
+    for i, c in enumerate(colors):
+        ax_h.plot(t, levels[:, i], color=c, label=f"$h_{i + 1}$")
+        ax_h.axhline(set_point[i], color=c, ls="--", lw=0.8)
+        ax_e.plot(t, (levels[:, i] - set_point[i]) * 1e3, color=c, label=f"$h_{i + 1} - h_{{s,{i + 1}}}$")
+    ax_h.set_ylabel("level [m]")
+    ax_h.legend(loc="lower right", ncol=3)
+    ax_h.set_title(title)
+    ax_e.axhspan(-tolerance * 1e3, tolerance * 1e3, color="0.85", label=f"$\\pm${tolerance * 1e3:g} mm")
+    ax_e.set_ylim(-20, 20)
+    ax_e.set_ylabel("error [mm]")
+    ax_e.legend(loc="lower right", ncol=4, fontsize=8)
+    ax_m.step(t[:-1], run.modes, where="post", color="k", lw=1)
+    ax_m.set_yticks(range(model.NUM_MODES))
+    ax_m.set_yticklabels([f"{i} {m.name}" for i, m in enumerate(model.MODES)], fontsize=6)
+    ax_m.set_ylim(-0.5, model.NUM_MODES - 0.5)
+    ax_m.set_ylabel("mode")
+    ax_m.set_xlabel("time [s]")
+    for ax in (ax_h, ax_e, ax_m):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _horizon(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+    if not 1 <= value <= MAX_HORIZON:
+        raise argparse.ArgumentTypeError(f"must be between 1 and {MAX_HORIZON} (the paper uses 3-6), got {value}")
+    return value
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return value
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not np.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text!r}")
+    return value
+
+
+def register(subparsers) -> None:
+    """Add the ``tanks`` subcommand."""
+    p = subparsers.add_parser(
+        "tanks", help="three-tank system, 17 valve/pump modes (paper Sec. IV.2)",
+        description="FIRHC closed loop of the three-tank system: from {0.2, 0.18, 0.1} m to "
+                    "{0.3, 0.25, 0.15} m; writes summary.json and a figure.")
+    p.add_argument("--horizon", "-N", type=_horizon, default=4, help="prediction horizon N (default 4; paper: 3-6)")
+    p.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs",
+                   help="search (default sdfs); exhaustive visits 17+...+17^N nodes per step")
+    p.add_argument("--out", type=Path, default=Path("out/tanks"), help="output folder (default out/tanks)")
+    p.add_argument("--seconds", type=_positive, default=200.0,
+                   help="simulated time in s, rounded down to whole 2 s samples (default 200)")
+    p.add_argument("--switch-penalty", type=_non_negative, default=0.0,
+                   help="cost per actuator toggle, in mm^2 of level error (default 0)")
+    p.add_argument("--terminal-tol", type=_positive, default=None,
+                   help="terminal box half-width in m around the set point (default: none); steps where "
+                        "it cannot be reached apply the unconstrained optimum")
+    p.add_argument("--tolerance", type=_positive, default=0.005,
+                   help="settling band half-width in m (default 0.005)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    """Run the experiment described by the parsed ``args``; returns the exit status (0)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    params = model.TankParams()
+    steps = int(args.seconds // params.ts)
+    if steps < 1:
+        raise SystemExit(f"tanks: --seconds must be at least one sample ({params.ts:g} s), got {args.seconds:g}")
+    problem = model.make_problem(args.horizon, params, switch_penalty=args.switch_penalty,
+                                 terminal_tol=args.terminal_tol)
+    result = closed_loop(problem, args.solver, steps, progress=not args.no_progress)
+    summary = summarize(result, problem, args.solver, params, tolerance=args.tolerance,
+                        switch_penalty=args.switch_penalty, terminal_tol=args.terminal_tol)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    figure = args.out / f"tanks_N{args.horizon}_{args.solver}.png"
+    plot(result, figure, params, tolerance=args.tolerance,
+         title=f"Three-tank FIRHC, N = {args.horizon}, {args.solver}: "
+               f"nodes/step min {summary['nodes_min']}, mean {summary['nodes_mean']:.0f}, max {summary['nodes_max']}")
+    settled = summary["settling_time_s"]
+    print(f"tanks N={args.horizon} {args.solver}: final levels "
+          f"{', '.join(f'{h:.4f}' for h in summary['final_levels'])} m, "
+          f"settled {'never' if settled is None else f'at {settled:g} s'}, "
+          f"max |error| last 20 s {summary['max_abs_error_last_20s'] * 1e3:.2f} mm, "
+          f"nodes/step {summary['nodes_min']}/{summary['nodes_mean']:.0f}/{summary['nodes_max']} (min/mean/max), "
+          f"{summary['solve_time_mean_s'] * 1e3:.2f} ms/step")
+    print(f"wrote {args.out / 'summary.json'} and {figure}")
+    return 0
