@@ -22,15 +22,15 @@ class Progress:
         self.total, self.label, self.enabled = max(int(total), 1), label, enabled
         self.stream = stream or sys.stderr
         self.start = time.perf_counter()
-        self._last = -1.0
+        self._last, self._shown = -1.0, -1
 
     def update(self, done: int):
-        if not self.enabled:
+        if not self.enabled or done == self._shown:
             return
         now = time.perf_counter()
         if done < self.total and now - self._last < 0.1:
             return
-        self._last = now
+        self._last, self._shown = now, done
         frac = min(done / self.total, 1.0)
         elapsed = now - self.start
         eta = f"{elapsed / frac - elapsed:6.1f}s" if frac > 0 else "     ?"
@@ -47,8 +47,7 @@ class Progress:
     def __exit__(self, *exc):
         _active.remove(self)
         if self.enabled:
-            self._last = -1.0
-            self.update(self.total)  # final state, elapsed time of the whole run
+            self.update(self.total)
             self.stream.write("\n")
             self.stream.flush()
 

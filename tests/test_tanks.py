@@ -1,0 +1,162 @@
+"""Three-tank system (paper Sec. IV.2): plant physics, exactness of the closed loop, settling, CLI."""
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import firhc_jax as fj
+from firhc_jax import cli
+from firhc_jax.apps import tanks as app
+from firhc_jax.models import tanks as model
+
+jax.config.update("jax_enable_x64", True)
+
+P = model.TankParams()
+PLANT = jax.jit(jax.vmap(model.make_plant(P)))  # ([B, 3], [B]) -> ([B, 3], [B])
+ALL_MODES = np.arange(model.NUM_MODES)
+
+
+def _grid(levels):
+    """Every level triple in ``levels`` [L, 3] with every mode: ([L*17, 3], [L*17])."""
+    levels = np.asarray(levels, dtype=float)
+    return np.repeat(levels, model.NUM_MODES, axis=0), np.tile(ALL_MODES, len(levels))
+
+
+@pytest.fixture(scope="module")
+def problems():
+    """One problem per horizon, shared so that each search compiles once."""
+    return {n: model.make_problem(n, P) for n in (3, 4)}
+
+
+def test_volume_change_is_pump_inflow_minus_drain_outflow():
+    rng = np.random.default_rng(0)
+    h, modes = _grid(rng.uniform(0.05, 0.5, (40, 3)))  # interior: no clipping within one sample
+    h_next, drained = PLANT(jnp.asarray(h), jnp.asarray(modes))
+    volume_change = P.area * np.sum(np.asarray(h_next) - h, axis=1)  # [B] m^3
+    pumped = np.array([model.pump_volume(m, P) for m in modes])  # [B] m^3
+    np.testing.assert_allclose(volume_change, pumped - np.asarray(drained), rtol=0, atol=1e-15)
+    assert np.all(np.asarray(drained)[[model.MODES[m].trans3 == 0 for m in modes]] == 0)
+
+
+def test_levels_stay_within_tank_limits():
+    edges = [0.0, 1e-6, 0.01, 0.3, P.height - 0.005, P.height]
+    h, modes = _grid(np.array(np.meshgrid(edges, edges, edges)).reshape(3, -1).T)
+    for _ in range(30):  # every mode held for 60 s from every corner of the tank
+        h, _ = PLANT(jnp.asarray(h), jnp.asarray(modes))
+        assert np.all((np.asarray(h) >= 0.0) & (np.asarray(h) <= P.height))
+
+
+def _rhs(_, y, c):
+    h1, h2, h3 = y
+    f13 = c[2] * np.sign(h1 - h3) * np.sqrt(abs(h1 - h3))
+    f32 = c[3] * np.sign(h3 - h2) * np.sqrt(abs(h3 - h2))
+    f30 = c[4] * np.sqrt(max(h3, 0.0))
+    return [c[0] - f13, c[1] + f32, f13 - f32 - f30]
+
+
+def test_rk4_sample_matches_a_tight_ode_solve():
+    rng = np.random.default_rng(1)
+    h, modes = _grid(np.vstack([rng.uniform(0.0, 0.55, (6, 3)), [model.SET_POINT, model.INITIAL_LEVELS]]))
+    h_next, _ = PLANT(jnp.asarray(h), jnp.asarray(modes))
+    coeffs = model.mode_coefficients(P)
+    for h0, m, got in zip(h, modes, np.asarray(h_next)):
+        ref = solve_ivp(_rhs, (0.0, P.ts), h0, args=(coeffs[m],), method="LSODA", rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(got, np.clip(ref.y[:, -1], 0.0, P.height), rtol=0, atol=1e-5)
+
+
+def test_paper_example_mode_follows_eq_25():
+    mode = model.MODES[model.PAPER_EXAMPLE_MODE]
+    # u = {V_Fill1=0, V_Fill2=1, V_trans1=1, V_trans2=0, V_trans3=1, pump=low}
+    assert (mode.fill1, mode.fill2, mode.trans1, mode.trans2, mode.trans3, mode.pump) == (0, 1, 1, 0, 1, 1)
+    root = P.pipe * np.sqrt(2 * P.g)
+
+    def eq25(h, dt):  # eq. (25) with its state-dependent time constants, at step dt
+        h1, h2, h3 = h
+        tau12 = P.area * np.sqrt(abs(h1 - h3)) / (P.az13 * root)  # tau_1 = tau_2: the same pipe
+        tau3 = P.area * np.sqrt(h3) / (P.az30 * root)
+        return np.array([h1 + dt * (h3 - h1) / tau12, h2 + dt * P.q_low / P.area,
+                         h3 + dt * ((h1 - h3) / tau12 - h3 / tau3)])
+
+    for h0 in ([0.3, 0.25, 0.15], [0.1, 0.2, 0.4]):  # T1 above, then below T3
+        ref = np.asarray(h0)
+        for _ in range(20000):
+            ref = eq25(ref, P.ts / 20000)
+        got, _ = PLANT(jnp.asarray([h0]), jnp.asarray([model.PAPER_EXAMPLE_MODE]))
+        got = np.asarray(got)[0]
+        np.testing.assert_allclose(got, ref, rtol=0, atol=2e-6)
+        assert np.sign(got[0] - h0[0]) == np.sign(h0[2] - h0[0])  # T1 moves towards T3
+        assert got[1] - h0[1] == pytest.approx(P.ts * P.q_low / P.area, abs=1e-15)  # Flow_low / A
+
+
+def test_modes_are_distinct_and_pump_never_dead_heads():
+    patterns = {m[1:7] for m in model.MODES}
+    assert len(patterns) == model.NUM_MODES == 17
+    for m in model.MODES:
+        assert (m.pump > 0) == (m.fill1 + m.fill2 > 0), m.name
+
+
+def test_switch_penalty_counts_toggled_actuators():
+    problem = model.make_problem(3, P, switch_penalty=2.0)
+    x0 = jnp.asarray(model.initial_state())  # after hold
+    u = problem.controls[model.PAPER_EXAMPLE_MODE]
+    x1 = problem.dynamics(x0, u)
+    assert float(x1[3]) == model.PAPER_EXAMPLE_MODE and float(x1[4]) == 4.0  # V_Fill2, V_trans1, V_trans3, pump
+    plain = model.make_problem(3, P).stage_cost(x1, u)
+    assert float(problem.stage_cost(x1, u)) == pytest.approx(float(plain) + 8.0)
+
+
+@pytest.mark.parametrize("horizon", [3, 4])
+def test_sdfs_and_exhaustive_closed_loops_are_identical(problems, horizon):
+    steps = 12  # 24 s: the whole transient into the 5 mm band
+    runs = {s: app.closed_loop(problems[horizon], s, steps) for s in ("sdfs", "exhaustive")}
+    np.testing.assert_array_equal(runs["sdfs"].states, runs["exhaustive"].states)
+    np.testing.assert_array_equal(runs["sdfs"].modes, runs["exhaustive"].modes)
+    assert np.all(runs["exhaustive"].nodes == problems[horizon].tree_size())
+    assert np.all(runs["sdfs"].nodes < problems[horizon].tree_size())
+
+
+def test_levels_settle_within_5_mm_and_stay(problems):
+    run = app.closed_loop(problems[3], "sdfs", steps=40)
+    errors = run.states[:, :3] - np.asarray(model.SET_POINT)  # [41, 3]
+    settled = app.settling_time(errors, P.ts, 0.005)
+    assert settled is not None and settled <= 30.0
+    assert np.max(np.abs(errors[int(settled / P.ts):])) <= 0.005
+
+
+def test_terminal_box_is_tested_on_levels():
+    problem = model.make_problem(3, P, terminal_tol=0.002)
+    assert bool(problem.terminal(jnp.asarray(model.initial_state(model.SET_POINT))))
+    assert not bool(problem.terminal(jnp.asarray(model.initial_state((0.3, 0.25, 0.153)))))
+
+
+def test_cli_writes_summary_and_figure(tmp_path):
+    assert cli.main(["tanks", "--horizon", "3", "--seconds", "30", "--out", str(tmp_path), "--no-progress"]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    for key in ("final_levels", "max_abs_error_last_20s", "settling_time_s", "nodes_min", "nodes_max",
+                "nodes_mean", "solve_time_mean_s", "horizon", "solver"):
+        assert key in summary, key
+    assert summary["horizon"] == 3 and summary["solver"] == "sdfs" and len(summary["final_levels"]) == 3
+    assert summary["max_abs_error_last_20s"] <= 0.005
+    assert (tmp_path / "tanks_N3_sdfs.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--horizon", "0"], "between 1 and"),
+    (["--horizon", "three"], "must be an integer"),
+    (["--solver", "bfs"], "invalid choice"),
+    (["--seconds", "-5"], "positive"),
+    (["--switch-penalty", "-1"], ">= 0"),
+])
+def test_cli_rejects_bad_input(argv, message, capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["tanks", *argv])
+    assert e.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_cli_rejects_run_shorter_than_a_sample(tmp_path):
+    with pytest.raises(SystemExit, match="at least one sample"):
+        cli.main(["tanks", "--seconds", "1", "--out", str(tmp_path)])
