@@ -133,7 +133,7 @@ def test_terminal_box_is_tested_on_levels():
 
 
 def test_cli_writes_summary_and_figure(tmp_path):
-    assert cli.main(["tanks", "--horizon", "3", "--seconds", "30", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert cli.main(["tanks", "--horizon", "3", "--seconds", "60", "--out", str(tmp_path), "--no-progress"]) == 0
     summary = json.loads((tmp_path / "summary.json").read_text())
     for key in ("final_levels", "max_abs_error_last_20s", "settling_time_s", "nodes_min", "nodes_max",
                 "nodes_mean", "solve_time_mean_s", "horizon", "solver"):
