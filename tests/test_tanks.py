@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-import firhc_jax as fj
 from firhc_jax import cli
 from firhc_jax.apps import tanks as app
 from firhc_jax.models import tanks as model

@@ -17,7 +17,7 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import numpy as np
 
@@ -77,7 +77,7 @@ def closed_loop(problem, solver: str = "sdfs", steps: int = 100, levels=model.IN
                    compile_time)
 
 
-def settling_time(errors: np.ndarray, ts: float, tolerance: float) -> Optional[float]:
+def settling_time(errors: np.ndarray, ts: float, tolerance: float) -> float | None:
     """First time (s) from which every ``|error|`` stays within ``tolerance``;
     ``None`` if the last sample is still outside. ``errors`` ``[T+1, 3]``."""
     outside = np.flatnonzero(np.max(np.abs(errors), axis=1) > tolerance)
@@ -89,7 +89,7 @@ def settling_time(errors: np.ndarray, ts: float, tolerance: float) -> Optional[f
 
 
 def summarize(run: TankRun, problem, solver: str, params: model.TankParams, set_point=model.SET_POINT,
-              tolerance: float = 0.005, switch_penalty: float = 0.0, terminal_tol: Optional[float] = None) -> dict:
+              tolerance: float = 0.005, switch_penalty: float = 0.0, terminal_tol: float | None = None) -> dict:
     """The ``summary.json`` record of a run (lengths in m, times in s)."""
     levels = run.states[:, :3]  # [T+1, 3]
     errors = levels - np.asarray(set_point)  # [T+1, 3]

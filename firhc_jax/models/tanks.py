@@ -32,7 +32,7 @@ The control set is the column of mode indices ``[17, 1]``.
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -185,7 +185,7 @@ def initial_state(levels=INITIAL_LEVELS, mode: int = 0) -> np.ndarray:
 
 
 def make_problem(horizon: int, params: TankParams = TankParams(), set_point=SET_POINT,
-                 switch_penalty: float = 0.0, terminal_tol: Optional[float] = None) -> fj.Problem:
+                 switch_penalty: float = 0.0, terminal_tol: float | None = None) -> fj.Problem:
     """The FIRHC problem: ``sum_i sum_tanks ((h - h_s) / 1 mm)^2 + switch_penalty * toggles``.
 
     Args:
