@@ -33,7 +33,7 @@ def expand(problem: Problem, x, cost, check_terminal: bool) -> Children:
     ``check_terminal`` evaluates the terminal test (only needed at depth N).
     """
     per_input = jax.vmap(_one_child, in_axes=(None, None, 0))
-    xs, stage = jax.vmap(per_input, in_axes=(None, 0, None))(problem, x, problem.controls)
+    xs, stage = jax.vmap(per_input, in_axes=(None, 0, None))(problem, x, jnp.asarray(problem.controls))
     stage = stage.astype(cost.dtype)
     child_cost = cost[:, None] + stage
     bad = jnp.isnan(child_cost) | jnp.any(jnp.isnan(xs), axis=-1)
@@ -55,7 +55,7 @@ def rollout_cost(problem: Problem, x0, sequence, cost_dtype):
 
     def step(carry, idx):
         x, c, neg, nan = carry
-        u = problem.controls[jnp.clip(idx, 0, M - 1)]
+        u = jnp.asarray(problem.controls)[jnp.clip(idx, 0, M - 1)]
         x_next, s = _one_child(problem, x, u)
         s = s.astype(cost_dtype)
         c_next = c + s

@@ -46,9 +46,11 @@ class Problem:
       terminal: optional ``terminal(x) -> bool`` tested on the last predicted
         state; ``None`` means no terminal constraint.
 
-    A ``Problem`` is a pytree whose only leaf is ``controls``; the callables and
-    the horizon are static, so solving the same problem again reuses the
-    compiled search.
+    A ``Problem`` is a static pytree (no array leaves): the callables, the
+    horizon and the control set are compiled into the search as constants, so
+    XLA can fold input-only arithmetic, and solving the same problem again
+    (or a rebuilt one with the same callables and control values) reuses the
+    compiled search. ``controls`` is kept as a read-only NumPy array.
     """
 
     dynamics: Callable
@@ -86,18 +88,34 @@ class Problem:
         """A copy with some fields changed (e.g. ``terminal=None``)."""
         return dataclasses.replace(self, **changes)
 
-    # -- pytree --------------------------------------------------------------
+    # -- pytree (static: everything is auxiliary data) -------------------------
     def tree_flatten(self):
-        return (self.controls,), (self.dynamics, self.stage_cost, self.horizon, self.terminal)
+        return (), (self.dynamics, self.stage_cost, self.horizon, self.terminal, _ControlsKey(self.controls))
 
     @classmethod
     def tree_unflatten(cls, aux, leaves):
-        obj = object.__new__(cls)  # skip validation: leaves may be placeholders
-        dynamics, stage_cost, horizon, terminal = aux
-        for name, value in (("dynamics", dynamics), ("controls", leaves[0]), ("stage_cost", stage_cost),
+        obj = object.__new__(cls)  # already validated
+        dynamics, stage_cost, horizon, terminal, key = aux
+        for name, value in (("dynamics", dynamics), ("controls", key.array), ("stage_cost", stage_cost),
                             ("horizon", horizon), ("terminal", terminal)):
             object.__setattr__(obj, name, value)
         return obj
+
+
+class _ControlsKey:
+    """Hashable view of the control set, so it can be static in ``jit``."""
+
+    __slots__ = ("array", "_key")
+
+    def __init__(self, array: np.ndarray):
+        self.array = array
+        self._key = (array.shape, array.dtype.str, array.tobytes())
+
+    def __hash__(self):
+        return hash(self._key)
+
+    def __eq__(self, other):
+        return isinstance(other, _ControlsKey) and self._key == other._key
 
 
 def _check_horizon(horizon) -> int:
@@ -112,14 +130,14 @@ def _check_horizon(horizon) -> int:
     return value
 
 
-def _check_controls(controls):
+def _check_controls(controls) -> np.ndarray:
     if _is_tracer(controls):
-        arr = controls
-    else:
-        try:
-            arr = jnp.asarray(controls)
-        except TypeError as e:
-            raise TypeError(f"controls must be a numeric array [M, m] or [M]: {e}") from None
+        raise TypeError("controls must be concrete values, not a traced array: the control set is compiled "
+                        "into the search; build the Problem outside jit/vmap")
+    try:
+        arr = np.asarray(jnp.asarray(controls))  # jnp decides the dtype (float32 unless x64 is enabled)
+    except TypeError as e:
+        raise TypeError(f"controls must be a numeric array [M, m] or [M]: {e}") from None
     if arr.ndim == 1:
         arr = arr[:, None]
     if arr.ndim != 2:
@@ -128,10 +146,12 @@ def _check_controls(controls):
         raise ValueError("controls is empty: the control set needs at least one input (M >= 1)")
     if arr.shape[1] == 0:
         raise ValueError(f"controls has inputs of dimension 0 (shape {tuple(arr.shape)}); need m >= 1")
-    if not (jnp.issubdtype(arr.dtype, jnp.number) or arr.dtype == jnp.bool_):
+    if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
         raise TypeError(f"controls must be numeric, got dtype {arr.dtype}")
-    if not _is_tracer(arr) and jnp.issubdtype(arr.dtype, jnp.inexact) and not bool(jnp.all(jnp.isfinite(arr))):
+    if np.issubdtype(arr.dtype, np.inexact) and not np.all(np.isfinite(arr)):
         raise ValueError("controls contains NaN or inf")
+    arr = arr.copy()
+    arr.flags.writeable = False
     return arr
 
 
@@ -166,15 +186,17 @@ def check_state(problem: Problem, x0) -> jax.Array:
     compiled: ``x0`` not 1-D, ``dynamics`` changing shape or dtype,
     ``stage_cost`` not scalar, ``terminal`` not a boolean scalar, NaN in ``x0``.
     """
-    x0 = x0 if _is_tracer(x0) else jnp.asarray(x0)
+    if not _is_tracer(x0):
+        x_np = np.asarray(x0)
+        if x_np.dtype.kind in "fc" and not np.all(np.isfinite(x_np)):
+            raise ValueError(f"x0 contains NaN or inf: {x_np}")
+        x0 = jnp.asarray(x0)
     if x0.ndim != 1:
         raise ValueError(
             f"x0 must be a 1-D state vector [n], got shape {tuple(x0.shape)}; "
             "for a batch of states use jax.vmap or fj.solve_batch")
     if not jnp.issubdtype(x0.dtype, jnp.inexact):
         raise TypeError(f"x0 must have a floating dtype, got {x0.dtype}")
-    if not _is_tracer(x0) and not bool(jnp.all(jnp.isfinite(x0))):
-        raise ValueError(f"x0 contains NaN or inf: {np.asarray(x0)}")
     key = (tuple(x0.shape), jnp.dtype(x0.dtype))
     cache = problem.__dict__.setdefault("_checked", set())
     if key not in cache:

@@ -31,7 +31,7 @@ def finish(controls, cost, sequence, nodes, iterations, negative_cost, nan_encou
     """Assemble a ``SearchResult`` from a search's final carry."""
     feasible = jnp.isfinite(cost)
     sequence = jnp.where(feasible, sequence, -1).astype(jnp.int32)
-    first = controls[jnp.maximum(sequence[0], 0)]
+    first = jnp.asarray(controls)[jnp.maximum(sequence[0], 0)]
     if jnp.issubdtype(controls.dtype, jnp.inexact):
         first = jnp.where(feasible, first, jnp.nan)
     return SearchResult(cost=cost, sequence=sequence, first_input=first, nodes=nodes,
@@ -49,11 +49,12 @@ def raise_on_errors(result: SearchResult) -> SearchResult:
     """
     if isinstance(result.cost, jax.core.Tracer):
         return result
-    if bool(np.any(result.negative_cost)):
+    negative, nan = jax.device_get((result.negative_cost, result.nan_encountered))  # one sync
+    if np.any(negative):
         raise ValueError(
             "stage_cost returned a negative value during the search; sDFS is exact only for "
             "non-negative stage costs (eq. 2). Shift or square the cost so that it is >= 0.")
-    if bool(np.any(result.nan_encountered)):
+    if np.any(nan):
         warnings.warn("NaN states or costs were met during the search; those nodes were discarded "
                       "(treated as infeasible). Check dynamics/stage_cost near this state.",
                       RuntimeWarning, stacklevel=3)

@@ -47,6 +47,11 @@ def test_numpy_int_horizon_is_accepted():
     assert problem(horizon=np.int64(3)).horizon == 3
 
 
+def test_traced_controls_are_refused():
+    with pytest.raises(TypeError, match="concrete"):
+        jax.jit(lambda c: problem(controls=c).horizon)(CONTROLS)
+
+
 def test_callables_must_be_callable():
     with pytest.raises(TypeError, match="dynamics"):
         problem(dynamics=3)
@@ -155,9 +160,12 @@ def test_same_problem_twice_does_not_retrace():
         solve(p, X0)
         before = len(traces)
         solve(p, X0 + 0.5)
-        # A rebuilt Problem with the same callables reuses the compiled search too.
-        solve(fj.Problem(counting_dyn, CONTROLS * 2, COST, 4), X0)
+        # A rebuilt Problem with the same callables and control values reuses the compiled search too.
+        solve(fj.Problem(counting_dyn, np.asarray(CONTROLS), COST, 4), X0)
         assert len(traces) == before, "the second solve re-traced dynamics"
+    # Other control values are compiled in as constants: that is a new search.
+    fj.sdfs(fj.Problem(counting_dyn, CONTROLS * 2, COST, 4), X0)
+    assert len(traces) > before
 
 
 def test_closed_loop_does_not_retrace():
