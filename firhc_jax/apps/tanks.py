@@ -19,9 +19,13 @@ import time
 from pathlib import Path
 from typing import NamedTuple
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+import firhc_jax as fj
 from firhc_jax.models import tanks as model
+from firhc_jax.progress import Progress
 
 MAX_HORIZON = 10  # 17^10 sequences: beyond this even sDFS's worst steps become impractical
 
@@ -46,12 +50,6 @@ def closed_loop(problem, solver: str = "sdfs", steps: int = 100, levels=model.IN
     terminal box, steps where it cannot be reached apply the unconstrained
     optimum instead (``used_fallback``).
     """
-    import jax
-    import jax.numpy as jnp
-
-    import firhc_jax as fj
-    from firhc_jax.progress import Progress
-
     fallback = "unconstrained" if problem.terminal is not None else None
     ctrl = fj.FIRHC(problem, solver, fallback=fallback)
     plant = jax.jit(problem.dynamics)
@@ -213,8 +211,6 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     """Run the experiment described by the parsed ``args``; returns the exit status (0)."""
-    import jax
-
     jax.config.update("jax_enable_x64", True)
     params = model.TankParams()
     steps = int(args.seconds // params.ts)

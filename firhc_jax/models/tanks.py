@@ -91,7 +91,7 @@ MODES: tuple = (
     Mode("t23", 0, 0, 0, 1, 0, 0, "move water T2 -> T3: lower T2, raise T3"),
     Mode("t13+drain3", 0, 0, 1, 0, 1, 0, "lower T1 with T3 passing the water on"),
     Mode("t23+drain3", 0, 0, 0, 1, 1, 0, "lower T2 with T3 passing the water on"),
-    Mode("all-drain", 0, 0, 1, 1, 1, 0, "lower all three: recover from overshoot fast"),
+    Mode("all-drain", 0, 0, 1, 1, 1, 0, "lower T1 and T2 together, T3 draining: recover from overshoot"),
     Mode("fill1-low", 1, 0, 0, 0, 0, 1, "raise T1 alone, fine step"),
     Mode("fill2-low", 0, 1, 0, 0, 0, 1, "raise T2 alone, fine step"),
     Mode("fill1-high", 1, 0, 0, 0, 0, 2, "raise T1 alone, coarse step"),
@@ -205,12 +205,11 @@ def make_problem(horizon: int, params: TankParams = TankParams(), set_point=SET_
         raise ValueError(f"terminal_tol must be > 0 m, got {terminal_tol}")
     plant = make_plant(params)
     hs = np.asarray(set_point, dtype=float)  # [3]
-    toggles = _TOGGLES  # [17, 17]
 
     def dynamics(x, u):  # x [5], u [1] -> [5]
         mode = u[0].astype(jnp.int32)
         h_next, _ = plant(x[:3], mode)
-        switched = jnp.asarray(toggles, x.dtype)[x[3].astype(jnp.int32), mode]
+        switched = jnp.asarray(_TOGGLES, x.dtype)[x[3].astype(jnp.int32), mode]
         return jnp.concatenate([h_next, jnp.stack([u[0].astype(x.dtype), switched])])
 
     def stage_cost(x_next, u):
