@@ -103,6 +103,7 @@ def summarize(run: TankRun, problem, solver: str, params: model.TankParams, set_
         "solve_time_mean_s": float(run.solve_times.mean()),
         "horizon": problem.horizon,
         "solver": solver,
+        "solve_time_median_s": float(np.median(run.solve_times)),
         "solve_time_max_s": float(run.solve_times.max()),
         "compile_time_s": run.compile_time,
         "exhaustive_nodes_per_step": problem.tree_size(),
