@@ -53,7 +53,10 @@ class HopperParams:
     air springs equal ``M (pi / T_2)^2`` for the specified gait (T_hop = 0.4 s,
     T_air = 0.2 s, so T_2 = 0.1615 s, eq. 17), with the quadratic terms of the
     two springs cancelling so the stance oscillation is as harmonic as eqs.
-    (17)-(18) assume. ``stance_stiffness`` checks the first condition.
+    (17)-(18) assume. ``stance_stiffness`` checks the first condition. The
+    orifice is sized so that exhausting b near the bottom of the stance can
+    replace the ~0.2 J the seal friction takes per stance (about 12 mg of air
+    per stance at a few tens of ms of opening).
     """
 
     M: float = 0.54  # kg, body on the piston (paper)
@@ -72,7 +75,7 @@ class HopperParams:
     stroke: float = 0.160  # m, full stroke, mid-position at s = 0 (ISO 6432 standard stroke)
     V_dead_a: float = 31.3e-6  # m^3, dead volume of chamber a incl. tubing and reservoir (design rule)
     V_dead_b: float = 18.7e-6  # m^3, dead volume of chamber b incl. tubing and reservoir (design rule)
-    orifice: float = 0.8e-3  # m, valve orifice diameter (small 3/2 solenoid valve)
+    orifice: float = 2.0e-3  # m, valve orifice diameter (3/2 solenoid valve; sized for the friction losses, see docs)
     C_f: float = 0.25  # -, discharge coefficient (Richer & Hurmuzlu order of magnitude)
     P_a0: float = 2.5e5  # Pa, static stance pressure of chamber a (design rule)
 
@@ -284,26 +287,78 @@ def plant_energy(state, p: HopperParams):
 # Prediction model: eqs. (7), (13)-(15) in contact, no friction
 # ---------------------------------------------------------------------------
 
-def model_rhs(z, cmd, p: HopperParams):
-    """Derivative of the prediction state ``[4]`` = ``[x, xdot, P_a, P_b]`` (foot on the ground)."""
-    x, xd, Pa, Pb = z[0], z[1], z[2], z[3]
+def model_rhs(w, cmd, p: HopperParams):
+    """Derivative of ``[x, xdot, P_a, P_b]`` ``[4]`` with the foot on the ground, eqs. (7), (13)-(15)."""
+    x, xd, Pa, Pb = w[0], w[1], w[2], w[3]
     xdd = piston_force(Pa, Pb, p) / p.M - p.g
     dPa, dPb = pressure_rates(x, xd, Pa, Pb, valve_flow(cmd[0], Pa, p), valve_flow(cmd[1], Pb, p), p)
     return jnp.stack([xd, xdd, dPa, dPb])
 
 
 def model_step(z, cmd, p: HopperParams, period: float, substeps: int):
-    """Advance the prediction state ``[4]`` by one control period (``substeps`` RK4 steps, commands held)."""
+    """Advance the prediction state ``[5]`` by one control period (``substeps`` RK4 steps, commands held).
+
+    The foot leaves the ground when the ground reaction of eq. (8) with
+    ``ydd = 0``, ``P_a A_a - P_b A_b - P_atm A_r + m g``, turns negative; from
+    then on the state is frozen (``z[4] = 1``): valves are sealed in flight and
+    the controller acts only in contact, so the prediction ends at lift-off and
+    the remaining stages keep charging the lift-off state. Without this the
+    model would not see that charging b right after touch-down pulls the foot
+    off the ground again.
+    """
     dt = period / substeps
     f = lambda w: model_rhs(w, cmd, p)  # noqa: E731
-    for _ in range(substeps):  # unrolled: a handful of steps
-        z = rk4(f, z, dt)
-    return z
+
+    def substep(_, z):
+        w = rk4(f, z[:4], dt)
+        lifted = piston_force(w[2], w[3], p) + p.m * p.g < 0
+        airborne = z[4] > 0
+        return jnp.concatenate([jnp.where(airborne, z[:4], w), jnp.where(airborne | lifted, 1.0, 0.0)[None]])
+
+    return jax.lax.fori_loop(0, substeps, substep, z)
 
 
 def model_energy(z, p: HopperParams):
-    """Eq. (6) of a prediction state ``[..., 4]`` (J)."""
+    """Eq. (6) of a prediction state ``[..., >= 4]`` (J)."""
     return energy(z[..., 0], z[..., 1], z[..., 2], z[..., 3], p)
+
+
+def liftoff_stroke(Ca, Cb, p: HopperParams, iterations: int = 6):
+    """Stroke (m) where the foot leaves the ground, ``P_a A_a - P_b A_b - P_atm A_r = -m g``,
+    for sealed chambers with adiabatic constants ``Ca = P_a V_a^k``, ``Cb = P_b V_b^k``.
+
+    Newton's method from eq. (18)'s linear estimate for the static charge; the
+    force is smooth and monotone in the stroke, so a few iterations reach
+    round-off.
+    """
+    k = p.gamma
+
+    def newton(_, x):
+        Va, Vb = chamber_volumes(x, p)
+        Pa, Pb = Ca / Va**k, Cb / Vb**k
+        residual = piston_force(Pa, Pb, p) + p.m * p.g
+        slope = -k * (Pa * p.A_a**2 / Va + Pb * p.A_b**2 / Vb)
+        return x - residual / slope
+
+    x0 = jnp.zeros_like(Ca) + (p.M + p.m) * p.g / p.stance_stiffness()  # like Ca
+    return jax.lax.fori_loop(0, iterations, newton, x0)
+
+
+def orbit_energy(z, v_liftoff: float, p: HopperParams):
+    """Eq. (20) for the air now in the chambers of ``z`` ``[..., >= 4]`` (J).
+
+    The energy of the loss-free orbit that leaves the ground with body
+    velocity ``v_liftoff`` at the lift-off stroke (eq. 18's condition) of the
+    current air charge. For the static charge it is eq. (20)'s E_d (up to the
+    linearisation in eq. 18); unlike a constant E_d it does not move when air
+    is added or removed, so it measures the gait energy, not the stored air.
+    """
+    k = p.gamma
+    Va, Vb = chamber_volumes(z[..., 0], p)
+    Ca, Cb = z[..., 2] * Va**k, z[..., 3] * Vb**k
+    x1 = liftoff_stroke(Ca, Cb, p)
+    Va1, Vb1 = chamber_volumes(x1, p)
+    return energy(x1, v_liftoff, Ca / Va1**k, Cb / Vb1**k, p)
 
 
 # ---------------------------------------------------------------------------
