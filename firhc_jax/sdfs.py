@@ -36,11 +36,14 @@ from .result import SearchResult, finish, raise_on_errors
 class Stack(NamedTuple):
     """Fixed-capacity node stack. Rows ``[0, K)`` are sentinels (depth -1);
     live nodes occupy rows ``[K, K + size)``, top last. At most one peer batch
-    per depth is live, so its start is kept per depth, not per row."""
+    per depth is live, so its start is kept per depth, not per row.
 
-    x: jax.Array  # [R, n] node states
-    cost: jax.Array  # [R] accumulated costs
-    meta: jax.Array  # [R, 1 + N] int32: depth (root 0, sentinel -1), then the path from the root
+    A node is one row of one floating buffer: state, accumulated cost, depth and
+    path (small integers, exact in any float of at least 32 bits). One buffer
+    means one dynamic slice to pop and one in-place update to push; with
+    separate buffers XLA copies them every iteration to order the reads."""
+
+    rows: jax.Array  # [R, n + 2 + N] x (n), cost, depth (root 0, sentinel -1), path from the root (N)
     level_base: jax.Array  # [N + 1] int32 stack size below the live batch of each depth
     size: jax.Array  # [] int32 number of live nodes
 
@@ -51,8 +54,7 @@ class _Carry(NamedTuple):
     best_path: jax.Array  # [N] int32 incumbent sequence
     nodes: jax.Array  # [] int32 child nodes computed
     iterations: jax.Array  # [] int32
-    negative_cost: jax.Array  # [] bool
-    nan_encountered: jax.Array  # [] bool
+    flags: jax.Array  # [] int32 bit 0: negative stage cost met, bit 1: NaN met
 
 
 def stack_capacity(horizon: int, num_controls: int, pop_width: int) -> int:
@@ -92,23 +94,22 @@ def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> Se
     N, M, K = problem.horizon, problem.num_controls, pop_width
     n, L = x0.shape[0], K * M
     dtype = cost_dtype(problem, x0)
+    wide = jnp.promote_types(jnp.promote_types(dtype, x0.dtype), jnp.float32)  # lossless for every column
     inf = jnp.array(jnp.inf, dtype)
-    rows = K + stack_capacity(N, M, K) + L  # sentinels + live nodes + slack for the push block
-
+    capacity = K + stack_capacity(N, M, K) + L  # sentinels + live nodes + slack for the push block
+    root = jnp.concatenate([x0.astype(wide), jnp.zeros((2 + N,), wide)])
     stack = Stack(
-        x=jnp.zeros((rows, n), x0.dtype).at[K].set(x0),
-        cost=jnp.zeros((rows,), dtype),
-        meta=jnp.zeros((rows, 1 + N), jnp.int32).at[:, 0].set(-1).at[K, 0].set(0),
+        rows=jnp.zeros((capacity, n + 2 + N), wide).at[:, n + 1].set(-1).at[K].set(root),
         level_base=jnp.zeros((N + 1,), jnp.int32),
         size=jnp.array(1, jnp.int32),
     )
     carry = _Carry(stack, inf, jnp.full((N,), -1, jnp.int32), jnp.array(0, jnp.int32),
-                   jnp.array(0, jnp.int32), jnp.array(False), jnp.array(False))
+                   jnp.array(0, jnp.int32), jnp.array(0, jnp.int32))
     if warm_start is not None:
         ws_cost, ws_neg, ws_nan = rollout_cost(problem, x0, warm_start, dtype)
         better = ws_cost < inf
         carry = carry._replace(best_cost=ws_cost, best_path=jnp.where(better, warm_start, carry.best_path),
-                               nodes=jnp.array(N, jnp.int32), negative_cost=ws_neg, nan_encountered=ws_nan)
+                               nodes=jnp.array(N, jnp.int32), flags=_flags(ws_neg, ws_nan))
     levels = jnp.arange(N + 1)
     modes = jnp.tile(jnp.arange(M, dtype=jnp.int32), K)  # [L] input of each child
     parent = jnp.repeat(jnp.arange(K, dtype=jnp.int32), M)  # [L] popped node of each child
@@ -116,10 +117,9 @@ def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> Se
     def body(c: _Carry) -> _Carry:
         s = c.stack
         start = s.size  # rows [size, size + K) are the top K rows
-        px = jax.lax.dynamic_slice_in_dim(s.x, start, K)  # [K, n]
-        pc = jax.lax.dynamic_slice_in_dim(s.cost, start, K)  # [K]
-        pmeta = jax.lax.dynamic_slice_in_dim(s.meta, start, K)  # [K, 1 + N]
-        pd, ppath = pmeta[:, 0], pmeta[:, 1:]
+        popped = jax.lax.dynamic_slice_in_dim(s.rows, start, K)  # [K, n + 2 + N]
+        px, pc = popped[:, :n].astype(x0.dtype), popped[:, n].astype(dtype)
+        pd, ppath = popped[:, n + 1].astype(jnp.int32), popped[:, n + 2:].astype(jnp.int32)
         depth = pd[K - 1]
         peer = pd == depth  # popped rows from the top batch (sentinels have depth -1)
         if prune:
@@ -145,14 +145,11 @@ def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> Se
         # Non-leaves below the incumbent: one sorted batch on top of the stack.
         keep = ok & (child_depth < N) & ((cost < best_cost) if prune else True)
         order, count = _descending_order(cost, keep)
-        col = jnp.arange(1 + N)[None, :]
-        child_meta = jnp.where(col == 0, child_depth, jnp.where(col == depth + 1, modes[order][:, None],
-                                                                 pmeta[parent[order]]))
-        at = K + size
+        child_path = jnp.where(jnp.arange(N)[None, :] == depth, modes[order][:, None], ppath[parent[order]])
+        block = jnp.concatenate([ch.x.reshape(L, n)[order].astype(wide), cost[order, None].astype(wide),
+                                 jnp.full((L, 1), child_depth, wide), child_path.astype(wide)], axis=1)
         new = Stack(
-            x=jax.lax.dynamic_update_slice_in_dim(s.x, ch.x.reshape(L, n)[order], at, 0),
-            cost=jax.lax.dynamic_update_slice_in_dim(s.cost, cost[order], at, 0),
-            meta=jax.lax.dynamic_update_slice_in_dim(s.meta, child_meta, at, 0),
+            rows=jax.lax.dynamic_update_slice_in_dim(s.rows, block, K + size, 0),
             level_base=jnp.where(levels == child_depth, size, s.level_base),
             size=size + count,
         )
@@ -161,13 +158,16 @@ def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> Se
             stack=new, best_cost=best_cost, best_path=best_path,
             nodes=c.nodes + M * jnp.sum(alive, dtype=jnp.int32),
             iterations=c.iterations + 1,
-            negative_cost=c.negative_cost | jnp.any(alive_m & ch.negative),
-            nan_encountered=c.nan_encountered | jnp.any(alive_m & ch.bad),
+            flags=c.flags | jnp.max(jnp.where(alive_m, _flags(ch.negative, ch.bad), 0)),
         )
 
     out = jax.lax.while_loop(lambda c: c.stack.size > 0, body, carry)
     return finish(problem.controls, out.best_cost, out.best_path, out.nodes, out.iterations,
-                  out.negative_cost, out.nan_encountered)
+                  (out.flags & 1) > 0, (out.flags & 2) > 0)
+
+
+def _flags(negative, nan):
+    return negative.astype(jnp.int32) | (nan.astype(jnp.int32) << 1)
 
 
 _search_jit = jax.jit(_search, static_argnames=("pop_width", "prune"))
