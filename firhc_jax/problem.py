@@ -236,7 +236,8 @@ def _check_callables(problem: Problem, x: jax.ShapeDtypeStruct):
     if problem.terminal is not None:
         t = _call_shape(problem.terminal, "terminal", "(x)", x)
         if not isinstance(t, jax.ShapeDtypeStruct) or t.shape != () or t.dtype != jnp.bool_:
-            desc = f"shape {tuple(t.shape)} dtype {t.dtype}" if isinstance(t, jax.ShapeDtypeStruct) else type(t).__name__
+            is_array = isinstance(t, jax.ShapeDtypeStruct)
+            desc = f"shape {tuple(t.shape)} dtype {t.dtype}" if is_array else type(t).__name__
             raise TypeError(f"terminal(x) must return a boolean scalar, got {desc}")
 
 

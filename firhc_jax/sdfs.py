@@ -22,8 +22,7 @@ depth-first search), so a time ratio between the two measures pruning alone.
 """
 from __future__ import annotations
 
-import functools
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
