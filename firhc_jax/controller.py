@@ -96,10 +96,14 @@ class FIRHC:
         result = self._search(self.problem, x, prev)
         if self._relaxed is None:
             return result, jnp.array(False)
-        relaxed = self._search(self._relaxed, x, prev)
-        use = ~result.feasible
-        chosen = jax.tree.map(lambda a, b: jnp.where(use, b, a), result, relaxed)
-        return chosen._replace(nodes=result.nodes + jnp.where(use, relaxed.nodes, 0)), use
+
+        def fall_back(_):  # only searched when needed (both run under vmap)
+            relaxed = self._search(self._relaxed, x, prev)
+            return relaxed._replace(nodes=result.nodes + relaxed.nodes), jnp.array(True)
+
+        if isinstance(result.feasible, jax.core.Tracer):
+            return jax.lax.cond(result.feasible, lambda _: (result, jnp.array(False)), fall_back, None)
+        return (result, jnp.array(False)) if bool(result.feasible) else fall_back(None)
 
     def __call__(self, x, previous_sequence=None) -> tuple[jax.Array, SearchResult]:
         """The FIRHC law: ``(u, result)`` with ``u = controls[sequence[0]]`` (eq. 4)."""
