@@ -1,0 +1,154 @@
+"""Hopping robot: physics of the plant and prediction model, desired energy, closed loop, CLI."""
+import dataclasses
+import json
+import math
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from firhc_jax import cli  # noqa: E402
+from firhc_jax.apps import hopper as app  # noqa: E402
+from firhc_jax.models import hopper as hm  # noqa: E402
+
+P = hm.HopperParams()
+CLOSED = jnp.zeros(2)  # both valves closed
+
+
+def test_orifice_constants_are_richer_hurmuzlu():
+    assert P.C1 == pytest.approx(0.040418, abs=1e-6)
+    assert P.C2 == pytest.approx(0.156174, abs=1e-6)
+    assert P.P_crit == pytest.approx(0.528, abs=1e-3)
+
+
+def test_orifice_flow_choked_below_critical_ratio_and_continuous():
+    Pu = 6e5
+    choked = P.C_f * P.A_v * P.C1 * Pu / math.sqrt(P.T)
+    for ratio in (0.1, 0.3, 0.5):  # choked: independent of the downstream pressure
+        assert float(hm.orifice_flow(Pu, ratio * Pu, P)) == pytest.approx(choked, rel=1e-12)
+    eps = 1e-9
+    below, above = (float(hm.orifice_flow(Pu, (P.P_crit + d) * Pu, P)) for d in (-eps, eps))
+    assert above == pytest.approx(below, rel=1e-6)
+    assert float(hm.orifice_flow(Pu, 0.9 * Pu, P)) < choked
+    assert float(hm.orifice_flow(Pu, Pu, P)) == 0.0
+    assert float(hm.orifice_flow(2e5, 3e5, P)) == -float(hm.orifice_flow(3e5, 2e5, P))
+
+
+def test_stance_stiffness_matches_desired_gait():
+    gait = hm.desired_energy(0.4, 0.2, P)
+    assert P.stance_stiffness() == pytest.approx(P.M * (math.pi / gait.T2) ** 2, rel=0.01)
+
+
+def test_desired_energy_paper_example():
+    gait = hm.desired_energy(0.4, 0.2, P)
+    assert gait.T2 == pytest.approx(0.161, abs=1e-3)
+    assert gait.xdot_t1 == pytest.approx(0.981)
+    assert gait.x_t1 == pytest.approx((P.M + P.m) * P.g / (P.M * (math.pi / gait.T2) ** 2))
+    Pa, Pb = hm.nominal_pressures(gait.x_t1, P)
+    assert gait.E_d == pytest.approx(float(hm.energy(gait.x_t1, gait.xdot_t1, Pa, Pb, P)))
+    with pytest.raises(ValueError, match="T_air < T_hop"):
+        hm.desired_energy(0.2, 0.4, P)
+
+
+def test_orbit_energy_of_static_charge_is_eq20():
+    """For the static charge the controller's E_d is eq. (20) at the exact lift-off stroke."""
+    static = jnp.array([0.0, 0.0, P.P_a0, P.P_b0])
+    x1 = float(hm.liftoff_stroke(P.P_a0 * P.V_mida**P.gamma, P.P_b0 * P.V_midb**P.gamma, P))
+    Pa, Pb = hm.nominal_pressures(x1, P)
+    assert float(hm.piston_force(Pa, Pb, P)) == pytest.approx(-P.m * P.g, abs=1e-9)
+    assert float(hm.orbit_energy(static, 0.981, P)) == pytest.approx(float(hm.energy(x1, 0.981, Pa, Pb, P)))
+    assert x1 == pytest.approx(hm.desired_energy(0.4, 0.2, P).x_t1, rel=0.02)  # eq. (18) linearises
+
+
+def _stance_start():
+    """Standing still, body pushed down at 0.5 m/s: a stance oscillation that never lifts the foot."""
+    X = hm.static_state(P)
+    X[1] = -0.5
+    return jnp.asarray(X)
+
+
+def test_plant_energy_conserved_over_a_stance():
+    p = dataclasses.replace(P, b=0.0, b_ground=0.0)
+    steps = int(round(2 * 0.1615 / 5e-5))  # a full stance oscillation
+    traj = jax.jit(hm.simulate_open_loop, static_argnums=(2, 3, 4))(_stance_start(), CLOSED, p, 5e-5, steps)
+    assert np.all(np.asarray(traj[:, 2]) < 0), "the foot must stay on the ground (no impact)"
+    E = np.asarray(hm.plant_energy(traj, p))
+    assert np.max(np.abs(E - E[0])) / E[0] < 1e-6
+    s = np.asarray(traj[:, 0] - traj[:, 2])
+    assert s.min() < -0.02 and s.max() > 0.02  # it really oscillated
+
+
+def test_prediction_model_conserves_eq6():
+    z = jnp.array([0.0, -0.9, P.P_a0, P.P_b0, 0.0])
+    E0 = float(hm.model_energy(z, P))
+    step = jax.jit(lambda z: hm.model_step(z, CLOSED, P, 0.005, 5))
+    for _ in range(int(round(0.1615 / 0.005))):  # a compression period
+        z = step(z)
+        assert float(z[4]) == 0.0
+    assert abs(float(hm.model_energy(z, P)) - E0) / E0 < 1e-6
+
+
+def test_free_fall_lands_at_analytic_time():
+    """Dropped at rest with the springs at their flight equilibrium, body and foot fall together."""
+    h, dt = 0.05, 5e-5
+    traj = np.asarray(jax.jit(hm.simulate_open_loop, static_argnums=(2, 3, 4))(
+        jnp.asarray(hm.apex_state(P, h)), CLOSED, P, dt, 2200))
+    t = np.arange(len(traj)) * dt
+    airborne = traj[:, 2] > 0
+    last = np.nonzero(airborne)[0][-1]  # the plant step in which the foot lands is (last, last + 1]
+    t_land = math.sqrt(2 * h / P.g)
+    assert t[last] < t_land <= t[last + 1]
+    assert np.all(airborne[: last + 1])
+    np.testing.assert_allclose(traj[: last + 1, 2], h - P.g * t[: last + 1] ** 2 / 2, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(traj[: last + 1, 0] - traj[: last + 1, 2], hm.flight_stroke(P), rtol=0, atol=1e-12)
+
+
+def test_static_equilibrium_is_an_equilibrium():
+    X = jnp.asarray(hm.static_state(P))
+    rhs = np.asarray(hm.plant_rhs(X, CLOSED, P))
+    assert np.all(np.abs(rhs[:4]) < 1e-9) and np.all(np.abs(rhs[4:]) < 1e-6)
+    traj = np.asarray(jax.jit(hm.simulate_open_loop, static_argnums=(2, 3, 4))(X, CLOSED, P, 5e-5, 4000))
+    assert np.max(np.abs(traj - np.asarray(X))[:, :4]) < 1e-12
+
+
+def test_closed_loop_sdfs_equals_exhaustive_and_hops():
+    # Horizon 4 keeps the exhaustive closed loop's compile short; docs/hopper.md reports N = 5-8.
+    runs = {s: app.simulate(0.6, 4, s, progress=False) for s in ("sdfs", "exhaustive")}
+    np.testing.assert_array_equal(runs["sdfs"].X, runs["exhaustive"].X)
+    np.testing.assert_array_equal(runs["sdfs"].cmd, runs["exhaustive"].cmd)
+    r = runs["sdfs"]
+    m = app.hop_metrics(r)
+    assert len(m["t_air"]) == 1 and m["t_air"][0] == pytest.approx(0.2, rel=0.05)
+    assert np.all(r.solved)
+    assert np.max(np.abs(r.X[:, 0] - r.X[:, 2])) < P.stroke / 2
+    assert np.all(r.nodes[r.contact] <= 3 + 9 + 27 + 81)
+
+
+def test_cli_writes_summary_and_figures(tmp_path):
+    out = tmp_path / "hop"
+    # Horizon 4 and 0.6 s reuse the closed loop compiled by the test above.
+    assert cli.main(["hopper", "--horizon", "4", "--seconds", "0.6", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    for key in ("T2", "E_d", "t_hop_mean", "t_air_mean", "hops", "infeasible_steps", "nodes_min", "nodes_max",
+                "nodes_mean", "solve_time_mean_s", "horizon", "solver"):
+        assert key in summary, key
+    assert summary["horizon"] == 4 and summary["solver"] == "sdfs" and summary["hops"] == 1
+    assert summary["T2"] == pytest.approx(0.161, abs=1e-3)
+    assert len(list(out.glob("hopper_fig*.png"))) == 5
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--horizon", "0"], "horizon must be between"),
+    (["--horizon", "six"], "horizon must be an integer"),
+    (["--seconds", "-1"], "seconds must be between"),
+    (["--seconds", "nan"], "seconds must be between"),
+    (["--solver", "greedy"], "invalid choice"),
+])
+def test_cli_rejects_bad_input(argv, message, capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["hopper", *argv])
+    assert message in capsys.readouterr().err
