@@ -1,0 +1,179 @@
+"""fj.solve_batch: exactness per row, parameters, validation, memory, retracing."""
+import itertools
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import firhc_jax as fj
+from firhc_jax.batch import row_memory, solve_batch
+from random_problems import make
+
+SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
+
+
+def states(seed, B, n, scale=1.0):
+    return jnp.asarray(np.random.default_rng(seed).uniform(-scale, scale, (B, n)))
+
+
+def same_cost(a, b):
+    """Equal up to the last bits: vectorised transcendentals may round differently
+    between batch shapes, so a cost can differ from NumPy's by an ulp."""
+    a, b = float(a), float(b)
+    return np.isinf(a) and np.isinf(b) or np.isclose(a, b, rtol=1e-12, atol=0)
+
+
+def rollout(rp, x0, seq):
+    """NumPy cost of one sequence of a random problem (inf if it misses the terminal set)."""
+    x, cost = np.asarray(x0, float), 0.0
+    for i in seq:
+        x = rp.dynamics(x, rp.controls[i], xp=np)
+        cost += rp.stage_cost(x, rp.controls[i], xp=np)
+    return cost if rp.radius is None or rp.terminal(x, xp=np) else np.inf
+
+
+def assert_exact(rp, X0, batch):
+    """Per row: the NumPy brute force's optimal cost and feasibility, and the
+    returned sequence really has that cost (ties may pick another optimum)."""
+    for b in range(len(X0)):
+        ref_cost, _ = rp.brute_force(X0[b])
+        assert same_cost(batch.cost[b], ref_cost), (b, float(batch.cost[b]), ref_cost)
+        assert bool(batch.feasible[b]) == np.isfinite(ref_cost), b
+        if np.isfinite(ref_cost):
+            assert same_cost(rollout(rp, X0[b], np.asarray(batch.sequence[b])), ref_cost), b
+            np.testing.assert_array_equal(batch.first_input[b], rp.controls[int(batch.sequence[b][0])])
+        else:
+            assert np.all(np.asarray(batch.sequence[b]) == -1)
+
+
+@pytest.mark.parametrize("seed, n, m, M, N, terminal", [
+    (0, 3, 2, 5, 4, "loose"), (1, 2, 1, 4, 5, "tight"), (2, 3, 1, 6, 3, "none")])
+def test_exact_per_row(seed, n, m, M, N, terminal):
+    rp = make(seed, n, m, M, N, terminal)
+    p, X0 = rp.problem(), states(seed, 9, n)
+    for solver in SOLVERS:
+        batch = solve_batch(p, X0, solver=solver)
+        assert batch.cost.shape == (9,) and batch.sequence.shape == (9, N)
+        assert_exact(rp, np.asarray(X0), batch)
+    if terminal == "tight":
+        assert not np.all(batch.feasible) and np.any(batch.feasible)  # both cases were exercised
+
+
+# ---------------------------------------------------------------- parameters
+CONTROLS = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
+
+
+def param_dynamics(x, u, p, xp=jnp):
+    return xp.stack([x[..., 0] + 0.2 * x[..., 1], 0.9 * x[..., 1] + 0.2 * u - 0.05 * xp.sin(x[..., 0])], -1)
+
+
+def param_problem(N=4):
+    """Tracking problem whose set point ``p["r"]`` and input weight ``p["w"]`` are parameters."""
+    return fj.Problem(lambda x, u, p: param_dynamics(x, u[0], p), jnp.asarray(CONTROLS),
+                      lambda x, u, p: jnp.sum((x - p["r"]) ** 2) + p["w"] * u[0] ** 2, N,
+                      lambda x, p: jnp.abs(x[0] - p["r"][0]) < 0.4)
+
+
+def param_brute_force(x0, r, w, N=4):
+    """NumPy optimum of ``param_problem`` for one parameter set, over all M^N sequences."""
+    seqs = np.array(list(itertools.product(range(len(CONTROLS)), repeat=N)))
+    x, cost = np.broadcast_to(np.asarray(x0, float), (len(seqs), 2)), np.zeros(len(seqs))
+    for t in range(N):
+        u = CONTROLS[seqs[:, t]]
+        x = param_dynamics(x, u, None, xp=np)
+        cost = cost + np.sum((x - r) ** 2, axis=-1) + w * u**2
+    return np.min(np.where(np.abs(x[:, 0] - r[0]) < 0.4, cost, np.inf))
+
+
+def test_params_give_each_row_its_set_point():
+    prob = param_problem()
+    B = 7
+    rng = np.random.default_rng(3)
+    params = {"r": jnp.asarray(rng.uniform(-0.5, 0.5, (B, 2))), "w": jnp.asarray(rng.uniform(0, 0.3, B))}
+    X0 = jnp.zeros((B, 2))  # same state, different set points: only params tell rows apart
+    for solver in SOLVERS:
+        batch = solve_batch(prob, X0, solver=solver, params=params)
+        assert np.all(batch.feasible) and len(set(np.asarray(batch.cost).tolist())) == B
+        for b in range(B):
+            ref = param_brute_force(X0[b], np.asarray(params["r"][b]), float(params["w"][b]))
+            assert same_cost(batch.cost[b], ref), (solver, b)
+
+
+def test_params_compile_once_for_any_values():
+    prob = param_problem()
+    traces = []
+    counted = fj.Problem(lambda x, u, p: (traces.append(1), prob.dynamics(x, u, p))[1], prob.controls,
+                         prob.stage_cost, prob.horizon, prob.terminal)
+    rng = np.random.default_rng(4)
+
+    def run(B):
+        params = {"r": jnp.asarray(rng.uniform(-1, 1, (B, 2))), "w": jnp.asarray(rng.uniform(0, 0.3, B))}
+        return solve_batch(counted, jnp.asarray(rng.uniform(-1, 1, (B, 2))), params=params)
+
+    run(5)
+    after_first = len(traces)
+    run(5)
+    assert len(traces) == after_first  # new states and parameter values: no retrace
+
+
+def test_no_retrace_on_second_call():
+    rp = make(5, 2, 1, 4, 3, "loose")
+    traces = []
+    p = fj.Problem(lambda x, u: (traces.append(1), rp.dynamics(x, u))[1], jnp.asarray(rp.controls),
+                   lambda x, u: rp.stage_cost(x, u), rp.N, lambda x: rp.terminal(x))
+    for solver in SOLVERS:
+        solve_batch(p, states(0, 6, 2), solver=solver)
+        after_first = len(traces)
+        second = solve_batch(p, states(1, 6, 2), solver=solver)
+        assert len(traces) == after_first, solver
+        assert second.cost.shape == (6,)
+
+
+# ---------------------------------------------------------------- validation
+def test_bad_input_is_refused_clearly():
+    p = make(0, 3, 2, 4, 3, "none").problem()
+    X0 = states(0, 4, 3)
+    with pytest.raises(ValueError, match=r"\[B, n\]"):
+        solve_batch(p, X0[0])
+    with pytest.raises(ValueError, match="empty batch"):
+        solve_batch(p, jnp.zeros((0, 3)))
+    with pytest.raises((TypeError, ValueError), match=r"dynamics\(x, u\) failed on inputs of shape"):
+        solve_batch(p, states(0, 4, 2))  # n does not match dynamics
+    with pytest.raises(TypeError, match="floating"):
+        solve_batch(p, jnp.zeros((4, 3), jnp.int32))
+    with pytest.raises(ValueError, match=r"NaN or inf in rows \[2\]"):
+        solve_batch(p, X0.at[2, 1].set(jnp.nan))
+    with pytest.raises(ValueError, match="solver must be one of"):
+        solve_batch(p, X0, solver="dfs")
+    with pytest.raises(ValueError, match="pop_width"):
+        solve_batch(p, X0, pop_width=0)
+    with pytest.raises(ValueError, match="max_memory"):
+        solve_batch(p, X0, max_memory=0)
+
+
+def test_bad_params_are_refused_clearly():
+    prob = param_problem()
+    X0 = jnp.zeros((4, 2))
+    good = {"r": jnp.zeros((4, 2)), "w": jnp.zeros(4)}
+    with pytest.raises(ValueError, match=r"\['w'\] must have leading axis B = 4"):
+        solve_batch(prob, X0, params={"r": good["r"], "w": jnp.zeros(3)})
+    with pytest.raises(ValueError, match="leading axis"):
+        solve_batch(prob, X0, params={"r": good["r"], "w": jnp.float64(0.1)})
+    with pytest.raises(TypeError, match="dynamics"):
+        solve_batch(make(0, 2, 1, 3, 3).problem(), X0, params=good)  # callables without p
+    with pytest.raises(ValueError, match="no array leaves"):
+        solve_batch(prob, X0, params={})
+
+
+# ---------------------------------------------------------------- memory
+@pytest.mark.parametrize("solver", ("sdfs-vmap", "exhaustive"))
+def test_memory_limit_chunks_or_refuses(solver):
+    p = make(6, 3, 1, 5, 4, "loose").problem()
+    X0 = states(6, 10, 3)
+    whole = solve_batch(p, X0, solver=solver)
+    one_row = row_memory(p, 3, X0.dtype.itemsize, solver)
+    chunked = solve_batch(p, X0, solver=solver, max_memory=3 * one_row)  # chunks of 3 rows, last one short
+    for field in ("cost", "sequence", "nodes", "feasible"):
+        np.testing.assert_array_equal(getattr(chunked, field), getattr(whole, field))
+    with pytest.raises(ValueError, match="max_memory"):
+        solve_batch(p, X0, solver=solver, max_memory=one_row - 1)
