@@ -24,6 +24,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, PartitionSpec
 
 from .exhaustive import DEFAULT_CHUNK_NODES, exhaustive, plan
 from .problem import Problem, check_state
@@ -188,17 +189,43 @@ def _per_row(problem: Problem, solver: str, pop_width: int, chunk_nodes: int) ->
     return lambda x: sdfs(problem, x, pop_width=pop_width)
 
 
-def _solve(problem: Problem, X, solver: str, pop_width: int, chunk_nodes: int, rows_per_chunk: int) -> SearchResult:
-    """``[B, n]`` -> batched ``SearchResult``: a vmapped per-row search over
-    chunks of ``rows_per_chunk`` rows."""
-    return jax.lax.map(_per_row(problem, solver, pop_width, chunk_nodes), X, batch_size=rows_per_chunk)
+def _solve(problem: Problem, X, mesh: Mesh, solver: str, pop_width: int, chunk_nodes: int,
+           rows_per_chunk: int) -> SearchResult:
+    """``[B, n]`` -> batched ``SearchResult``. The rows are padded to a multiple
+    of the device count (repeating the last row) and split over ``mesh``; each
+    device runs its share independently (no communication inside the search):
+    a vmapped per-row search over chunks of ``rows_per_chunk`` rows."""
+    B, devices = X.shape[0], mesh.devices.size
+    pad = -B % devices
+    if pad:
+        X = jnp.concatenate([X, jnp.broadcast_to(X[-1], (pad, X.shape[1]))])
+    one = _per_row(problem, solver, pop_width, chunk_nodes)
+    # check_vma=False: the searches start their loop carries from constants
+    # (not device-varying), which the varying-axes check would refuse.
+    shard = jax.shard_map(lambda Xs: jax.lax.map(one, Xs, batch_size=rows_per_chunk), mesh=mesh,
+                          in_specs=PartitionSpec(_AXIS), out_specs=PartitionSpec(_AXIS), check_vma=False)
+    out = shard(X)
+    return jax.tree_util.tree_map(lambda a: a[:B], out) if pad else out
 
 
-_solve_jit = jax.jit(_solve, static_argnames=("solver", "pop_width", "chunk_nodes", "rows_per_chunk"))
+_solve_jit = jax.jit(_solve, static_argnames=("mesh", "solver", "pop_width", "chunk_nodes", "rows_per_chunk"))
+
+
+_AXIS = "rows"
+
+
+def _mesh(devices) -> Mesh:
+    """1-D mesh over ``devices`` (default: every local device). Meshes over the
+    same devices compare equal, so the compiled batch is reused."""
+    devices = list(jax.local_devices() if devices is None else devices)
+    if not devices:
+        raise ValueError("devices is empty; pass None for all local devices")
+    return Mesh(np.array(devices), (_AXIS,))
 
 
 def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_width: int = 1,
-                chunk_nodes: int = DEFAULT_CHUNK_NODES, max_memory: int = DEFAULT_MAX_MEMORY) -> SearchResult:
+                chunk_nodes: int = DEFAULT_CHUNK_NODES, max_memory: int = DEFAULT_MAX_MEMORY,
+                devices=None) -> SearchResult:
     """Solve ``problem`` from every row of ``X0``; exact per row.
 
     Args:
@@ -212,8 +239,10 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         ``params[b]``, one compiled call for all rows.
       pop_width: K of the sDFS solvers (nodes popped per row per iteration).
       chunk_nodes: per-row ``chunk_nodes`` of ``"exhaustive"``.
-      max_memory: bytes the batch may use at once (estimate, see
-        ``row_memory``); larger batches are solved in chunks of rows.
+      max_memory: bytes the batch may use at once on each device (estimate,
+        see ``row_memory``); larger batches are solved in chunks of rows.
+      devices: the devices to split the rows over (default: all local
+        devices, ``jax.local_devices()``); one device runs everything.
 
     Returns a ``SearchResult`` with leading axis B on every field. Un-jitted, a
     negative stage cost in any row raises ``ValueError`` (as ``fj.sdfs``).
@@ -230,9 +259,10 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         _check_with_params(problem, layout, X[0], layout.unflatten(flat[0]))
         problem, X = _augmented(problem, layout, n), jnp.concatenate([X, flat], axis=1)
     check_state(problem, X[0])
+    mesh = _mesh(devices)
     if solver == "sdfs":
         solver = "sdfs-vmap"
     need = row_memory(problem, X.shape[1], X.dtype.itemsize, solver, pop_width, chunk_nodes)
-    rows = _rows_per_chunk(need, B, max_memory, f"one row of solver={solver!r}")
-    return raise_on_errors(_solve_jit(problem, X, solver=solver, pop_width=pop_width, chunk_nodes=chunk_nodes,
-                                      rows_per_chunk=rows))
+    rows = _rows_per_chunk(need, -(-B // mesh.devices.size), max_memory, f"one row of solver={solver!r}")
+    return raise_on_errors(_solve_jit(problem, X, mesh=mesh, solver=solver, pop_width=pop_width,
+                                      chunk_nodes=chunk_nodes, rows_per_chunk=rows))

@@ -1,5 +1,9 @@
 """fj.solve_batch: exactness per row, parameters, validation, memory, retracing."""
 import itertools
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
@@ -177,3 +181,39 @@ def test_memory_limit_chunks_or_refuses(solver):
         np.testing.assert_array_equal(getattr(chunked, field), getattr(whole, field))
     with pytest.raises(ValueError, match="max_memory"):
         solve_batch(p, X0, solver=solver, max_memory=one_row - 1)
+
+
+# ---------------------------------------------------------------- devices
+FOUR_DEVICES = """
+import jax, numpy as np
+jax.config.update("jax_enable_x64", True)
+from firhc_jax.batch import solve_batch
+from random_problems import make
+assert jax.local_device_count() == 4, jax.local_devices()
+rp = make(7, 3, 1, 5, 4, "loose")
+p = rp.problem()
+for B in (12, 10):  # 10: padded to 12 rows, three per device
+    X0 = np.random.default_rng(B).uniform(-1, 1, (B, 3))
+    for solver in SOLVERS:
+        one = solve_batch(p, X0, solver=solver, devices=jax.local_devices()[:1])
+        four = solve_batch(p, X0, solver=solver)
+        if B == 12:
+            assert len(four.cost.sharding.device_set) == 4, four.cost.sharding  # the rows were split
+        for field in ("sequence", "nodes", "feasible", "first_input"):
+            np.testing.assert_array_equal(getattr(one, field), getattr(four, field), err_msg=f"{solver} {field}")
+        # Same sequences; their costs may differ in the last bit where XLA vectorises
+        # a transcendental differently for 3 and 12 rows per device.
+        np.testing.assert_allclose(one.cost, four.cost, rtol=1e-14, atol=0, err_msg=solver)
+        assert np.any(one.feasible), solver
+print("same on 1 and 4 devices")
+"""
+
+
+def test_four_host_devices_give_the_same_results():
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
+               PYTHONPATH=os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")]))
+    script = f"SOLVERS = {SOLVERS!r}\n" + FOUR_DEVICES
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env,
+                         cwd=Path(__file__).parent.parent)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "same on 1 and 4 devices" in out.stdout
