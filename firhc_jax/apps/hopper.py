@@ -13,8 +13,9 @@ The robot is dropped from rest at the apex of the specified flight (foot at
 * FIRHC, cost (24): ``(E - E_d)^2 + 0.1 (xdot - xdot_d)^2 + 10 u^2`` per
   step, ``u`` in {-0.01, 0, 0.01} (exhaust, closed, supply), terminal
   constraint ``|E(k+N) - E_d| <= 0.02 J``, prediction by the frictionless
-  contact model (``firhc_jax.models.hopper.model_step``). Two deviations from
-  the paper, both measured and explained in ``docs/hopper.md``:
+  contact model (``firhc_jax.models.hopper.model_step``), which stops at a
+  predicted lift-off. Two deviations from the paper, both measured and
+  explained in ``docs/hopper.md``:
 
   - ``E_d`` is eq. (20) evaluated for the air now in the chambers
     (``orbit_energy``), not a constant: E is ~96% stored air energy, and a
@@ -195,9 +196,10 @@ def _require_x64():
 
 
 def simulate(seconds: float = 2.0, horizon: int = 6, solver: str = "sdfs",
-             params: hm.HopperParams = hm.HopperParams(), progress: bool = True) -> Run:
+             params: hm.HopperParams | None = None, progress: bool = True) -> Run:
     """Closed loop from the apex drop for ``seconds`` (rounded to whole control periods)."""
     _require_x64()
+    params = params or hm.HopperParams()
     if solver not in SOLVERS:
         raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
     steps = max(1, int(round(seconds / CONTROL_PERIOD)))
@@ -216,9 +218,10 @@ def _decide_fn(params: hm.HopperParams, horizon: int, solver: str):
     return jax.jit(functools.partial(decide, controller(params, horizon), solver))
 
 
-def solve_times(run: Run, horizon: int, solver: str, params: hm.HopperParams = hm.HopperParams(),
+def solve_times(run: Run, horizon: int, solver: str, params: hm.HopperParams | None = None,
                 progress: bool = True) -> np.ndarray:
     """Wall time (s) of one compiled control decision for each recorded contact state, solved one by one."""
+    params = params or hm.HopperParams()
     fn = _decide_fn(params, horizon, solver)
     states = run.z[run.contact]  # [C, 5]
     if len(states) == 0:
@@ -263,7 +266,7 @@ def hop_metrics(run: Run) -> dict:
     # Compression periods: stroke below mid-position while on the ground, between complete stances.
     t2 = []
     later = liftoff[np.searchsorted(liftoff, touchdown[0]):] if len(touchdown) else []
-    for td, lo in zip(touchdown, later):
+    for td, lo in zip(touchdown, later, strict=False):  # the last stance may be incomplete
         sel = (run.t >= td) & (run.t <= lo)
         t2.append(np.count_nonzero(stroke[sel] <= 0) * PLANT_DT)
     return dict(liftoff=liftoff, touchdown=touchdown, t_air=t_air, t_hop=t_hop, t2=np.array(t2))
@@ -287,8 +290,8 @@ def summarize(run: Run, metrics: dict, times: np.ndarray, horizon: int, solver: 
     nodes = run.nodes[c]
     stroke = run.X[:, 0] - run.X[:, 2]
 
-    def mean(a):
-        return float(np.mean(a)) if len(a) else float("nan")
+    def mean(a):  # None (JSON null) when there is nothing to average
+        return float(np.mean(a)) if len(a) else None
 
     return dict(
         T2=ctrl.gait.T2, E_d=ctrl.gait.E_d, x_t1=ctrl.gait.x_t1, xdot_t1=ctrl.gait.xdot_t1,
@@ -299,9 +302,10 @@ def summarize(run: Run, metrics: dict, times: np.ndarray, horizon: int, solver: 
         infeasible_steps=int(np.count_nonzero(~run.feasible[c])), unsolved_steps=int(np.count_nonzero(~run.solved[c])),
         contact_steps=int(np.count_nonzero(c)), control_steps=int(len(c)),
         nodes_min=int(nodes.min()) if len(nodes) else 0, nodes_max=int(nodes.max()) if len(nodes) else 0,
-        nodes_mean=mean(nodes), tree_size=ctrl.problem.tree_size(),
+        nodes_mean=mean(nodes), nodes_max_feasible=int(nodes[run.feasible[c]].max(initial=0)),
+        tree_size=ctrl.problem.tree_size(),
         fallback_nodes_mean=mean(run.fallback_nodes[c][~run.feasible[c]]),
-        solve_time_mean_s=mean(times), solve_time_max_s=float(times.max()) if len(times) else float("nan"),
+        solve_time_mean_s=mean(times), solve_time_max_s=float(times.max()) if len(times) else None,
         valve_a_charges=int(np.count_nonzero(run.cmd[:, 0] > 0)),
         valve_b_supply=int(np.count_nonzero(run.cmd[:, 1] > 0)),
         valve_b_exhaust=int(np.count_nonzero(run.cmd[:, 1] < 0)),
@@ -433,9 +437,13 @@ def run(args) -> int:
     figures(result, params, args.horizon, args.out)
     with open(os.path.join(args.out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=2)
-    print(f"hops {summary['hops']}  T_hop {summary['t_hop_mean']:.4f} s  T_air {summary['t_air_mean']:.4f} s  "
-          f"(spec {T_HOP} / {T_AIR})  infeasible {summary['infeasible_steps']}/{summary['contact_steps']}  "
-          f"nodes {summary['nodes_min']}/{summary['nodes_max']}/{summary['nodes_mean']:.0f} (min/max/mean)  "
-          f"solve {1e3 * summary['solve_time_mean_s']:.2f} ms/step")
+    def fmt(value, spec, scale=1.0):
+        return "n/a" if value is None else format(scale * value, spec)
+
+    print(f"hops {summary['hops']}  T_hop {fmt(summary['t_hop_mean'], '.4f')} s  "
+          f"T_air {fmt(summary['t_air_mean'], '.4f')} s  (spec {T_HOP} / {T_AIR})  "
+          f"infeasible {summary['infeasible_steps']}/{summary['contact_steps']}  "
+          f"nodes {summary['nodes_min']}/{summary['nodes_max']}/{fmt(summary['nodes_mean'], '.0f')} (min/max/mean)  "
+          f"solve {fmt(summary['solve_time_mean_s'], '.2f', 1e3)} ms/step")
     print(f"wrote {args.out}/summary.json and hopper_fig4..8 PNGs")
     return 0

@@ -14,10 +14,11 @@ Plant state ``[6]``: ``[x, xdot, y, ydot, P_a, P_b]`` (m, m/s, m, m/s, Pa, Pa;
 pressures absolute). Motion eqs. (21)-(22) with viscous seal friction, ground
 eq. (23), adiabatic pressure eqs. (13)-(14), orifice flow eq. (15).
 
-Prediction model state ``[4]``: ``[x, xdot, P_a, P_b]``, the loss-free contact
-model of eqs. (7), (13)-(15) with the foot on the ground (``y = 0``, so ``x``
-is the stroke). It is what the controller predicts with; friction is absent on
-purpose (the controller must hold the energy despite it, as in the paper).
+Prediction model state ``[5]``: ``[x, xdot, P_a, P_b, airborne]``, the
+loss-free contact model of eqs. (7), (13)-(15) with the foot on the ground
+(``y = 0``, so ``x`` is the stroke), frozen once the foot would lift off. It is
+what the controller predicts with; friction is absent on purpose (the
+controller must hold the energy despite it, as in the paper).
 
 All functions are elementwise arithmetic (no matmuls), so a search gives the
 same bits for the same sequence whatever its batch size.
@@ -55,7 +56,7 @@ class HopperParams:
     two springs cancelling so the stance oscillation is as harmonic as eqs.
     (17)-(18) assume. ``stance_stiffness`` checks the first condition. The
     orifice is sized so that exhausting b near the bottom of the stance can
-    replace the ~0.2 J the seal friction takes per stance (about 12 mg of air
+    replace the ~0.3 J the seal friction takes per stance (about 12 mg of air
     per stance at a few tens of ms of opening).
     """
 
