@@ -1,0 +1,38 @@
+"""Smoke test of ``python -m firhc_jax bench throughput --quick`` and of the tables' bookkeeping."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+from firhc_jax.apps import bench
+
+
+def test_throughput_quick_writes_tables_csv_and_plots(tmp_path):
+    out = tmp_path / "bench"
+    proc = subprocess.run([sys.executable, "-m", "firhc_jax", "bench", "throughput", "--quick", "--out", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = json.loads((out / "throughput.json").read_text())
+    searches = {r["search"] for r in rows}
+    assert {"sdfs", "sdfs K=2", "exhaustive dfs", "exhaustive levels", "vmap sdfs"} <= searches
+    assert all(r["nodes_per_s"] > 0 for r in rows if "nodes_per_s" in r)
+    for name in ("throughput.md", "throughput.csv", "throughput.png", "time_vs_horizon.png"):
+        assert (out / name).stat().st_size > 0
+
+
+def test_exhaustive_subset_respects_the_node_budget():
+    case = bench.synthetic_case(3, count=40)
+    rows = bench.subset(case, max_nodes=case.problem.tree_size() * 7.5)
+    assert len(rows) == 7 and rows[0] == 0 and rows[-1] == 39
+    assert len(bench.subset(case, max_nodes=1)) == 1
+
+
+def test_table_row_on_a_small_case():
+    case = bench.synthetic_case(3, count=3)
+    row = bench.table_row(case, repeats=1, max_es_nodes=1e9)
+    assert row["A"] == case.problem.tree_size() and row["es_steps"] == row["steps"] == 3
+    assert row["B_min"] <= row["B_mean"] <= row["B_max"] <= row["A"]
+    assert 0 < row["C_dfs_pct"] and 0 < row["C_levels_pct"]
+    assert row["best_pop_width"] in bench.POP_WIDTHS
+    np.testing.assert_array_equal(case.reference.shape, (3, 3))
