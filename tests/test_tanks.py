@@ -61,7 +61,7 @@ def test_rk4_sample_matches_a_tight_ode_solve():
     h, modes = _grid(np.vstack([rng.uniform(0.0, 0.55, (6, 3)), [model.SET_POINT, model.INITIAL_LEVELS]]))
     h_next, _ = PLANT(jnp.asarray(h), jnp.asarray(modes))
     coeffs = model.mode_coefficients(P)
-    for h0, m, got in zip(h, modes, np.asarray(h_next)):
+    for h0, m, got in zip(h, modes, np.asarray(h_next), strict=True):
         ref = solve_ivp(_rhs, (0.0, P.ts), h0, args=(coeffs[m],), method="LSODA", rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(got, np.clip(ref.y[:, -1], 0.0, P.height), rtol=0, atol=1e-5)
 

@@ -184,8 +184,8 @@ def tables_markdown(rows: list[dict]) -> str:
                 f"| {r['N']} | {r['A']:,} ({pa:,}) | {r['B_max']:,}/{r['B_min']:,} ({pbmax:,}/{pbmin:,}) | "
                 f"{r['B_mean']:.0f} | {r['C_dfs_pct']:.2f}% ({pcs}) | {r['C_levels_pct']:.2f}% | {r['sdfs_ms']:.3f} | "
                 f"{r['dfs_ms']:.2f} | {r['levels_ms']:.2f} | {r['us_per_iteration']:.2f} | "
-                f"{r['warm_nodes_mean']:.0f} / {r['warm_ms']:.3f} | {r['best_pop_width']} ({r['best_pop_width_ms']:.3f}) | "
-                f"{r['es_steps']}/{r['steps']} |")
+                f"{r['warm_nodes_mean']:.0f} / {r['warm_ms']:.3f} | "
+                f"{r['best_pop_width']} ({r['best_pop_width_ms']:.3f}) | {r['es_steps']}/{r['steps']} |")
         lines.append("")
     lines += [
         "A: exhaustive nodes per step (checked equal to the nodes both exhaustive searches computed). "
