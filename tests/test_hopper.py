@@ -142,10 +142,10 @@ def test_cli_writes_summary_and_figures(tmp_path):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--horizon", "0"], "horizon must be between"),
-    (["--horizon", "six"], "horizon must be an integer"),
-    (["--seconds", "-1"], "seconds must be between"),
-    (["--seconds", "nan"], "seconds must be between"),
+    (["--horizon", "0"], "--horizon: must be an integer between 1 and 10"),
+    (["--horizon", "six"], "--horizon: must be an integer"),
+    (["--seconds", "-1"], "--seconds: must be a number between"),
+    (["--seconds", "nan"], "--seconds: must be a number between"),
     (["--solver", "greedy"], "invalid choice"),
 ])
 def test_cli_rejects_bad_input(argv, message, capsys):

@@ -146,7 +146,7 @@ def test_cli_writes_summary_and_figure(tmp_path):
     (["--horizon", "0"], "between 1 and"),
     (["--horizon", "three"], "must be an integer"),
     (["--solver", "bfs"], "invalid choice"),
-    (["--seconds", "-5"], "positive"),
+    (["--seconds", "-5"], "--seconds: must be a number > 0"),
     (["--switch-penalty", "-1"], ">= 0"),
 ])
 def test_cli_rejects_bad_input(argv, message, capsys):

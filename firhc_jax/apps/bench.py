@@ -25,6 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._args import number
+
 # The paper's figures: Point A, Point B max/min, Point C (sDFS time / ES time, %).
 PAPER = {
     "hopper": {5: (363, 363, 15, 7.0), 6: (1092, 1044, 18, 4.1), 7: (3279, 2208, 21, 2.3), 8: (9840, 4380, 24, 1.1)},
@@ -366,11 +368,6 @@ def _write(out: Path, stem: str, markdown: str, rows: list[dict]) -> None:
     print(f"wrote {out / (stem + '.md')}, .json, .csv")
 
 
-def _positive_int(text):
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
 
 
 def register(subparsers) -> None:
@@ -382,7 +379,7 @@ def register(subparsers) -> None:
         q = sub.add_parser(name, help=help_, description=help_)
         q.add_argument("--quick", action="store_true", help="a smoke run in seconds (short runs, few cases)")
         q.add_argument("--out", type=Path, default=Path(f"out/bench-{name}"), help="output folder")
-        q.add_argument("--repeats", type=_positive_int, default=3, help="timing repeats, median taken (default 3)")
+        q.add_argument("--repeats", type=number(int, 1), default=3, help="timing repeats, median taken (default 3)")
         q.add_argument("--max-es-nodes", type=float, default=3e7,
                        help="exhaustive searches are timed on evenly spaced steps visiting at most this many "
                             "nodes in all (default 3e7)")

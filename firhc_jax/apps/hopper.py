@@ -34,11 +34,9 @@ afterwards by re-solving the recorded controller states one by one.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
 import json
-import math
 import os
 import time
 from typing import NamedTuple
@@ -50,6 +48,8 @@ import numpy as np
 import firhc_jax as fj
 from firhc_jax.models import hopper as hm
 from firhc_jax.progress import Progress, tick
+
+from ._args import number
 
 T_HOP, T_AIR = 0.4, 0.2  # s, gait specification (paper)
 CONTROL_PERIOD = 0.005  # s, see module docstring
@@ -388,24 +388,8 @@ def figures(run: Run, params: hm.HopperParams, horizon: int, out: str) -> list:
 # Command line
 # ---------------------------------------------------------------------------
 
-def _horizon(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"horizon must be an integer, got {text!r}") from None
-    if not 1 <= value <= 10:
-        raise argparse.ArgumentTypeError(f"horizon must be between 1 and 10 (5-8 were measured), got {value}")
-    return value
 
 
-def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"seconds must be a number, got {text!r}") from None
-    if not (math.isfinite(value) and CONTROL_PERIOD <= value <= 60):
-        raise argparse.ArgumentTypeError(f"seconds must be between {CONTROL_PERIOD} and 60, got {text}")
-    return value
 
 
 def register(subparsers) -> None:
@@ -413,9 +397,11 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "hopper", help="pneumatic hopping robot under FIRHC (paper Sec. IV.1, Figs. 4-8)",
         description="Simulate the pneumatic hopping robot under FIRHC, write Figs. 4-8 and summary.json.")
-    parser.add_argument("--horizon", type=_horizon, default=6, metavar="N", help="prediction horizon (default 6)")
+    parser.add_argument("--horizon", type=number(int, 1, 10), default=6, metavar="N",
+                        help="prediction horizon (default 6)")
     parser.add_argument("--solver", choices=sorted(SOLVERS), default="sdfs", help="search (default sdfs)")
-    parser.add_argument("--seconds", type=_seconds, default=2.0, help="simulated time in s (default 2)")
+    parser.add_argument("--seconds", type=number(float, CONTROL_PERIOD, 60), default=2.0,
+                        help="simulated time in s (default 2)")
     parser.add_argument("--out", default=os.path.join("out", "hopper"), metavar="DIR",
                         help="output directory (default out/hopper)")
     parser.set_defaults(func=run)

@@ -13,7 +13,6 @@ The plant is the prediction model itself (no model error), as in the paper.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from pathlib import Path
@@ -26,6 +25,8 @@ import numpy as np
 import firhc_jax as fj
 from firhc_jax.models import tanks as model
 from firhc_jax.progress import Progress
+
+from ._args import number
 
 MAX_HORIZON = 10  # 17^10 sequences: beyond this even sDFS's worst steps become impractical
 
@@ -157,34 +158,10 @@ def plot(run: TankRun, path: Path, params: model.TankParams, set_point=model.SET
     plt.close(fig)
 
 
-def _horizon(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
-    if not 1 <= value <= MAX_HORIZON:
-        raise argparse.ArgumentTypeError(f"must be between 1 and {MAX_HORIZON} (the paper uses 3-6), got {value}")
-    return value
 
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
-    if not np.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
-    return value
 
 
-def _non_negative(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
-    if not np.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text!r}")
-    return value
 
 
 def register(subparsers) -> None:
@@ -193,18 +170,19 @@ def register(subparsers) -> None:
         "tanks", help="three-tank system, 17 valve/pump modes (paper Sec. IV.2)",
         description="FIRHC closed loop of the three-tank system: from {0.2, 0.18, 0.1} m to "
                     "{0.3, 0.25, 0.15} m; writes summary.json and a figure.")
-    p.add_argument("--horizon", "-N", type=_horizon, default=4, help="prediction horizon N (default 4; paper: 3-6)")
+    p.add_argument("--horizon", "-N", type=number(int, 1, MAX_HORIZON), default=4,
+                   help="prediction horizon N (default 4; paper: 3-6)")
     p.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs",
                    help="search (default sdfs); exhaustive visits 17+...+17^N nodes per step")
     p.add_argument("--out", type=Path, default=Path("out/tanks"), help="output folder (default out/tanks)")
-    p.add_argument("--seconds", type=_positive, default=200.0,
+    p.add_argument("--seconds", type=number(float, 0, low_open=True), default=200.0,
                    help="simulated time in s, rounded down to whole 2 s samples (default 200)")
-    p.add_argument("--switch-penalty", type=_non_negative, default=0.0,
+    p.add_argument("--switch-penalty", type=number(float, 0), default=0.0,
                    help="cost per actuator toggle, in mm^2 of level error (default 0)")
-    p.add_argument("--terminal-tol", type=_positive, default=None,
+    p.add_argument("--terminal-tol", type=number(float, 0, low_open=True), default=None,
                    help="terminal box half-width in m around the set point (default: none); steps where "
                         "it cannot be reached apply the unconstrained optimum")
-    p.add_argument("--tolerance", type=_positive, default=0.005,
+    p.add_argument("--tolerance", type=number(float, 0, low_open=True), default=0.005,
                    help="settling band half-width in m (default 0.005)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
