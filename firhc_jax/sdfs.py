@@ -34,8 +34,7 @@ from .result import SearchResult, finish, raise_on_errors
 
 class Stack(NamedTuple):
     """Fixed-capacity node stack. Rows ``[0, K)`` are sentinels (depth -1);
-    live nodes occupy rows ``[K, K + size)``, top last. At most one peer batch
-    per depth is live, so its start is kept per depth, not per row.
+    live nodes occupy rows ``[K, K + size)``, top last.
 
     A node is one row of one floating buffer: state, accumulated cost, depth and
     path (small integers, exact in any float of at least 32 bits). One buffer
@@ -43,17 +42,27 @@ class Stack(NamedTuple):
     separate buffers XLA copies them every iteration to order the reads."""
 
     rows: jax.Array  # [R, n + 2 + N] x (n), cost, depth (root 0, sentinel -1), path from the root (N)
-    level_base: jax.Array  # [N + 1] int32 stack size below the live batch of each depth
-    size: jax.Array  # [] int32 number of live nodes
 
 
 class _Carry(NamedTuple):
+    """Loop state. Every integer lives in one ``book`` vector, updated by one
+    fused op per iteration (on CPU each separate small op costs a kernel launch)."""
+
     stack: Stack
     best_cost: jax.Array  # [] incumbent cost (+inf: none yet)
-    best_path: jax.Array  # [N] int32 incumbent sequence
-    nodes: jax.Array  # [] int32 child nodes computed
-    iterations: jax.Array  # [] int32
-    flags: jax.Array  # [] int32 bit 0: negative stage cost met, bit 1: NaN met
+    book: jax.Array  # [4 + (N + 1) + N] int32: size, nodes, iterations, flags, level_base, best_path
+
+    # flags: bit 0 a negative stage cost was met, bit 1 a NaN. level_base[d]: stack
+    # size below the live peer batch of depth d (at most one per depth is live).
+    # best_path: the incumbent sequence.
+    @property
+    def size(self):
+        return self.book[0]
+
+
+def _book(size, nodes, iterations, flags, level_base, best_path):
+    return jnp.concatenate([jnp.stack([size, nodes, iterations, flags]).astype(jnp.int32),
+                            level_base.astype(jnp.int32), best_path.astype(jnp.int32)])
 
 
 def stack_capacity(horizon: int, num_controls: int, pop_width: int) -> int:
@@ -107,26 +116,24 @@ def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> Se
     inf = jnp.array(jnp.inf, dtype)
     capacity = K + stack_capacity(N, M, K) + L  # sentinels + live nodes + slack for the push block
     root = jnp.concatenate([x0.astype(wide), jnp.zeros((2 + N,), wide)])
-    stack = Stack(
-        rows=jnp.zeros((capacity, n + 2 + N), wide).at[:, n + 1].set(-1).at[K].set(root),
-        level_base=jnp.zeros((N + 1,), jnp.int32),
-        size=jnp.array(1, jnp.int32),
-    )
-    carry = _Carry(stack, inf, jnp.full((N,), -1, jnp.int32), jnp.array(0, jnp.int32),
-                   jnp.array(0, jnp.int32), jnp.array(0, jnp.int32))
+    stack = Stack(rows=jnp.zeros((capacity, n + 2 + N), wide).at[:, n + 1].set(-1).at[K].set(root))
+    zero = jnp.array(0, jnp.int32)
+    no_path = jnp.full((N,), -1, jnp.int32)
+    carry = _Carry(stack, inf, _book(1, zero, zero, zero, jnp.zeros((N + 1,), jnp.int32), no_path))
     if warm_start is not None:
         ws_cost, ws_neg, ws_nan = rollout_cost(problem, x0, warm_start, dtype)
-        better = ws_cost < inf
-        carry = carry._replace(best_cost=ws_cost, best_path=jnp.where(better, warm_start, carry.best_path),
-                               nodes=jnp.array(N, jnp.int32), flags=_flags(ws_neg, ws_nan))
+        path = jnp.where(ws_cost < inf, warm_start, no_path)
+        carry = _Carry(stack, ws_cost, _book(1, N, zero, _flags(ws_neg, ws_nan), jnp.zeros((N + 1,), jnp.int32),
+                                             path))
     levels = jnp.arange(N + 1)
     modes = jnp.tile(jnp.arange(M, dtype=jnp.int32), K)  # [L] input of each child
     parent = jnp.repeat(jnp.arange(K, dtype=jnp.int32), M)  # [L] popped node of each child
 
     def body(c: _Carry) -> _Carry:
         s = c.stack
-        start = s.size  # rows [size, size + K) are the top K rows
-        popped = jax.lax.dynamic_slice_in_dim(s.rows, start, K)  # [K, n + 2 + N]
+        old_size, nodes, iterations, flags = c.book[0], c.book[1], c.book[2], c.book[3]
+        level_base, best_path = c.book[4:5 + N], c.book[5 + N:]
+        popped = jax.lax.dynamic_slice_in_dim(s.rows, old_size, K)  # [K, n + 2 + N] the top K rows
         px, pc = popped[:, :n].astype(x0.dtype), popped[:, n].astype(dtype)
         pd, ppath = popped[:, n + 1].astype(jnp.int32), popped[:, n + 2:].astype(jnp.int32)
         depth = pd[K - 1]
@@ -134,10 +141,10 @@ def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> Se
         if prune:
             alive = peer & (pc < c.best_cost)
             # The batch is sorted: if its top is pruned, so is all the rest of it.
-            size = jnp.where(alive[K - 1], s.size - jnp.sum(peer, dtype=jnp.int32), s.level_base[depth])
+            size = jnp.where(alive[K - 1], old_size - jnp.sum(peer, dtype=jnp.int32), level_base[depth])
         else:
             alive = peer
-            size = s.size - jnp.sum(peer, dtype=jnp.int32)
+            size = old_size - jnp.sum(peer, dtype=jnp.int32)
 
         ch = expand(problem, px, pc, check_terminal=problem.terminal is not None)
         ok = (alive[:, None] & ~ch.bad).reshape(L)
@@ -149,7 +156,7 @@ def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> Se
         i = jnp.argmin(leaf_cost)
         improve = leaf_cost[i] < c.best_cost
         best_cost = jnp.where(improve, leaf_cost[i], c.best_cost)
-        best_path = jnp.where(improve, ppath[parent[i]].at[N - 1].set(modes[i]), c.best_path)
+        best_path = jnp.where(improve, ppath[parent[i]].at[N - 1].set(modes[i]), best_path)
 
         # Non-leaves below the incumbent: one sorted batch on top of the stack.
         keep = ok & (child_depth < N) & ((cost < best_cost) if prune else True)
@@ -157,22 +164,15 @@ def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> Se
         child_path = jnp.where(jnp.arange(N)[None, :] == depth, modes[order][:, None], ppath[parent[order]])
         block = jnp.concatenate([ch.x.reshape(L, n)[order].astype(wide), cost[order, None].astype(wide),
                                  jnp.full((L, 1), child_depth, wide), child_path.astype(wide)], axis=1)
-        new = Stack(
-            rows=jax.lax.dynamic_update_slice_in_dim(s.rows, block, K + size, 0),
-            level_base=jnp.where(levels == child_depth, size, s.level_base),
-            size=size + count,
-        )
-        alive_m = alive[:, None]
-        return _Carry(
-            stack=new, best_cost=best_cost, best_path=best_path,
-            nodes=c.nodes + M * jnp.sum(alive, dtype=jnp.int32),
-            iterations=c.iterations + 1,
-            flags=c.flags | jnp.max(jnp.where(alive_m, _flags(ch.negative, ch.bad), 0)),
-        )
+        rows = jax.lax.dynamic_update_slice_in_dim(s.rows, block, K + size, 0)
+        met = jnp.max(jnp.where(alive[:, None], _flags(ch.negative, ch.bad), 0))
+        book = _book(size + count, nodes + M * jnp.sum(alive, dtype=jnp.int32), iterations + 1, flags | met,
+                     jnp.where(levels == child_depth, size, level_base), best_path)
+        return _Carry(Stack(rows), best_cost, book)
 
-    out = jax.lax.while_loop(lambda c: c.stack.size > 0, body, carry)
-    return finish(problem.controls, out.best_cost, out.best_path, out.nodes, out.iterations,
-                  (out.flags & 1) > 0, (out.flags & 2) > 0)
+    out = jax.lax.while_loop(lambda c: c.size > 0, body, carry)
+    nodes, iterations, flags, best_path = out.book[1], out.book[2], out.book[3], out.book[5 + N:]
+    return finish(problem.controls, out.best_cost, best_path, nodes, iterations, (flags & 1) > 0, (flags & 2) > 0)
 
 
 def _flags(negative, nan):
