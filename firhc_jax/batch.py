@@ -12,9 +12,31 @@ parameters: the batch is solved on an *augmented* problem whose state is
 unchanged by the augmented dynamics). Every row then runs the same compiled
 code whatever its parameter values, and a parameter set is just more state.
 
-Memory. Every solver states what one row (or the pool) needs; a batch that
-would exceed ``max_memory`` bytes is solved in chunks of rows (``lax.map``),
-and a single row that does not fit is refused before anything is compiled.
+The work pool (``solver="sdfs"``, the default). A plain ``jax.vmap`` of
+``fj.sdfs`` runs every row's loop until the slowest row finishes, so with node
+counts that differ 10x or more between rows most lanes idle. Instead each
+device keeps a pool of ``lanes`` slots. A slot holds one sDFS stack: at most
+one live peer batch per depth, as in ``fj.sdfs``, so it stores at most
+``(N - 1) K M`` nodes. Every iteration each slot pops the K next nodes of its
+deepest live batch (cheapest first) and the children of all slots come from
+one call of ``expand``: ``lanes * K * M`` children per iteration. A slot whose
+row is done takes the next row's root; once every row has started, an idle
+slot steals the next node of the shallowest live batch of a busy slot, so the
+last and largest searches are spread over all lanes. Each node carries its row
+and is pruned against that row's incumbent, shared by every slot working on
+the row: exact per row by the argument of ``fj.sdfs`` (non-negative stage
+costs), applied to each subtree. A row that is never stolen from is searched
+in ``fj.sdfs``'s order, node for node.
+
+Memory. The pool stores ``lanes * (N - 1) * K * M`` nodes whatever B is, plus
+``n + N + 5`` numbers per row (``pool_memory``, ``pool_row_memory``); the
+vmapped solvers need ``row_memory`` per row. A batch that would exceed
+``max_memory`` bytes is solved in chunks of rows (``lax.map``), and a pool or
+row that does not fit on its own is refused before anything is compiled.
+
+Devices. The rows are split over a 1-D mesh of the local devices with
+``shard_map``; each device runs its own pool (or vmap) on its share, with no
+communication inside the search.
 """
 from __future__ import annotations
 
@@ -27,12 +49,14 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
 from .exhaustive import DEFAULT_CHUNK_NODES, exhaustive, plan
-from .problem import Problem, check_state
-from .result import SearchResult, raise_on_errors
+from .nodes import expand
+from .problem import Problem, check_state, cost_dtype
+from .result import SearchResult, finish, raise_on_errors
 from .sdfs import _check_pop_width, sdfs, stack_capacity
 
 SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
 DEFAULT_MAX_MEMORY = 1 << 30  # bytes
+DEFAULT_LANES = 256
 
 
 # ---------------------------------------------------------------------------
@@ -180,6 +204,241 @@ def _rows_per_chunk(need: int, batch: int, max_memory: int, what: str) -> int:
 
 
 # ---------------------------------------------------------------------------
+# The shared work pool.
+# ---------------------------------------------------------------------------
+
+class _Pool(NamedTuple):
+    """S slots, each holding one sDFS stack stored by depth: at most one live
+    peer batch per depth (as in ``fj.sdfs``), so the batch of depth t has a
+    fixed place, level t - 1. A batch is stored as expanded (unsorted) and
+    never rewritten: nodes leave it in pop order, cheapest first (ties: lowest
+    index, the order of ``fj.sdfs``), and each level only keeps the cost and
+    index of its next node. A batch is live while that cost is below the row's
+    incumbent, so pruning the rest of a batch costs nothing."""
+
+    x: jax.Array  # [S, N-1, L, n] level t: the batch of depth t + 1
+    cost: jax.Array  # [S, N-1, L] accumulated costs as expanded (+inf: discarded)
+    next_cost: jax.Array  # [S, N-1] cost of each batch's next node in pop order (+inf: none)
+    next_idx: jax.Array  # [S, N-1] int32 its index in the batch
+    parents: jax.Array  # [S, N, K] int32 [:, d - 1, j]: index in the depth d - 1 batch of the j-th parent of depth d
+    row: jax.Array  # [S] int32 row the slot works on (B: none)
+    base_depth: jax.Array  # [S] int32 depth of the node the slot started from (row root: 0, stolen node: > 0)
+    base_path: jax.Array  # [S, N] int32 inputs leading to that node (its first base_depth entries)
+
+
+class _Rows(NamedTuple):
+    """Per-row incumbents and counters, shared by every slot working on a row."""
+
+    cost: jax.Array  # [B] incumbent cost (+inf: none yet)
+    path: jax.Array  # [B, N] int32 incumbent sequence
+    nodes: jax.Array  # [B] int32 child nodes computed
+    iterations: jax.Array  # [B] int32 slot-iterations spent on the row
+    negative: jax.Array  # [B] bool a negative stage cost was met
+    nan: jax.Array  # [B] bool a NaN state or cost was met
+
+
+class _Pops(NamedTuple):
+    """One iteration's selection: the nodes each slot expands. Selection and
+    expansion are pipelined through the loop carry (the selection for
+    iteration i + 1 is made at the end of iteration i), so that these
+    per-slot vectors reach the per-child work as materialised buffers: XLA:CPU
+    otherwise recomputes their derivation (~100 ops) inside every per-child
+    fusion, which made the pool 2-3x slower."""
+
+    x: jax.Array  # [S, K, n] nodes to expand
+    cost: jax.Array  # [S, K] their accumulated costs
+    alive: jax.Array  # [S, K] bool expanded (a prefix)
+    depth: jax.Array  # [S] int32 their depth
+
+
+def pool_capacity(problem: Problem, lanes: int, pop_width: int = 1) -> int:
+    """Nodes the pool stores: ``lanes * (N - 1) * K * M``, whatever B is."""
+    return lanes * (problem.horizon - 1) * pop_width * problem.num_controls
+
+
+def pool_memory(problem: Problem, n: int, itemsize: int, lanes: int, pop_width: int = 1) -> int:
+    """Estimated peak bytes of the pool: its stored nodes (n + 1 numbers each)
+    and one iteration's ``lanes * K * M`` children (n + 4), twice for the
+    loop's buffers."""
+    children = lanes * pop_width * problem.num_controls
+    return itemsize * 2 * (pool_capacity(problem, lanes, pop_width) * (n + 1) + children * (n + 4))
+
+
+def pool_row_memory(problem: Problem, n: int, itemsize: int) -> int:
+    """Bytes per row outside the pool: its state and its result (N + 5 numbers)."""
+    return itemsize * (n + problem.horizon + 5)
+
+
+def _min_argmin(a):
+    """Smallest entry along the last axis and its first index (int32). Two plain
+    reductions: XLA:CPU runs a (value, index) argmin reduction as a scalar
+    loop, several times slower."""
+    low = jnp.min(a, axis=-1)
+    first = jnp.min(jnp.where(a == low[..., None], jnp.arange(a.shape[-1], dtype=jnp.int32), a.shape[-1]), axis=-1)
+    return low, jnp.minimum(first, a.shape[-1] - 1)
+
+
+def _next_after(batch, cost, idx):
+    """The node of ``batch`` ``[S, L]`` that follows ``(cost, idx)`` in pop
+    order (cost, then index): its ``(cost, index)``, cost +inf if none."""
+    i = jnp.arange(batch.shape[-1], dtype=jnp.int32)
+    after = (batch > cost[:, None]) | ((batch == cost[:, None]) & (i > idx[:, None]))
+    return _min_argmin(jnp.where(after, batch, jnp.inf))
+
+
+def _take(a, i):
+    """``a[s, i[s], ...]`` for every slot s: ``a`` ``[S, D, ...]``, ``i`` ``[S]``."""
+    return jnp.take_along_axis(a, i.reshape(i.shape + (1,) * (a.ndim - 1)), axis=1)[:, 0]
+
+
+def _put(a, i, v):
+    """``a`` with ``a[s, i[s]] = v[s]``: ``a`` ``[S, D, ...]``; ``i[s]`` outside
+    ``[0, D)`` leaves slot s unchanged."""
+    at = jnp.arange(a.shape[1]) == i[:, None]
+    return jnp.where(at.reshape(at.shape + (1,) * (a.ndim - 2)), jnp.expand_dims(v, 1), a)
+
+
+def _path(pool: _Pool, depth, idx, M: int):
+    """Inputs from the row root to node ``idx`` of each slot's depth ``depth``
+    batch (depth N: the children expanded this iteration): ``[S, N]``. Walks
+    ``parents`` up to the slot's base node, whose path is ``base_path``."""
+    path, i = pool.base_path, idx
+    for d in range(pool.parents.shape[1], 0, -1):
+        on = (d <= depth) & (d > pool.base_depth)
+        path = path.at[:, d - 1].set(jnp.where(on, i % M, path[:, d - 1]))
+        parent = _take(pool.parents[:, d - 1], jnp.clip(i // M, 0, pool.parents.shape[2] - 1))
+        i = jnp.where(d <= depth, parent, i)
+    return path
+
+
+def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal: bool) -> SearchResult:
+    """Exact sDFS of rows ``X[:n_valid]`` of ``[B, n]`` on a pool of ``lanes``
+    slots (see ``solve_batch``). Returns a batched result."""
+    N, M, K, S = problem.horizon, problem.num_controls, pop_width, lanes
+    (B, n), L = X.shape, K * M
+    dtype = cost_dtype(problem, X[0])
+    inf = jnp.array(jnp.inf, dtype)
+    slots, levels, depths = (jnp.arange(k, dtype=jnp.int32) for k in (S, N - 1, N))
+    first = jnp.arange(K) == 0  # [K]
+
+    def incumbent(rows, row):
+        return rows.cost.at[row].get(mode="fill", fill_value=jnp.inf)
+
+    def select(pool: _Pool, rows: _Rows, head):
+        """Each slot's nodes for the next iteration: the K next nodes of its
+        deepest live batch; a free slot takes the next row's root or, once
+        every row has started, steals the next node of another slot's
+        shallowest live batch (exact: the row's incumbent is shared)."""
+        best = incumbent(rows, pool.row)  # [S]
+        top = jnp.max(jnp.where(pool.next_cost < best[:, None], levels, -1), axis=1, initial=-1)  # [S]
+        busy, top0 = top >= 0, jnp.maximum(top, 0)
+        batch, c, i, idx, pc = _take(pool.cost, top0), _take(pool.next_cost, top0), _take(pool.next_idx, top0), [], []
+        for _ in range(K):
+            idx.append(i)
+            pc.append(c)
+            c, i = _next_after(batch, c, i)
+        idx, pc = jnp.stack(idx, 1), jnp.stack(pc, 1)  # [S, K]
+        alive = busy[:, None] & (pc < best[:, None])  # a prefix: costs ascend
+        top_next = jnp.where(busy[:, None], levels == top0[:, None], False)
+        next_cost = jnp.where(top_next, c[:, None], pool.next_cost)  # the rest of a pruned batch stays pruned
+        next_idx = jnp.where(top_next, i[:, None], pool.next_idx)
+        px = jnp.take_along_axis(_take(pool.x, top0), idx[..., None], axis=1)  # [S, K, n]
+        depth, row, base_depth, base_path = top + 1, pool.row, pool.base_depth, pool.base_path
+
+        free = ~busy
+        fresh_row = head + jnp.cumsum(free, dtype=jnp.int32) - 1
+        fresh = free & (fresh_row < n_valid)
+        head = jnp.minimum(head + jnp.sum(free, dtype=jnp.int32), n_valid)
+        px = jnp.where((fresh[:, None] & first)[..., None], X[jnp.minimum(fresh_row, B - 1)][:, None], px)
+        pc = jnp.where(fresh[:, None], 0, pc)
+        alive = jnp.where(fresh[:, None], first, alive)
+        depth = jnp.where(fresh, 0, depth)
+        row = jnp.where(fresh, fresh_row, row)
+        base_depth = jnp.where(fresh, 0, base_depth)
+        if steal and N > 1:
+            stealable = next_cost < best[:, None]
+            level = jnp.argmax(stealable, axis=1).astype(jnp.int32)  # shallowest
+            can = jnp.any(stealable, axis=1)
+            thief = free & ~fresh
+            t_rank = jnp.cumsum(thief, dtype=jnp.int32) - 1
+            steals = thief & (t_rank < jnp.sum(can, dtype=jnp.int32))
+            by_rank = jnp.zeros((S,), jnp.int32).at[jnp.where(can, jnp.cumsum(can) - 1, S)].set(slots, mode="drop")
+            victim = jnp.where(steals, by_rank[jnp.clip(t_rank, 0, S - 1)], 0)
+            robbed = jnp.zeros((S,), bool).at[jnp.where(steals, victim, S)].set(True, mode="drop")
+            s_cost, s_idx = _take(next_cost, level), _take(next_idx, level)  # [S] each slot's stealable node
+            after = _next_after(_take(pool.cost, level), s_cost, s_idx)
+            rob = robbed[:, None] & (levels == level[:, None])
+            next_cost = jnp.where(rob, after[0][:, None], next_cost)
+            next_idx = jnp.where(rob, after[1][:, None], next_idx)
+            v_level = level[victim]
+            px = jnp.where((steals[:, None] & first)[..., None], pool.x[victim, v_level, s_idx[victim]][:, None], px)
+            pc = jnp.where(steals[:, None], s_cost[victim][:, None], pc)
+            alive = jnp.where(steals[:, None], first, alive)
+            depth = jnp.where(steals, v_level + 1, depth)
+            row = jnp.where(steals, pool.row[victim], row)
+            base_depth = jnp.where(steals, v_level + 1, base_depth)
+            base_path = jnp.where(steals[:, None], _path(pool, level + 1, s_idx, M)[victim], base_path)
+        # A slot that changes row starts empty: its batches were pruned against the old row.
+        next_cost = jnp.where((row != pool.row)[:, None], inf, next_cost)
+        parents = _put(pool.parents, depth, jnp.where(busy[:, None], idx, 0))
+        pool = pool._replace(next_cost=next_cost, next_idx=next_idx, parents=parents, row=row,
+                             base_depth=base_depth, base_path=base_path)
+        return pool, head, _Pops(x=px, cost=pc, alive=alive, depth=depth)
+
+    def work(pool: _Pool, rows: _Rows, pops: _Pops):
+        """Expand the selected nodes of every slot in one call, let leaves
+        improve their rows' incumbents, push each slot's children as its new
+        top batch (pruned lazily, when popped)."""
+        ch = expand(problem, pops.x.reshape(S * K, n), pops.cost.reshape(S * K),
+                    check_terminal=problem.terminal is not None)
+        cx, cost = ch.x.reshape(S, L, n), ch.cost.reshape(S, L)
+        parent_alive = jnp.repeat(pops.alive, M, axis=1)  # [S, L]
+        ok = parent_alive & ~ch.bad.reshape(S, L)
+        n_alive = jnp.sum(pops.alive, axis=1, dtype=jnp.int32)
+        child_depth, row = pops.depth + 1, pool.row
+
+        # Leaves: each slot's cheapest feasible leaf may improve its row's incumbent.
+        best = incumbent(rows, row)
+        cand, leaf = _min_argmin(jnp.where(ok & ch.terminal_ok.reshape(S, L) & (child_depth == N)[:, None], cost, inf))
+        improve = cand < best
+        new_cost = rows.cost.at[jnp.where(improve, row, B)].min(cand, mode="drop")
+        winner = improve & (cand == incumbent(rows._replace(cost=new_cost), row))
+        path = rows.path.at[jnp.where(winner, row, B)].set(_path(pool, jnp.full((S,), N), leaf, M), mode="drop")
+
+        # Non-leaves: the slot's new top batch, at level `depth`.
+        batch = jnp.where(ok, cost, inf)
+        put = (n_alive > 0) & (child_depth < N)
+        level = jnp.where(put, pops.depth, N)  # N - 1 levels: N is out of range, nothing written
+        nc, ni = _min_argmin(batch)
+        pool = pool._replace(x=_put(pool.x, level, cx), cost=_put(pool.cost, level, batch),
+                             next_cost=_put(pool.next_cost, level, nc), next_idx=_put(pool.next_idx, level, ni))
+        at = jnp.where(n_alive > 0, row, B)
+        rows = _Rows(cost=new_cost, path=path, nodes=rows.nodes.at[at].add(M * n_alive, mode="drop"),
+                     iterations=rows.iterations.at[at].add(1, mode="drop"),
+                     negative=rows.negative.at[at].max(jnp.any(parent_alive & ch.negative.reshape(S, L), axis=1),
+                                                       mode="drop"),
+                     nan=rows.nan.at[at].max(jnp.any(parent_alive & ch.bad.reshape(S, L), axis=1), mode="drop"))
+        return pool, rows
+
+    def body(carry):
+        pool, rows, head, pops = carry
+        pool, rows = work(pool, rows, pops)
+        pool, head, pops = select(pool, rows, head)
+        return pool, rows, head, pops
+
+    pool = _Pool(x=jnp.zeros((S, N - 1, L, n), X.dtype), cost=jnp.full((S, N - 1, L), inf),
+                 next_cost=jnp.full((S, N - 1), inf), next_idx=jnp.zeros((S, N - 1), jnp.int32),
+                 parents=jnp.zeros((S, N, K), jnp.int32), row=jnp.full((S,), B, jnp.int32),
+                 base_depth=jnp.zeros((S,), jnp.int32), base_path=jnp.full((S, N), -1, jnp.int32))
+    rows = _Rows(cost=jnp.full((B,), inf), path=jnp.full((B, N), -1, jnp.int32), nodes=jnp.zeros((B,), jnp.int32),
+                 iterations=jnp.zeros((B,), jnp.int32), negative=jnp.zeros((B,), bool), nan=jnp.zeros((B,), bool))
+    pool, head, pops = select(pool, rows, jnp.array(0, jnp.int32))
+    _, rows, _, _ = jax.lax.while_loop(lambda c: jnp.any(c[3].alive), body, (pool, rows, head, pops))
+    return jax.vmap(lambda *a: finish(problem.controls, *a))(rows.cost, rows.path, rows.nodes, rows.iterations,
+                                                             rows.negative, rows.nan)
+
+
+# ---------------------------------------------------------------------------
 # The compiled batch.
 # ---------------------------------------------------------------------------
 
@@ -189,26 +448,39 @@ def _per_row(problem: Problem, solver: str, pop_width: int, chunk_nodes: int) ->
     return lambda x: sdfs(problem, x, pop_width=pop_width)
 
 
+def _device_solve(problem: Problem, X, solver: str, pop_width: int, chunk_nodes: int, rows_per_chunk: int,
+                  lanes: int) -> SearchResult:
+    """One device's rows ``[B, n]``, in chunks of ``rows_per_chunk`` rows: a
+    pool search per chunk (``"sdfs"``) or a vmapped per-row search."""
+    if solver != "sdfs":
+        return jax.lax.map(_per_row(problem, solver, pop_width, chunk_nodes), X, batch_size=rows_per_chunk)
+    B, R = X.shape[0], rows_per_chunk
+    chunks = -(-B // R)
+    X = jnp.concatenate([X, jnp.broadcast_to(X[-1], (chunks * R - B, X.shape[1]))]).reshape(chunks, R, -1)
+    out = jax.lax.map(lambda a: _pool_search(problem, a[1], jnp.minimum(R, B - a[0] * R), lanes, pop_width, True),
+                      (jnp.arange(chunks, dtype=jnp.int32), X))
+    return jax.tree_util.tree_map(lambda a: a.reshape((chunks * R,) + a.shape[2:])[:B], out)
+
+
 def _solve(problem: Problem, X, mesh: Mesh, solver: str, pop_width: int, chunk_nodes: int,
-           rows_per_chunk: int) -> SearchResult:
+           rows_per_chunk: int, lanes: int) -> SearchResult:
     """``[B, n]`` -> batched ``SearchResult``. The rows are padded to a multiple
     of the device count (repeating the last row) and split over ``mesh``; each
-    device runs its share independently (no communication inside the search):
-    a vmapped per-row search over chunks of ``rows_per_chunk`` rows."""
+    device solves its share independently (no communication inside the
+    search)."""
     B, devices = X.shape[0], mesh.devices.size
     pad = -B % devices
     if pad:
         X = jnp.concatenate([X, jnp.broadcast_to(X[-1], (pad, X.shape[1]))])
-    one = _per_row(problem, solver, pop_width, chunk_nodes)
     # check_vma=False: the searches start their loop carries from constants
     # (not device-varying), which the varying-axes check would refuse.
-    shard = jax.shard_map(lambda Xs: jax.lax.map(one, Xs, batch_size=rows_per_chunk), mesh=mesh,
-                          in_specs=PartitionSpec(_AXIS), out_specs=PartitionSpec(_AXIS), check_vma=False)
+    shard = jax.shard_map(lambda Xs: _device_solve(problem, Xs, solver, pop_width, chunk_nodes, rows_per_chunk, lanes),
+                          mesh=mesh, in_specs=PartitionSpec(_AXIS), out_specs=PartitionSpec(_AXIS), check_vma=False)
     out = shard(X)
     return jax.tree_util.tree_map(lambda a: a[:B], out) if pad else out
 
 
-_solve_jit = jax.jit(_solve, static_argnames=("mesh", "solver", "pop_width", "chunk_nodes", "rows_per_chunk"))
+_solve_jit = jax.jit(_solve, static_argnames=("mesh", "solver", "pop_width", "chunk_nodes", "rows_per_chunk", "lanes"))
 
 
 _AXIS = "rows"
@@ -224,20 +496,23 @@ def _mesh(devices) -> Mesh:
 
 
 def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_width: int = 1,
-                chunk_nodes: int = DEFAULT_CHUNK_NODES, max_memory: int = DEFAULT_MAX_MEMORY,
-                devices=None) -> SearchResult:
+                lanes: int = DEFAULT_LANES, chunk_nodes: int = DEFAULT_CHUNK_NODES,
+                max_memory: int = DEFAULT_MAX_MEMORY, devices=None) -> SearchResult:
     """Solve ``problem`` from every row of ``X0``; exact per row.
 
     Args:
       problem: the ``Problem``; with ``params`` its callables take the
         parameter pytree as last argument.
       X0: ``[B, n]`` initial states.
-      solver: ``"sdfs"`` (default), ``"sdfs-vmap"`` (plain ``jax.vmap`` of
-        ``fj.sdfs``) or ``"exhaustive"`` (``jax.vmap`` of the vectorised
-        ``fj.exhaustive``).
+      solver: ``"sdfs"`` (default: the shared work pool, see the module
+        docstring), ``"sdfs-vmap"`` (plain ``jax.vmap`` of ``fj.sdfs``) or
+        ``"exhaustive"`` (``jax.vmap`` of the vectorised ``fj.exhaustive``).
       params: optional pytree with leading axis B: row b is solved with
         ``params[b]``, one compiled call for all rows.
-      pop_width: K of the sDFS solvers (nodes popped per row per iteration).
+      pop_width: K of the sDFS solvers (nodes popped per row, or per pool
+        slot, per iteration).
+      lanes: slots of the ``"sdfs"`` pool on each device: each iteration
+        expands up to ``lanes * pop_width * M`` children in one call.
       chunk_nodes: per-row ``chunk_nodes`` of ``"exhaustive"``.
       max_memory: bytes the batch may use at once on each device (estimate,
         see ``row_memory``); larger batches are solved in chunks of rows.
@@ -260,9 +535,17 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         problem, X = _augmented(problem, layout, n), jnp.concatenate([X, flat], axis=1)
     check_state(problem, X[0])
     mesh = _mesh(devices)
+    per_device, width, item = -(-B // mesh.devices.size), X.shape[1], X.dtype.itemsize
     if solver == "sdfs":
-        solver = "sdfs-vmap"
-    need = row_memory(problem, X.shape[1], X.dtype.itemsize, solver, pop_width, chunk_nodes)
-    rows = _rows_per_chunk(need, -(-B // mesh.devices.size), max_memory, f"one row of solver={solver!r}")
+        if isinstance(lanes, bool) or not isinstance(lanes, int) or lanes < 1:
+            raise ValueError(f"lanes must be an int >= 1, got {lanes!r}")
+        fixed = pool_memory(problem, width, item, lanes, pop_width)
+        if fixed >= max_memory:
+            raise ValueError(f"the pool of {lanes} lanes needs about {fixed:,} bytes, more than "
+                             f"max_memory={max_memory:,}; lower lanes or pop_width, or raise max_memory")
+        rows = _rows_per_chunk(pool_row_memory(problem, width, item), per_device, max_memory - fixed, "one row")
+    else:
+        need = row_memory(problem, width, item, solver, pop_width, chunk_nodes)
+        rows = _rows_per_chunk(need, per_device, max_memory, f"one row of solver={solver!r}")
     return raise_on_errors(_solve_jit(problem, X, mesh=mesh, solver=solver, pop_width=pop_width,
-                                      chunk_nodes=chunk_nodes, rows_per_chunk=rows))
+                                      chunk_nodes=chunk_nodes, rows_per_chunk=rows, lanes=lanes))

@@ -5,12 +5,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import firhc_jax as fj
-from firhc_jax.batch import row_memory, solve_batch
+from firhc_jax.batch import _pool_search, pool_memory, pool_row_memory, row_memory, solve_batch
 from random_problems import make
 
 SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
@@ -50,17 +51,40 @@ def assert_exact(rp, X0, batch):
             assert np.all(np.asarray(batch.sequence[b]) == -1)
 
 
-@pytest.mark.parametrize("seed, n, m, M, N, terminal", [
-    (0, 3, 2, 5, 4, "loose"), (1, 2, 1, 4, 5, "tight"), (2, 3, 1, 6, 3, "none")])
-def test_exact_per_row(seed, n, m, M, N, terminal):
+@pytest.mark.parametrize("seed, n, m, M, N, terminal, solvers", [
+    (0, 3, 2, 5, 4, "loose", SOLVERS), (1, 2, 1, 4, 5, "tight", ("sdfs",)), (2, 3, 1, 6, 3, "none", ("sdfs",)),
+    (3, 2, 1, 3, 1, "loose", ("sdfs",))])
+def test_exact_per_row(seed, n, m, M, N, terminal, solvers):
     rp = make(seed, n, m, M, N, terminal)
     p, X0 = rp.problem(), states(seed, 9, n)
-    for solver in SOLVERS:
+    for solver in solvers:
         batch = solve_batch(p, X0, solver=solver)
         assert batch.cost.shape == (9,) and batch.sequence.shape == (9, N)
         assert_exact(rp, np.asarray(X0), batch)
     if terminal == "tight":
         assert not np.all(batch.feasible) and np.any(batch.feasible)  # both cases were exercised
+
+
+@pytest.mark.parametrize("lanes, pop_width", [(3, 1), (4, 2)])
+def test_pool_exact_with_fewer_lanes_than_rows(lanes, pop_width):
+    """Rows queue for slots; free slots steal nodes of the last rows' searches."""
+    rp = make(8, 3, 1, 5, 5, "loose")
+    X0 = states(8, 11, 3)
+    batch = solve_batch(rp.problem(), X0, lanes=lanes, pop_width=pop_width)
+    assert_exact(rp, np.asarray(X0), batch)
+
+
+def test_pool_without_stealing_is_fj_sdfs_row_by_row():
+    """With stealing off, each row is searched by one slot in fj.sdfs's order:
+    the same nodes and sequence as the plain vmap of fj.sdfs, row by row."""
+    p = make(9, 3, 2, 4, 4, "loose").problem()
+    X0 = states(9, 7, 3)
+    for pop_width in (1, 2):
+        pool = jax.jit(_pool_search, static_argnums=(0, 3, 4, 5))(p, X0, 7, 3, pop_width, False)
+        plain = solve_batch(p, X0, solver="sdfs-vmap", pop_width=pop_width)
+        for field in ("nodes", "sequence", "feasible"):
+            np.testing.assert_array_equal(getattr(pool, field), getattr(plain, field), err_msg=field)
+        np.testing.assert_allclose(pool.cost, plain.cost, rtol=1e-14)
 
 
 # ---------------------------------------------------------------- parameters
@@ -170,17 +194,24 @@ def test_bad_params_are_refused_clearly():
 
 
 # ---------------------------------------------------------------- memory
-@pytest.mark.parametrize("solver", ("sdfs-vmap", "exhaustive"))
+@pytest.mark.parametrize("solver", SOLVERS)
 def test_memory_limit_chunks_or_refuses(solver):
     p = make(6, 3, 1, 5, 4, "loose").problem()
     X0 = states(6, 10, 3)
-    whole = solve_batch(p, X0, solver=solver)
-    one_row = row_memory(p, 3, X0.dtype.itemsize, solver)
-    chunked = solve_batch(p, X0, solver=solver, max_memory=3 * one_row)  # chunks of 3 rows, last one short
-    for field in ("cost", "sequence", "nodes", "feasible"):
+    whole = solve_batch(p, X0, solver=solver, lanes=4)
+    if solver == "sdfs":
+        fixed, one_row = pool_memory(p, 3, X0.dtype.itemsize, 4), pool_row_memory(p, 3, X0.dtype.itemsize)
+    else:
+        fixed, one_row = 0, row_memory(p, 3, X0.dtype.itemsize, solver)
+    chunked = solve_batch(p, X0, solver=solver, lanes=4, max_memory=fixed + 3 * one_row)  # 3 rows, last one short
+    # The pool's node counts depend on which rows share it; costs and sequences do not.
+    for field in ("cost", "sequence", "feasible") + (("nodes",) if solver != "sdfs" else ()):
         np.testing.assert_array_equal(getattr(chunked, field), getattr(whole, field))
     with pytest.raises(ValueError, match="max_memory"):
-        solve_batch(p, X0, solver=solver, max_memory=one_row - 1)
+        solve_batch(p, X0, solver=solver, lanes=4, max_memory=fixed + one_row - 1)
+    if solver == "sdfs":
+        with pytest.raises(ValueError, match="lanes"):
+            solve_batch(p, X0, lanes=0)
 
 
 # ---------------------------------------------------------------- devices
@@ -192,19 +223,20 @@ from random_problems import make
 assert jax.local_device_count() == 4, jax.local_devices()
 rp = make(7, 3, 1, 5, 4, "loose")
 p = rp.problem()
-for B in (12, 10):  # 10: padded to 12 rows, three per device
+for solver in SOLVERS:
+    B = 10 if solver == "sdfs" else 12  # 10: padded to 12 rows, three per device
     X0 = np.random.default_rng(B).uniform(-1, 1, (B, 3))
-    for solver in SOLVERS:
-        one = solve_batch(p, X0, solver=solver, devices=jax.local_devices()[:1])
-        four = solve_batch(p, X0, solver=solver)
-        if B == 12:
-            assert len(four.cost.sharding.device_set) == 4, four.cost.sharding  # the rows were split
-        for field in ("sequence", "nodes", "feasible", "first_input"):
-            np.testing.assert_array_equal(getattr(one, field), getattr(four, field), err_msg=f"{solver} {field}")
-        # Same sequences; their costs may differ in the last bit where XLA vectorises
-        # a transcendental differently for 3 and 12 rows per device.
-        np.testing.assert_allclose(one.cost, four.cost, rtol=1e-14, atol=0, err_msg=solver)
-        assert np.any(one.feasible), solver
+    one = solve_batch(p, X0, solver=solver, devices=jax.local_devices()[:1])
+    four = solve_batch(p, X0, solver=solver)
+    if B == 12:
+        assert len(four.cost.sharding.device_set) == 4, four.cost.sharding  # the rows were split
+    # The pool's node counts depend on which rows share a device; costs and sequences do not.
+    for field in ("sequence", "feasible", "first_input") + (("nodes",) if solver != "sdfs" else ()):
+        np.testing.assert_array_equal(getattr(one, field), getattr(four, field), err_msg=f"{solver} {field}")
+    # Same sequences; their costs may differ in the last bit where XLA vectorises
+    # a transcendental differently for 3 and 12 rows per device.
+    np.testing.assert_allclose(one.cost, four.cost, rtol=1e-14, atol=0, err_msg=solver)
+    assert np.any(one.feasible), solver
 print("same on 1 and 4 devices")
 """
 
@@ -217,3 +249,15 @@ def test_four_host_devices_give_the_same_results():
                          cwd=Path(__file__).parent.parent)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "same on 1 and 4 devices" in out.stdout
+
+
+def test_error_flags_reach_the_caller():
+    p = fj.Problem(lambda x, u: x + u, jnp.array([-1.0, 1.0]), lambda x, u: x[0], 3)  # cost < 0 below x = 0
+    with pytest.raises(ValueError, match="negative"):
+        solve_batch(p, jnp.array([[2.0], [-0.5]]))
+    nan = fj.Problem(lambda x, u: jnp.where(u[0] > 0, jnp.nan, x - 0.1), jnp.array([-1.0, 1.0]),
+                     lambda x, u: x[0] ** 2, 2)
+    with pytest.warns(RuntimeWarning, match="NaN"):
+        r = solve_batch(nan, jnp.array([[1.0], [2.0]]))
+    np.testing.assert_array_equal(r.sequence, [[0, 0], [0, 0]])
+    assert np.all(r.nan_encountered) and not np.any(r.negative_cost)
