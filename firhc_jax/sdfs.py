@@ -42,6 +42,8 @@ class Stack(NamedTuple):
     separate buffers XLA copies them every iteration to order the reads."""
 
     rows: jax.Array  # [R, n + 2 + N] x (n), cost, depth (root 0, sentinel -1), path from the root (N)
+    top: jax.Array  # [K, n + 2 + N] copy of the top K rows, read right after each push so that the
+    #                 buffer is only ever updated and then read (XLA then updates it in place, no copies)
 
 
 class _Carry(NamedTuple):
@@ -76,9 +78,6 @@ def _check_pop_width(pop_width) -> int:
     return pop_width
 
 
-PAIRWISE_MAX = 24  # children per iteration up to which pairwise ranking beats one sort kernel (measured)
-
-
 def _descending_order(cost, keep):
     """Order of ``L`` children in a sorted push block.
 
@@ -87,25 +86,17 @@ def _descending_order(cost, keep):
     others fill the slots above. Returns ``(order, count)``: ``order[s]`` is the
     child in slot ``s``.
 
-    Small ``L`` (pop_width 1): pairwise comparisons give each child its slot
-    and a scatter into a fresh ``[L]`` array inverts that (no sort kernel;
-    measured 1.4x faster per solve at L = 17). Large ``L``: one ``lax.sort``,
-    because XLA fuses the child-cost arithmetic into each of the ``L^2``
-    comparisons (measured 2x slower than the sort at L = 68, 4x at L = 136).
+    One ``lax.sort`` kernel, whose operands XLA materialises. A sort-free
+    pairwise ranking was tried and dropped: XLA fuses the child-cost arithmetic
+    into each of the ``L^2`` comparisons, which is slow for large ``L`` (4x at
+    L = 136) and, worse, evaluated inconsistently across vectorised and scalar
+    loop paths, so the ranks stopped being a permutation (wrong answers at
+    pop_width 2, found by the property tests).
     """
-    L = cost.shape[0]
-    idx = jnp.arange(L, dtype=jnp.int32)
-    count = jnp.sum(keep, dtype=jnp.int32)
-    if L > PAIRWISE_MAX:
-        key = jnp.where(keep, -cost, jnp.inf)  # kept first, most expensive first
-        _, _, order = jax.lax.sort((key, -idx, idx), num_keys=2)  # ties: higher index first (lower slot)
-        return order, count
-    later = idx[None, :] > idx[:, None]  # [L, L] j after i
-    ci, cj = cost[:, None], cost[None, :]
-    below = keep[None, :] & ((cj > ci) | ((cj == ci) & later))
-    dropped_before = jnp.sum(~keep[None, :] & ~later & (idx[None, :] != idx[:, None]), axis=1, dtype=jnp.int32)
-    slot = jnp.where(keep, jnp.sum(below, axis=1, dtype=jnp.int32), count + dropped_before)
-    return jnp.zeros(L, jnp.int32).at[slot].set(idx, unique_indices=True), count
+    idx = jnp.arange(cost.shape[0] - 1, -1, -1, dtype=jnp.int32)  # reversed: a stable sort then puts
+    key = jnp.where(keep, -cost, jnp.inf)[idx]  # the higher index first (lower slot) among equal costs
+    _, order = jax.lax.sort((key, idx), num_keys=1, is_stable=True)  # kept first, most expensive first
+    return order, jnp.sum(keep, dtype=jnp.int32)
 
 
 def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> SearchResult:
@@ -116,7 +107,8 @@ def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> Se
     inf = jnp.array(jnp.inf, dtype)
     capacity = K + stack_capacity(N, M, K) + L  # sentinels + live nodes + slack for the push block
     root = jnp.concatenate([x0.astype(wide), jnp.zeros((2 + N,), wide)])
-    stack = Stack(rows=jnp.zeros((capacity, n + 2 + N), wide).at[:, n + 1].set(-1).at[K].set(root))
+    rows = jnp.zeros((capacity, n + 2 + N), wide).at[:, n + 1].set(-1).at[K].set(root)
+    stack = Stack(rows, jax.lax.dynamic_slice_in_dim(rows, 1, K))
     zero = jnp.array(0, jnp.int32)
     no_path = jnp.full((N,), -1, jnp.int32)
     carry = _Carry(stack, inf, _book(1, zero, zero, zero, jnp.zeros((N + 1,), jnp.int32), no_path))
@@ -133,7 +125,7 @@ def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> Se
         s = c.stack
         old_size, nodes, iterations, flags = c.book[0], c.book[1], c.book[2], c.book[3]
         level_base, best_path = c.book[4:5 + N], c.book[5 + N:]
-        popped = jax.lax.dynamic_slice_in_dim(s.rows, old_size, K)  # [K, n + 2 + N] the top K rows
+        popped = s.top  # [K, n + 2 + N]
         px, pc = popped[:, :n].astype(x0.dtype), popped[:, n].astype(dtype)
         pd, ppath = popped[:, n + 1].astype(jnp.int32), popped[:, n + 2:].astype(jnp.int32)
         depth = pd[K - 1]
@@ -165,10 +157,11 @@ def _search(problem: Problem, x0, warm_start, pop_width: int, prune: bool) -> Se
         block = jnp.concatenate([ch.x.reshape(L, n)[order].astype(wide), cost[order, None].astype(wide),
                                  jnp.full((L, 1), child_depth, wide), child_path.astype(wide)], axis=1)
         rows = jax.lax.dynamic_update_slice_in_dim(s.rows, block, K + size, 0)
+        top = jax.lax.dynamic_slice_in_dim(rows, size + count, K)
         met = jnp.max(jnp.where(alive[:, None], _flags(ch.negative, ch.bad), 0))
         book = _book(size + count, nodes + M * jnp.sum(alive, dtype=jnp.int32), iterations + 1, flags | met,
                      jnp.where(levels == child_depth, size, level_base), best_path)
-        return _Carry(Stack(rows), best_cost, book)
+        return _Carry(Stack(rows, top), best_cost, book)
 
     out = jax.lax.while_loop(lambda c: c.size > 0, body, carry)
     nodes, iterations, flags, best_path = out.book[1], out.book[2], out.book[3], out.book[5 + N:]

@@ -174,7 +174,7 @@ def test_edge_sizes_m1_n1():
 
 @pytest.mark.parametrize("L", [1, 5, 17, 24, 25, 68])
 def test_push_order_matches_a_reference_sort(L):
-    """Both ranking strategies (pairwise for small L, lax.sort above) give Table 1's push order."""
+    """The push order is Table 1's: most expensive at the bottom, ties popped in mode order."""
     from firhc_jax.sdfs import _descending_order
 
     rng = np.random.default_rng(L)
