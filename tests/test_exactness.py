@@ -188,3 +188,14 @@ def test_push_order_matches_a_reference_sort(L):
         assert int(count) == len(kept)
         assert list(np.asarray(order)[:len(kept)]) == expected
         assert sorted(np.asarray(order).tolist()) == list(range(L))
+
+
+@pytest.mark.parametrize("seed", [0, 7, 16, 29, 31, 3])
+def test_pop_width_regression(seed):
+    """Cases where an earlier sort-free ranking broke pop_width 2 (found by fuzzing; kept as regressions)."""
+    rp = make(seed, 1, 1, 5, 3, ["none", "loose", "tight"][seed % 3])
+    p, x0 = rp.problem(), np.array([0.3])
+    ref = float(fj.exhaustive(p, x0).cost)
+    for k in (2, 3):
+        assert _same_cost(float(fj.sdfs(p, x0, pop_width=k).cost), ref)
+        assert _same_cost(float(fj.exhaustive(p, x0, method="dfs", pop_width=k).cost), ref)
