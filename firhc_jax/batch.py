@@ -214,16 +214,16 @@ class _Pool(NamedTuple):
     never rewritten: nodes leave it in pop order, cheapest first (ties: lowest
     index, the order of ``fj.sdfs``), and each level only keeps the cost and
     index of its next node. A batch is live while that cost is below the row's
-    incumbent, so pruning the rest of a batch costs nothing."""
+    incumbent, so pruning the rest of a batch costs nothing. Node i of the
+    batch of depth d + 1 is input ``i % M`` applied to the ``i // M``-th node
+    popped at depth d, whose path is kept in ``paths``."""
 
     x: jax.Array  # [S, N-1, L, n] level t: the batch of depth t + 1
     cost: jax.Array  # [S, N-1, L] accumulated costs as expanded (+inf: discarded)
     next_cost: jax.Array  # [S, N-1] cost of each batch's next node in pop order (+inf: none)
     next_idx: jax.Array  # [S, N-1] int32 its index in the batch
-    parents: jax.Array  # [S, N, K] int32 [:, d - 1, j]: index in the depth d - 1 batch of the j-th parent of depth d
+    paths: jax.Array  # [S, N, K, N] int32 [:, d, j]: inputs leading to the j-th node popped at depth d
     row: jax.Array  # [S] int32 row the slot works on (B: none)
-    base_depth: jax.Array  # [S] int32 depth of the node the slot started from (row root: 0, stolen node: > 0)
-    base_path: jax.Array  # [S, N] int32 inputs leading to that node (its first base_depth entries)
 
 
 class _Rows(NamedTuple):
@@ -231,10 +231,7 @@ class _Rows(NamedTuple):
 
     cost: jax.Array  # [B] incumbent cost (+inf: none yet)
     path: jax.Array  # [B, N] int32 incumbent sequence
-    nodes: jax.Array  # [B] int32 child nodes computed
-    iterations: jax.Array  # [B] int32 slot-iterations spent on the row
-    negative: jax.Array  # [B] bool a negative stage cost was met
-    nan: jax.Array  # [B] bool a NaN state or cost was met
+    counts: jax.Array  # [B, 4] int32 nodes computed, slot-iterations, negative stage costs, NaN parents
 
 
 class _Pops(NamedTuple):
@@ -298,17 +295,13 @@ def _put(a, i, v):
     return jnp.where(at.reshape(at.shape + (1,) * (a.ndim - 2)), jnp.expand_dims(v, 1), a)
 
 
-def _path(pool: _Pool, depth, idx, M: int):
-    """Inputs from the row root to node ``idx`` of each slot's depth ``depth``
-    batch (depth N: the children expanded this iteration): ``[S, N]``. Walks
-    ``parents`` up to the slot's base node, whose path is ``base_path``."""
-    path, i = pool.base_path, idx
-    for d in range(pool.parents.shape[1], 0, -1):
-        on = (d <= depth) & (d > pool.base_depth)
-        path = path.at[:, d - 1].set(jnp.where(on, i % M, path[:, d - 1]))
-        parent = _take(pool.parents[:, d - 1], jnp.clip(i // M, 0, pool.parents.shape[2] - 1))
-        i = jnp.where(d <= depth, parent, i)
-    return path
+def _node_paths(paths, depth, idx, M: int):
+    """Paths ``[S, ..., N]`` of nodes ``idx`` ``[S, ...]`` of each slot's batch of
+    depth ``depth`` ``[S]`` (1..N; N: the children expanded this iteration)."""
+    parent = jnp.take_along_axis(_take(paths, depth - 1), (idx // M).reshape(idx.shape[0], -1)[..., None], axis=1)
+    parent = parent.reshape(idx.shape + (paths.shape[-1],))
+    at = jnp.arange(paths.shape[-1]) == (depth - 1).reshape((-1,) + (1,) * idx.ndim)
+    return jnp.where(at, (idx % M)[..., None], parent)
 
 
 def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal: bool) -> SearchResult:
@@ -318,7 +311,7 @@ def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal
     (B, n), L = X.shape, K * M
     dtype = cost_dtype(problem, X[0])
     inf = jnp.array(jnp.inf, dtype)
-    slots, levels, depths = (jnp.arange(k, dtype=jnp.int32) for k in (S, N - 1, N))
+    levels = jnp.arange(N - 1, dtype=jnp.int32)
     first = jnp.arange(K) == 0  # [K]
 
     def incumbent(rows, row):
@@ -339,50 +332,52 @@ def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal
             c, i = _next_after(batch, c, i)
         idx, pc = jnp.stack(idx, 1), jnp.stack(pc, 1)  # [S, K]
         alive = busy[:, None] & (pc < best[:, None])  # a prefix: costs ascend
-        top_next = jnp.where(busy[:, None], levels == top0[:, None], False)
-        next_cost = jnp.where(top_next, c[:, None], pool.next_cost)  # the rest of a pruned batch stays pruned
-        next_idx = jnp.where(top_next, i[:, None], pool.next_idx)
+        at_top = busy[:, None] & (levels == top0[:, None])
+        next_cost = jnp.where(at_top, c[:, None], pool.next_cost)  # the rest of a pruned batch stays pruned
+        next_idx = jnp.where(at_top, i[:, None], pool.next_idx)
         px = jnp.take_along_axis(_take(pool.x, top0), idx[..., None], axis=1)  # [S, K, n]
-        depth, row, base_depth, base_path = top + 1, pool.row, pool.base_depth, pool.base_path
+        path = _node_paths(pool.paths, top0 + 1, idx, M)  # [S, K, N]
+        depth, row = top + 1, pool.row
 
+        # Free slots in rank order: the first take the next rows' roots, the rest may steal.
         free = ~busy
-        fresh_row = head + jnp.cumsum(free, dtype=jnp.int32) - 1
-        fresh = free & (fresh_row < n_valid)
-        head = jnp.minimum(head + jnp.sum(free, dtype=jnp.int32), n_valid)
-        px = jnp.where((fresh[:, None] & first)[..., None], X[jnp.minimum(fresh_row, B - 1)][:, None], px)
+        if steal and N > 1:
+            stealable = next_cost < best[:, None]
+            can = jnp.any(stealable, axis=1)
+            ranks = jnp.cumsum(jnp.stack([free, can], 1), axis=0, dtype=jnp.int32) - 1  # one scan for both
+            free_rank, can_rank = ranks[:, 0], ranks[:, 1]
+        else:
+            free_rank = jnp.cumsum(free, dtype=jnp.int32) - 1
+        fresh = free & (head + free_rank < n_valid)
+        px = jnp.where((fresh[:, None] & first)[..., None], X[jnp.minimum(head + free_rank, B - 1)][:, None], px)
         pc = jnp.where(fresh[:, None], 0, pc)
         alive = jnp.where(fresh[:, None], first, alive)
         depth = jnp.where(fresh, 0, depth)
-        row = jnp.where(fresh, fresh_row, row)
-        base_depth = jnp.where(fresh, 0, base_depth)
+        row = jnp.where(fresh, head + free_rank, row)
         if steal and N > 1:
-            stealable = next_cost < best[:, None]
-            level = jnp.argmax(stealable, axis=1).astype(jnp.int32)  # shallowest
-            can = jnp.any(stealable, axis=1)
-            thief = free & ~fresh
-            t_rank = jnp.cumsum(thief, dtype=jnp.int32) - 1
-            steals = thief & (t_rank < jnp.sum(can, dtype=jnp.int32))
-            by_rank = jnp.zeros((S,), jnp.int32).at[jnp.where(can, jnp.cumsum(can) - 1, S)].set(slots, mode="drop")
-            victim = jnp.where(steals, by_rank[jnp.clip(t_rank, 0, S - 1)], 0)
-            robbed = jnp.zeros((S,), bool).at[jnp.where(steals, victim, S)].set(True, mode="drop")
+            t_rank = free_rank - (n_valid - head)  # rank among the free slots left without a row
+            steals = free & (t_rank >= 0) & (t_rank < jnp.sum(can, dtype=jnp.int32))
+            robbed = can & (can_rank < jnp.sum(free, dtype=jnp.int32) - (n_valid - head))
+            victim = jnp.zeros((S,), jnp.int32).at[jnp.where(can, can_rank, S)].set(
+                jnp.arange(S, dtype=jnp.int32), mode="drop")[jnp.clip(t_rank, 0, S - 1)]
+            level = jnp.argmax(stealable, axis=1).astype(jnp.int32)  # shallowest live batch
             s_cost, s_idx = _take(next_cost, level), _take(next_idx, level)  # [S] each slot's stealable node
-            after = _next_after(_take(pool.cost, level), s_cost, s_idx)
+            after_cost, after_idx = _next_after(_take(pool.cost, level), s_cost, s_idx)
             rob = robbed[:, None] & (levels == level[:, None])
-            next_cost = jnp.where(rob, after[0][:, None], next_cost)
-            next_idx = jnp.where(rob, after[1][:, None], next_idx)
-            v_level = level[victim]
-            px = jnp.where((steals[:, None] & first)[..., None], pool.x[victim, v_level, s_idx[victim]][:, None], px)
-            pc = jnp.where(steals[:, None], s_cost[victim][:, None], pc)
+            next_cost = jnp.where(rob, after_cost[:, None], next_cost)
+            next_idx = jnp.where(rob, after_idx[:, None], next_idx)
+            v_level, v_idx = level[victim], s_idx[victim]
+            thief = steals[:, None] & first
+            px = jnp.where(thief[..., None], pool.x[victim, v_level, v_idx][:, None], px)
+            pc = jnp.where(thief, s_cost[victim][:, None], pc)
             alive = jnp.where(steals[:, None], first, alive)
             depth = jnp.where(steals, v_level + 1, depth)
             row = jnp.where(steals, pool.row[victim], row)
-            base_depth = jnp.where(steals, v_level + 1, base_depth)
-            base_path = jnp.where(steals[:, None], _path(pool, level + 1, s_idx, M)[victim], base_path)
+            path = jnp.where(thief[..., None], _node_paths(pool.paths, level + 1, s_idx, M)[victim][:, None], path)
+        head = jnp.minimum(head + jnp.sum(free, dtype=jnp.int32), n_valid)
         # A slot that changes row starts empty: its batches were pruned against the old row.
         next_cost = jnp.where((row != pool.row)[:, None], inf, next_cost)
-        parents = _put(pool.parents, depth, jnp.where(busy[:, None], idx, 0))
-        pool = pool._replace(next_cost=next_cost, next_idx=next_idx, parents=parents, row=row,
-                             base_depth=base_depth, base_path=base_path)
+        pool = pool._replace(next_cost=next_cost, next_idx=next_idx, paths=_put(pool.paths, depth, path), row=row)
         return pool, head, _Pops(x=px, cost=pc, alive=alive, depth=depth)
 
     def work(pool: _Pool, rows: _Rows, pops: _Pops):
@@ -403,21 +398,20 @@ def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal
         improve = cand < best
         new_cost = rows.cost.at[jnp.where(improve, row, B)].min(cand, mode="drop")
         winner = improve & (cand == incumbent(rows._replace(cost=new_cost), row))
-        path = rows.path.at[jnp.where(winner, row, B)].set(_path(pool, jnp.full((S,), N), leaf, M), mode="drop")
+        path = rows.path.at[jnp.where(winner, row, B)].set(
+            _node_paths(pool.paths, jnp.full((S,), N), leaf, M), mode="drop")
 
         # Non-leaves: the slot's new top batch, at level `depth`.
         batch = jnp.where(ok, cost, inf)
-        put = (n_alive > 0) & (child_depth < N)
-        level = jnp.where(put, pops.depth, N)  # N - 1 levels: N is out of range, nothing written
+        level = jnp.where((n_alive > 0) & (child_depth < N), pops.depth, N)  # N: nothing stored
         nc, ni = _min_argmin(batch)
         pool = pool._replace(x=_put(pool.x, level, cx), cost=_put(pool.cost, level, batch),
                              next_cost=_put(pool.next_cost, level, nc), next_idx=_put(pool.next_idx, level, ni))
-        at = jnp.where(n_alive > 0, row, B)
-        rows = _Rows(cost=new_cost, path=path, nodes=rows.nodes.at[at].add(M * n_alive, mode="drop"),
-                     iterations=rows.iterations.at[at].add(1, mode="drop"),
-                     negative=rows.negative.at[at].max(jnp.any(parent_alive & ch.negative.reshape(S, L), axis=1),
-                                                       mode="drop"),
-                     nan=rows.nan.at[at].max(jnp.any(parent_alive & ch.bad.reshape(S, L), axis=1), mode="drop"))
+        counts = jnp.stack([M * n_alive, jnp.ones_like(n_alive),
+                            jnp.sum(parent_alive & ch.negative.reshape(S, L), axis=1, dtype=jnp.int32),
+                            jnp.sum(parent_alive & ch.bad.reshape(S, L), axis=1, dtype=jnp.int32)], 1)
+        rows = _Rows(cost=new_cost, path=path,
+                     counts=rows.counts.at[jnp.where(n_alive > 0, row, B)].add(counts, mode="drop"))
         return pool, rows
 
     def body(carry):
@@ -428,14 +422,13 @@ def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal
 
     pool = _Pool(x=jnp.zeros((S, N - 1, L, n), X.dtype), cost=jnp.full((S, N - 1, L), inf),
                  next_cost=jnp.full((S, N - 1), inf), next_idx=jnp.zeros((S, N - 1), jnp.int32),
-                 parents=jnp.zeros((S, N, K), jnp.int32), row=jnp.full((S,), B, jnp.int32),
-                 base_depth=jnp.zeros((S,), jnp.int32), base_path=jnp.full((S, N), -1, jnp.int32))
-    rows = _Rows(cost=jnp.full((B,), inf), path=jnp.full((B, N), -1, jnp.int32), nodes=jnp.zeros((B,), jnp.int32),
-                 iterations=jnp.zeros((B,), jnp.int32), negative=jnp.zeros((B,), bool), nan=jnp.zeros((B,), bool))
+                 paths=jnp.full((S, N, K, N), -1, jnp.int32), row=jnp.full((S,), B, jnp.int32))
+    rows = _Rows(cost=jnp.full((B,), inf), path=jnp.full((B, N), -1, jnp.int32), counts=jnp.zeros((B, 4), jnp.int32))
     pool, head, pops = select(pool, rows, jnp.array(0, jnp.int32))
     _, rows, _, _ = jax.lax.while_loop(lambda c: jnp.any(c[3].alive), body, (pool, rows, head, pops))
-    return jax.vmap(lambda *a: finish(problem.controls, *a))(rows.cost, rows.path, rows.nodes, rows.iterations,
-                                                             rows.negative, rows.nan)
+    c = rows.counts
+    return jax.vmap(lambda *a: finish(problem.controls, *a))(rows.cost, rows.path, c[:, 0], c[:, 1], c[:, 2] > 0,
+                                                             c[:, 3] > 0)
 
 
 # ---------------------------------------------------------------------------
@@ -496,7 +489,7 @@ def _mesh(devices) -> Mesh:
 
 
 def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_width: int = 1,
-                lanes: int = DEFAULT_LANES, chunk_nodes: int = DEFAULT_CHUNK_NODES,
+                lanes: int | None = None, chunk_nodes: int = DEFAULT_CHUNK_NODES,
                 max_memory: int = DEFAULT_MAX_MEMORY, devices=None) -> SearchResult:
     """Solve ``problem`` from every row of ``X0``; exact per row.
 
@@ -513,6 +506,9 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         slot, per iteration).
       lanes: slots of the ``"sdfs"`` pool on each device: each iteration
         expands up to ``lanes * pop_width * M`` children in one call.
+        Default: the rows per device, at most ``DEFAULT_LANES`` (256; measured
+        best or within noise of best for B = 1 to 4096 on this project's
+        plants on CPU; a GPU wants more, see docs/batch.md).
       chunk_nodes: per-row ``chunk_nodes`` of ``"exhaustive"``.
       max_memory: bytes the batch may use at once on each device (estimate,
         see ``row_memory``); larger batches are solved in chunks of rows.
@@ -537,6 +533,7 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
     mesh = _mesh(devices)
     per_device, width, item = -(-B // mesh.devices.size), X.shape[1], X.dtype.itemsize
     if solver == "sdfs":
+        lanes = min(DEFAULT_LANES, per_device) if lanes is None else lanes
         if isinstance(lanes, bool) or not isinstance(lanes, int) or lanes < 1:
             raise ValueError(f"lanes must be an int >= 1, got {lanes!r}")
         fixed = pool_memory(problem, width, item, lanes, pop_width)
@@ -545,6 +542,7 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
                              f"max_memory={max_memory:,}; lower lanes or pop_width, or raise max_memory")
         rows = _rows_per_chunk(pool_row_memory(problem, width, item), per_device, max_memory - fixed, "one row")
     else:
+        lanes = None  # unused: keep the compiled batch's cache key
         need = row_memory(problem, width, item, solver, pop_width, chunk_nodes)
         rows = _rows_per_chunk(need, per_device, max_memory, f"one row of solver={solver!r}")
     return raise_on_errors(_solve_jit(problem, X, mesh=mesh, solver=solver, pop_width=pop_width,

@@ -65,9 +65,9 @@ def test_exact_per_row(seed, n, m, M, N, terminal, solvers):
         assert not np.all(batch.feasible) and np.any(batch.feasible)  # both cases were exercised
 
 
-@pytest.mark.parametrize("lanes, pop_width", [(3, 1), (4, 2)])
-def test_pool_exact_with_fewer_lanes_than_rows(lanes, pop_width):
-    """Rows queue for slots; free slots steal nodes of the last rows' searches."""
+@pytest.mark.parametrize("lanes, pop_width", [(3, 1), (4, 2), (32, 1)])
+def test_pool_exact_with_more_or_fewer_lanes_than_rows(lanes, pop_width):
+    """Rows queue for slots (or slots outnumber rows); free slots steal nodes of the last rows' searches."""
     rp = make(8, 3, 1, 5, 5, "loose")
     X0 = states(8, 11, 3)
     batch = solve_batch(rp.problem(), X0, lanes=lanes, pop_width=pop_width)
