@@ -233,8 +233,9 @@ def run_tables(args) -> int:
 # Throughput profile
 # ---------------------------------------------------------------------------
 
-def profile_case(case: Case, repeats: int, batches) -> list[dict]:
-    """Nodes/s and us/iteration per search, and batched (vmap) solves/s and nodes/s."""
+def profile_case(case: Case, repeats: int, batches, max_es_nodes: float) -> list[dict]:
+    """Nodes/s and us/iteration per search, and batched (vmap) solves/s and nodes/s
+    (the batched exhaustive search only for batches within ``max_es_nodes`` nodes)."""
     import firhc_jax as fj
 
     fns = variants(case)
@@ -251,6 +252,8 @@ def profile_case(case: Case, repeats: int, batches) -> list[dict]:
     for name, solve in (("sdfs", lambda x: fj.sdfs(p, x)), ("exhaustive levels", lambda x: fj.exhaustive(p, x))):
         batched = jax.jit(jax.vmap(solve))
         for b in batches:
+            if name != "sdfs" and b * p.tree_size() > max_es_nodes:
+                continue
             X = jnp.asarray(case.states[np.arange(b) % len(case.states)])
             jax.block_until_ready(batched(X))
             times = []
@@ -334,7 +337,7 @@ def run_throughput(args) -> int:
     profile, sweep = [], []
     with Progress(len(cases) + len(sweep_plan), "throughput") as bar:
         for i, make in enumerate(cases):
-            profile += profile_case(make(), repeats, batches)
+            profile += profile_case(make(), repeats, batches, args.max_es_nodes)
             bar.update(i + 1)
         for j, (make, horizons) in enumerate(sweep_plan):
             sweep += horizon_sweep(make, horizons, repeats, args.max_es_nodes)
