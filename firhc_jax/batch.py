@@ -234,18 +234,21 @@ class _Rows(NamedTuple):
     counts: jax.Array  # [B, 4] int32 nodes computed, slot-iterations, negative stage costs, NaN parents
 
 
-class _Pops(NamedTuple):
-    """One iteration's selection: the nodes each slot expands. Selection and
-    expansion are pipelined through the loop carry (the selection for
-    iteration i + 1 is made at the end of iteration i), so that these
-    per-slot vectors reach the per-child work as materialised buffers: XLA:CPU
-    otherwise recomputes their derivation (~100 ops) inside every per-child
-    fusion, which made the pool 2-3x slower."""
+class _Plan(NamedTuple):
+    """What each slot expands next, decided from per-slot and per-level
+    scalars only. Deciding and expanding are pipelined through the loop carry
+    (the plan for iteration i + 1 is made at the end of iteration i): the big
+    node arrays are then read at the start of an iteration, before they are
+    updated in place, and the plan reaches the per-node work as materialised
+    buffers. Otherwise XLA:CPU copies the node arrays every iteration and
+    recomputes the plan's derivation (~100 ops) inside every per-node fusion,
+    which made the pool 2-3x slower."""
 
-    x: jax.Array  # [S, K, n] nodes to expand
-    cost: jax.Array  # [S, K] their accumulated costs
-    alive: jax.Array  # [S, K] bool expanded (a prefix)
-    depth: jax.Array  # [S] int32 their depth
+    depth: jax.Array  # [S] int32 depth of the nodes to expand (-1: nothing to do)
+    level: jax.Array  # [S] int32 pop the next K nodes of this level's batch (-1: no)
+    root: jax.Array  # [S] int32 expand this row's root (-1: no)
+    victim: jax.Array  # [S] int32 expand the next node of this slot's robbed batch (-1: no)
+    robbed: jax.Array  # [S] int32 level whose next node a thief takes (-1: none)
 
 
 def pool_capacity(problem: Problem, lanes: int, pop_width: int = 1) -> int:
@@ -295,6 +298,16 @@ def _put(a, i, v):
     return jnp.where(at.reshape(at.shape + (1,) * (a.ndim - 2)), jnp.expand_dims(v, 1), a)
 
 
+def _materialised(pred, fn, *args):
+    """``fn(*args)`` with its outputs materialised before any use. XLA:CPU fuses
+    cheap producers into each consumer, recomputing them per element (here a
+    ~100-op per-slot derivation inside every per-node fusion: 25% of the
+    pool's time), and drops ``lax.optimization_barrier`` before fusing; the
+    outputs of a conditional are always materialised. Both branches are
+    ``fn``: ``pred`` only has to be a traced (not constant) boolean."""
+    return jax.lax.cond(pred, fn, lambda *a: fn(*a), *args)
+
+
 def _node_paths(paths, depth, idx, M: int):
     """Paths ``[S, ..., N]`` of nodes ``idx`` ``[S, ...]`` of each slot's batch of
     depth ``depth`` ``[S]`` (1..N; N: the children expanded this iteration)."""
@@ -317,83 +330,95 @@ def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal
     def incumbent(rows, row):
         return rows.cost.at[row].get(mode="fill", fill_value=jnp.inf)
 
-    def select(pool: _Pool, rows: _Rows, head):
-        """Each slot's nodes for the next iteration: the K next nodes of its
-        deepest live batch; a free slot takes the next row's root or, once
-        every row has started, steals the next node of another slot's
-        shallowest live batch (exact: the row's incumbent is shared)."""
+    def plan(pool: _Pool, rows: _Rows, head):
+        """Each slot's next nodes: the K next nodes of its deepest live batch;
+        a free slot takes the next row's root or, once every row has started,
+        the next node of the shallowest live batch below another slot's top
+        batch (exact: the row's incumbent is shared)."""
+        live = pool.next_cost < incumbent(rows, pool.row)[:, None]  # [S, N-1]
+        top = jnp.max(jnp.where(live, levels, -1), axis=1, initial=-1)  # [S] deepest live batch
+        free = top < 0
+        if steal and N > 2:
+            stealable = live & (levels < top[:, None])
+            can = jnp.any(stealable, axis=1)
+            ranks = jnp.cumsum(jnp.stack([free, can]), axis=1, dtype=jnp.int32) - 1  # one scan for both
+            free_rank, can_rank = ranks[0], ranks[1]
+        else:
+            free_rank = jnp.cumsum(free, dtype=jnp.int32) - 1
+        root = jnp.where(free & (head + free_rank < n_valid), head + free_rank, -1)
+        row = jnp.where(root >= 0, root, pool.row)
+        depth = jnp.where(top >= 0, top + 1, jnp.where(root >= 0, 0, -1))
+        victim = robbed = jnp.full((S,), -1, jnp.int32)
+        if steal and N > 2:
+            t_rank = free_rank - (n_valid - head)  # rank among the free slots left without a row
+            steals = free & (t_rank >= 0) & (t_rank < jnp.sum(can, dtype=jnp.int32))
+            by_rank = jnp.zeros((S,), jnp.int32).at[jnp.where(can, can_rank, S)].set(
+                jnp.arange(S, dtype=jnp.int32), mode="drop")
+            victim = jnp.where(steals, by_rank[jnp.clip(t_rank, 0, S - 1)], -1)
+            shallowest = jnp.argmax(stealable, axis=1).astype(jnp.int32)
+            robbed = jnp.where(can & (can_rank < jnp.sum(free, dtype=jnp.int32) - (n_valid - head)), shallowest, -1)
+            row = jnp.where(steals, pool.row[jnp.maximum(victim, 0)], row)
+            depth = jnp.where(steals, shallowest[jnp.maximum(victim, 0)] + 1, depth)
+        # A slot that changes row starts empty: its batches were pruned against the old row.
+        pool = pool._replace(next_cost=jnp.where((row != pool.row)[:, None], inf, pool.next_cost), row=row)
+        head = jnp.minimum(head + jnp.sum(free, dtype=jnp.int32), n_valid)
+        return pool, head, _Plan(depth=depth, level=top, root=root, victim=victim, robbed=robbed)
+
+    def take_out(pool: _Pool, rows: _Rows, todo: _Plan):
+        """The planned nodes of every slot ``(x [S, K, n], cost [S, K], alive
+        [S, K])``, and the pool without them."""
         best = incumbent(rows, pool.row)  # [S]
-        top = jnp.max(jnp.where(pool.next_cost < best[:, None], levels, -1), axis=1, initial=-1)  # [S]
-        busy, top0 = top >= 0, jnp.maximum(top, 0)
-        batch, c, i, idx, pc = _take(pool.cost, top0), _take(pool.next_cost, top0), _take(pool.next_idx, top0), [], []
+        own, level = todo.level >= 0, jnp.maximum(todo.level, 0)
+        batch, c, i = _take(pool.cost, level), _take(pool.next_cost, level), _take(pool.next_idx, level)
+        idx, pc = [], []
         for _ in range(K):
             idx.append(i)
             pc.append(c)
             c, i = _next_after(batch, c, i)
         idx, pc = jnp.stack(idx, 1), jnp.stack(pc, 1)  # [S, K]
-        alive = busy[:, None] & (pc < best[:, None])  # a prefix: costs ascend
-        at_top = busy[:, None] & (levels == top0[:, None])
-        next_cost = jnp.where(at_top, c[:, None], pool.next_cost)  # the rest of a pruned batch stays pruned
-        next_idx = jnp.where(at_top, i[:, None], pool.next_idx)
-        px = jnp.take_along_axis(_take(pool.x, top0), idx[..., None], axis=1)  # [S, K, n]
-        path = _node_paths(pool.paths, top0 + 1, idx, M)  # [S, K, N]
-        depth, row = top + 1, pool.row
+        alive = own[:, None] & (pc < best[:, None])  # a prefix: costs ascend
+        px = jnp.take_along_axis(_take(pool.x, level), idx[..., None], axis=1)  # [S, K, n]
+        path = _node_paths(pool.paths, level + 1, idx, M)  # [S, K, N]
+        at = own[:, None] & (levels == level[:, None])
+        next_cost = jnp.where(at, c[:, None], pool.next_cost)  # the rest of a pruned batch stays pruned
+        next_idx = jnp.where(at, i[:, None], pool.next_idx)
 
-        # Free slots in rank order: the first take the next rows' roots, the rest may steal.
-        free = ~busy
-        if steal and N > 1:
-            stealable = next_cost < best[:, None]
-            can = jnp.any(stealable, axis=1)
-            ranks = jnp.cumsum(jnp.stack([free, can], 1), axis=0, dtype=jnp.int32) - 1  # one scan for both
-            free_rank, can_rank = ranks[:, 0], ranks[:, 1]
-        else:
-            free_rank = jnp.cumsum(free, dtype=jnp.int32) - 1
-        fresh = free & (head + free_rank < n_valid)
-        px = jnp.where((fresh[:, None] & first)[..., None], X[jnp.minimum(head + free_rank, B - 1)][:, None], px)
-        pc = jnp.where(fresh[:, None], 0, pc)
-        alive = jnp.where(fresh[:, None], first, alive)
-        depth = jnp.where(fresh, 0, depth)
-        row = jnp.where(fresh, head + free_rank, row)
-        if steal and N > 1:
-            t_rank = free_rank - (n_valid - head)  # rank among the free slots left without a row
-            steals = free & (t_rank >= 0) & (t_rank < jnp.sum(can, dtype=jnp.int32))
-            robbed = can & (can_rank < jnp.sum(free, dtype=jnp.int32) - (n_valid - head))
-            victim = jnp.zeros((S,), jnp.int32).at[jnp.where(can, can_rank, S)].set(
-                jnp.arange(S, dtype=jnp.int32), mode="drop")[jnp.clip(t_rank, 0, S - 1)]
-            level = jnp.argmax(stealable, axis=1).astype(jnp.int32)  # shallowest live batch
-            s_cost, s_idx = _take(next_cost, level), _take(next_idx, level)  # [S] each slot's stealable node
-            after_cost, after_idx = _next_after(_take(pool.cost, level), s_cost, s_idx)
-            rob = robbed[:, None] & (levels == level[:, None])
-            next_cost = jnp.where(rob, after_cost[:, None], next_cost)
-            next_idx = jnp.where(rob, after_idx[:, None], next_idx)
-            v_level, v_idx = level[victim], s_idx[victim]
-            thief = steals[:, None] & first
-            px = jnp.where(thief[..., None], pool.x[victim, v_level, v_idx][:, None], px)
-            pc = jnp.where(thief, s_cost[victim][:, None], pc)
-            alive = jnp.where(steals[:, None], first, alive)
-            depth = jnp.where(steals, v_level + 1, depth)
-            row = jnp.where(steals, pool.row[victim], row)
-            path = jnp.where(thief[..., None], _node_paths(pool.paths, level + 1, s_idx, M)[victim][:, None], path)
-        head = jnp.minimum(head + jnp.sum(free, dtype=jnp.int32), n_valid)
-        # A slot that changes row starts empty: its batches were pruned against the old row.
-        next_cost = jnp.where((row != pool.row)[:, None], inf, next_cost)
-        pool = pool._replace(next_cost=next_cost, next_idx=next_idx, paths=_put(pool.paths, depth, path), row=row)
-        return pool, head, _Pops(x=px, cost=pc, alive=alive, depth=depth)
+        is_root = (todo.root >= 0)[:, None] & first
+        px = jnp.where(is_root[..., None], X[jnp.maximum(todo.root, 0)][:, None], px)
+        pc = jnp.where(is_root, 0, pc)
+        alive = jnp.where((todo.root >= 0)[:, None], is_root, alive)
+        depth = todo.depth  # planned from the same incumbents: a planned slot expands >= 1 node
+        if steal and N > 2:
+            # Every robbed slot hands over the next node of its robbed batch and moves past it.
+            r_level = jnp.maximum(todo.robbed, 0)
+            r_cost, r_idx = _take(pool.next_cost, r_level), _take(pool.next_idx, r_level)
+            r_x = jnp.take_along_axis(_take(pool.x, r_level), r_idx[:, None, None], axis=1)[:, 0]  # [S, n]
+            r_path = _node_paths(pool.paths, r_level + 1, r_idx, M)  # [S, N]
+            after_cost, after_idx = _next_after(_take(pool.cost, r_level), r_cost, r_idx)
+            at = (todo.robbed >= 0)[:, None] & (levels == r_level[:, None])
+            next_cost = jnp.where(at, after_cost[:, None], next_cost)
+            next_idx = jnp.where(at, after_idx[:, None], next_idx)
+            thief, v = (todo.victim >= 0)[:, None] & first, jnp.maximum(todo.victim, 0)
+            px = jnp.where(thief[..., None], r_x[v][:, None], px)
+            pc = jnp.where(thief, r_cost[v][:, None], pc)
+            alive = jnp.where((todo.victim >= 0)[:, None], thief, alive)
+            path = jnp.where(thief[..., None], r_path[v][:, None], path)
+        pool = pool._replace(next_cost=next_cost, next_idx=next_idx, paths=_put(pool.paths, depth, path))
+        return pool, px, pc, alive
 
-    def work(pool: _Pool, rows: _Rows, pops: _Pops):
-        """Expand the selected nodes of every slot in one call, let leaves
-        improve their rows' incumbents, push each slot's children as its new
-        top batch (pruned lazily, when popped)."""
-        ch = expand(problem, pops.x.reshape(S * K, n), pops.cost.reshape(S * K),
-                    check_terminal=problem.terminal is not None)
+    def work(pool: _Pool, rows: _Rows, todo: _Plan):
+        """Take the planned nodes out of the pool, expand those of every slot in
+        one call, let leaves improve their rows' incumbents, push each slot's
+        children as its new top batch (pruned lazily, when popped)."""
+        best, depth = incumbent(rows, pool.row), todo.depth  # [S]
+        pool, px, pc, alive = _materialised(jnp.any(depth >= 0), take_out, pool, rows, todo)
+        ch = expand(problem, px.reshape(S * K, n), pc.reshape(S * K), check_terminal=problem.terminal is not None)
         cx, cost = ch.x.reshape(S, L, n), ch.cost.reshape(S, L)
-        parent_alive = jnp.repeat(pops.alive, M, axis=1)  # [S, L]
+        parent_alive = jnp.repeat(alive, M, axis=1)  # [S, L]
         ok = parent_alive & ~ch.bad.reshape(S, L)
-        n_alive = jnp.sum(pops.alive, axis=1, dtype=jnp.int32)
-        child_depth, row = pops.depth + 1, pool.row
+        child_depth, row = depth + 1, pool.row
 
         # Leaves: each slot's cheapest feasible leaf may improve its row's incumbent.
-        best = incumbent(rows, row)
         cand, leaf = _min_argmin(jnp.where(ok & ch.terminal_ok.reshape(S, L) & (child_depth == N)[:, None], cost, inf))
         improve = cand < best
         new_cost = rows.cost.at[jnp.where(improve, row, B)].min(cand, mode="drop")
@@ -403,29 +428,32 @@ def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal
 
         # Non-leaves: the slot's new top batch, at level `depth`.
         batch = jnp.where(ok, cost, inf)
-        level = jnp.where((n_alive > 0) & (child_depth < N), pops.depth, N)  # N: nothing stored
+        put = jnp.where((depth >= 0) & (child_depth < N), depth, N)  # N: nothing stored
         nc, ni = _min_argmin(batch)
-        pool = pool._replace(x=_put(pool.x, level, cx), cost=_put(pool.cost, level, batch),
-                             next_cost=_put(pool.next_cost, level, nc), next_idx=_put(pool.next_idx, level, ni))
-        counts = jnp.stack([M * n_alive, jnp.ones_like(n_alive),
+        pool = pool._replace(x=_put(pool.x, put, cx), cost=_put(pool.cost, put, batch),
+                             next_cost=_put(pool.next_cost, put, nc), next_idx=_put(pool.next_idx, put, ni))
+        counts = jnp.stack([M * jnp.sum(alive, axis=1, dtype=jnp.int32), jnp.ones((S,), jnp.int32),
                             jnp.sum(parent_alive & ch.negative.reshape(S, L), axis=1, dtype=jnp.int32),
                             jnp.sum(parent_alive & ch.bad.reshape(S, L), axis=1, dtype=jnp.int32)], 1)
         rows = _Rows(cost=new_cost, path=path,
-                     counts=rows.counts.at[jnp.where(n_alive > 0, row, B)].add(counts, mode="drop"))
+                     counts=rows.counts.at[jnp.where(depth >= 0, row, B)].add(counts, mode="drop"))
         return pool, rows
 
     def body(carry):
-        pool, rows, head, pops = carry
-        pool, rows = work(pool, rows, pops)
-        pool, head, pops = select(pool, rows, head)
-        return pool, rows, head, pops
+        pool, rows, head, todo = carry
+        pool, rows = work(pool, rows, todo)
+        pool, head, todo = plan(pool, rows, head)
+        return pool, rows, head, todo
+
+    def pending(carry):
+        return jnp.any(carry[3].depth >= 0)
 
     pool = _Pool(x=jnp.zeros((S, N - 1, L, n), X.dtype), cost=jnp.full((S, N - 1, L), inf),
                  next_cost=jnp.full((S, N - 1), inf), next_idx=jnp.zeros((S, N - 1), jnp.int32),
                  paths=jnp.full((S, N, K, N), -1, jnp.int32), row=jnp.full((S,), B, jnp.int32))
     rows = _Rows(cost=jnp.full((B,), inf), path=jnp.full((B, N), -1, jnp.int32), counts=jnp.zeros((B, 4), jnp.int32))
-    pool, head, pops = select(pool, rows, jnp.array(0, jnp.int32))
-    _, rows, _, _ = jax.lax.while_loop(lambda c: jnp.any(c[3].alive), body, (pool, rows, head, pops))
+    pool, head, todo = plan(pool, rows, jnp.array(0, jnp.int32))
+    _, rows, _, _ = jax.lax.while_loop(pending, body, (pool, rows, head, todo))
     c = rows.counts
     return jax.vmap(lambda *a: finish(problem.controls, *a))(rows.cost, rows.path, c[:, 0], c[:, 1], c[:, 2] > 0,
                                                              c[:, 3] > 0)

@@ -1,6 +1,7 @@
 """fj.solve_batch: exactness per row, parameters, validation, memory, retracing."""
 import itertools
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -261,3 +262,16 @@ def test_error_flags_reach_the_caller():
         r = solve_batch(nan, jnp.array([[1.0], [2.0]]))
     np.testing.assert_array_equal(r.sequence, [[0, 0], [0, 0]])
     assert np.all(r.nan_encountered) and not np.any(r.negative_cost)
+
+
+def test_docs_example_runs(monkeypatch):
+    """docs/batch.md's example runs as written and its results are exact."""
+    monkeypatch.setattr(fj, "solve_batch", solve_batch, raising=False)  # until fj re-exports it
+    text = (Path(__file__).parent.parent / "docs" / "batch.md").read_text()
+    namespace = {}
+    exec(compile(re.search(r"```python\n(.*?)```", text, re.S).group(1), "docs/batch.md", "exec"), namespace)
+    problem, X0, res = namespace["problem"], namespace["X0"], namespace["res"]
+    ref = solve_batch(problem, X0[:4], solver="exhaustive")
+    np.testing.assert_allclose(res.cost[:4], ref.cost, rtol=1e-12)
+    assert namespace["costs"].shape == (10, 256) and namespace["tracked"].cost.shape == (256,)
+    np.testing.assert_allclose(namespace["costs"][0], res.cost, rtol=1e-12)
