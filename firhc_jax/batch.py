@@ -21,8 +21,8 @@ one live peer batch per depth, as in ``fj.sdfs``, so it stores at most
 deepest live batch (cheapest first) and the children of all slots come from
 one call of ``expand``: ``lanes * K * M`` children per iteration. A slot whose
 row is done takes the next row's root; once every row has started, an idle
-slot steals the next node of the shallowest live batch of a busy slot, so the
-last and largest searches are spread over all lanes. Each node carries its row
+slot steals the next node of the shallowest live batch below a busy slot's
+top batch, so the last and largest searches are spread over all lanes. Each node carries its row
 and is pruned against that row's incumbent, shared by every slot working on
 the row: exact per row by the argument of ``fj.sdfs`` (non-negative stage
 costs), applied to each subtree. A row that is never stolen from is searched
@@ -56,7 +56,7 @@ from .sdfs import _check_pop_width, sdfs, stack_capacity
 
 SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
 DEFAULT_MAX_MEMORY = 1 << 30  # bytes
-DEFAULT_LANES = 256
+DEFAULT_LANES = 64
 
 
 # ---------------------------------------------------------------------------
@@ -241,8 +241,8 @@ class _Plan(NamedTuple):
     node arrays are then read at the start of an iteration, before they are
     updated in place, and the plan reaches the per-node work as materialised
     buffers. Otherwise XLA:CPU copies the node arrays every iteration and
-    recomputes the plan's derivation (~100 ops) inside every per-node fusion,
-    which made the pool 2-3x slower."""
+    recomputes the plan's derivation (~100 ops) inside every per-node fusion
+    (measured: 2.1e7 -> 2.6e7 nodes/s on the synthetic plant, 256 lanes)."""
 
     depth: jax.Array  # [S] int32 depth of the nodes to expand (-1: nothing to do)
     level: jax.Array  # [S] int32 pop the next K nodes of this level's batch (-1: no)
@@ -301,10 +301,11 @@ def _put(a, i, v):
 def _materialised(pred, fn, *args):
     """``fn(*args)`` with its outputs materialised before any use. XLA:CPU fuses
     cheap producers into each consumer, recomputing them per element (here a
-    ~100-op per-slot derivation inside every per-node fusion: 25% of the
-    pool's time), and drops ``lax.optimization_barrier`` before fusing; the
-    outputs of a conditional are always materialised. Both branches are
-    ``fn``: ``pred`` only has to be a traced (not constant) boolean."""
+    ~100-op per-slot derivation inside every per-node fusion: 2.6e7 -> 2.9e7
+    nodes/s on the synthetic plant, 256 lanes), and drops
+    ``lax.optimization_barrier`` before fusing; the outputs of a conditional
+    are always materialised. Both branches are ``fn``: ``pred`` only has to be
+    a traced (not constant) boolean."""
     return jax.lax.cond(pred, fn, lambda *a: fn(*a), *args)
 
 
@@ -534,9 +535,11 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         slot, per iteration).
       lanes: slots of the ``"sdfs"`` pool on each device: each iteration
         expands up to ``lanes * pop_width * M`` children in one call.
-        Default: the rows per device, at most ``DEFAULT_LANES`` (256; measured
-        best or within noise of best for B = 1 to 4096 on this project's
-        plants on CPU; a GPU wants more, see docs/batch.md).
+        Default: the rows per device, at most ``DEFAULT_LANES`` = 64: on CPU
+        wider iterations gained nothing on the tanks and hopper and were up
+        to 3x slower on the synthetic plant (measured on 2 cores; the cause,
+        somewhere in XLA:CPU's kernels, is not pinned down). A GPU wants far
+        more, see docs/batch.md.
       chunk_nodes: per-row ``chunk_nodes`` of ``"exhaustive"``.
       max_memory: bytes the batch may use at once on each device (estimate,
         see ``row_memory``); larger batches are solved in chunks of rows.
