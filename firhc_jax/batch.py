@@ -52,7 +52,7 @@ from .exhaustive import DEFAULT_CHUNK_NODES, exhaustive, plan
 from .nodes import expand
 from .problem import Problem, check_state, cost_dtype
 from .result import SearchResult, finish, raise_on_errors
-from .sdfs import _check_pop_width, sdfs, stack_capacity
+from .sdfs import check_pop_width, sdfs, stack_capacity
 
 SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
 DEFAULT_MAX_MEMORY = 1 << 30  # bytes
@@ -551,7 +551,7 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
     """
     if solver not in SOLVERS:
         raise ValueError(f"solver must be one of {list(SOLVERS)}, got {solver!r}")
-    pop_width = _check_pop_width(pop_width)
+    pop_width = check_pop_width(pop_width)
     if isinstance(max_memory, bool) or not isinstance(max_memory, int) or max_memory < 1:
         raise ValueError(f"max_memory must be an int >= 1 (bytes), got {max_memory!r}")
     X = _check_batch(X0)

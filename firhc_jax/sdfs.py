@@ -72,7 +72,8 @@ def stack_capacity(horizon: int, num_controls: int, pop_width: int) -> int:
     return max(1, (horizon - 1) * pop_width * (num_controls - 1) + pop_width)
 
 
-def _check_pop_width(pop_width) -> int:
+def check_pop_width(pop_width) -> int:
+    """``pop_width`` as an int >= 1, or a ValueError naming it (shared by the batched solvers)."""
     if isinstance(pop_width, bool) or not isinstance(pop_width, int) or pop_width < 1:
         raise ValueError(f"pop_width must be an int >= 1, got {pop_width!r}")
     return pop_width
@@ -205,7 +206,7 @@ def sdfs(problem: Problem, x0, *, pop_width: int = 1, warm_start=None) -> Search
     Works under ``jax.jit`` and ``jax.vmap`` over ``x0``. In an un-jitted call
     a negative stage cost raises ``ValueError``.
     """
-    pop_width = _check_pop_width(pop_width)
+    pop_width = check_pop_width(pop_width)
     x0 = check_state(problem, x0)
     ws = _check_warm_start(problem, warm_start)
     return raise_on_errors(_search_jit(problem, x0, ws, pop_width=pop_width, prune=True))
@@ -217,6 +218,6 @@ def exhaustive_dfs(problem: Problem, x0, *, pop_width: int = 1) -> SearchResult:
     Visits every node (``nodes == problem.tree_size()``); compare its time with
     ``sdfs`` to measure what pruning saves, like for like.
     """
-    pop_width = _check_pop_width(pop_width)
+    pop_width = check_pop_width(pop_width)
     x0 = check_state(problem, x0)
     return raise_on_errors(_search_jit(problem, x0, None, pop_width=pop_width, prune=False))
