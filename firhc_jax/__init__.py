@@ -5,16 +5,21 @@ Public API (see each object's docstring; notation in ``firhc_jax.problem``):
 * ``Problem``, ``quadratic_cost``: describe the problem (eqs. 1-3).
 * ``sdfs``: sorted depth-first search (Table 1), exact.
 * ``exhaustive``: vectorised exhaustive search (the reference).
-* ``FIRHC``: the receding horizon law (eq. 4) and its closed loop.
-* ``solve_batch``: many states (and parameter sets) at once, over all local devices.
+* ``FIRHC``, ``ClosedLoop``, ``with_input_memory``: the receding horizon law
+  (eq. 4), its closed loop, and the switching-penalty pattern.
+* ``solve_batch``: many states (and parameter sets) at once, over all devices.
+* ``clear_cache``, ``set_cache_size``, ``cache_info``: the bounded cache of
+  compiled searches.
 """
 from .batch import solve_batch
-from .controller import FIRHC, ClosedLoop, InfeasibleError
+from .cache import cache_info, clear_cache, set_cache_size
+from .controller import FIRHC, ClosedLoop, InfeasibleError, InputMemory, with_input_memory
 from .exhaustive import exhaustive
 from .problem import Problem, quadratic_cost
 from .result import SearchResult
 from .sdfs import sdfs
 
 __all__ = ["Problem", "quadratic_cost", "sdfs", "exhaustive", "SearchResult", "FIRHC", "ClosedLoop",
-           "InfeasibleError", "solve_batch"]
-__version__ = "0.1.0"
+           "InfeasibleError", "InputMemory", "with_input_memory", "solve_batch", "clear_cache", "set_cache_size",
+           "cache_info"]
+__version__ = "0.2.0"

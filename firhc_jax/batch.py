@@ -6,11 +6,8 @@
 Parameters. With ``params`` (a pytree whose leaves have leading axis B) the
 problem's callables take a parameter pytree as last argument
 (``dynamics(x, u, p)``, ``stage_cost(x_next, u, p)``, ``terminal(x, p)``) and
-row b is solved with ``p = params[b]``. The core searches know nothing of
-parameters: the batch is solved on an *augmented* problem whose state is
-``[x, p_flat]`` (the parameters flattened into the state's dtype, carried
-unchanged by the augmented dynamics). Every row then runs the same compiled
-code whatever its parameter values, and a parameter set is just more state.
+row b is solved with ``p = params[b]``, exactly as given (dtype and value):
+the pool gathers each node's row of ``params`` before expanding it.
 
 The work pool (``solver="sdfs"``, the default). A plain ``jax.vmap`` of
 ``fj.sdfs`` runs every row's loop until the slowest row finishes, so with node
@@ -48,106 +45,19 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
-from .exhaustive import DEFAULT_CHUNK_NODES, exhaustive, plan
-from .nodes import expand
-from .problem import Problem, check_state, cost_dtype
+from .cache import compiled
+from .checks import check_params, check_state, cost_dtype
+from .exhaustive import DEFAULT_CHUNK_NODES, exhaustive
+from .exhaustive import memory as exhaustive_memory
+from .nodes import NEGATIVE, NONFINITE, OVERFLOW, best_leaf, expand, first_min
+from .problem import Problem, positive_int
 from .result import SearchResult, finish, raise_on_errors
-from .sdfs import check_pop_width, sdfs, stack_capacity
+from .sdfs import _search as sdfs_search
+from .sdfs import node_budget, stack_memory
 
 SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
 DEFAULT_MAX_MEMORY = 1 << 30  # bytes
 DEFAULT_LANES = 64
-
-
-# ---------------------------------------------------------------------------
-# Parameters carried in the state.
-# ---------------------------------------------------------------------------
-
-class _Layout(NamedTuple):
-    """Static description of one row of ``params`` (hashable: a cache key)."""
-
-    treedef: Any
-    shapes: tuple  # per leaf, without the batch axis
-    dtypes: tuple  # per leaf
-
-    @property
-    def size(self) -> int:
-        return sum(math.prod(s) for s in self.shapes)
-
-    def unflatten(self, flat):
-        """``[P]`` slice of an augmented state -> one row's parameter pytree."""
-        leaves, start = [], 0
-        for shape, dtype in zip(self.shapes, self.dtypes, strict=True):
-            size = math.prod(shape)
-            leaves.append(flat[start:start + size].reshape(shape).astype(dtype))
-            start += size
-        return jax.tree_util.tree_unflatten(self.treedef, leaves)
-
-
-def _flatten_params(params, batch: int, dtype):
-    """``params`` (leaves ``[B, ...]``) -> ``(layout, [B, P] array in dtype)``."""
-    leaves, treedef = jax.tree_util.tree_flatten(params)
-    paths = [jax.tree_util.keystr(k) for k, _ in jax.tree_util.tree_flatten_with_path(params)[0]]
-    if not leaves:
-        raise ValueError("params has no array leaves; pass params=None for a problem without parameters")
-    arrays = []
-    for path, leaf in zip(paths, leaves, strict=True):
-        a = leaf if isinstance(leaf, jax.core.Tracer) else jnp.asarray(leaf)
-        if not (jnp.issubdtype(a.dtype, jnp.floating) or jnp.issubdtype(a.dtype, jnp.integer)
-                or a.dtype == jnp.bool_):
-            raise TypeError(f"params leaf {path or '(root)'} must be real numeric, got dtype {a.dtype}")
-        if a.ndim == 0 or a.shape[0] != batch:
-            raise ValueError(f"params leaf {path or '(root)'} must have leading axis B = {batch} (one entry per "
-                             f"row of X0), got shape {tuple(a.shape)}")
-        arrays.append(a)
-    layout = _Layout(treedef, tuple(a.shape[1:] for a in arrays), tuple(jnp.dtype(a.dtype) for a in arrays))
-    flat = jnp.concatenate([a.reshape(batch, -1).astype(dtype) for a in arrays], axis=1)
-    return layout, flat
-
-
-def _augmented(problem: Problem, layout: _Layout, n: int) -> Problem:
-    """The problem on ``[x, p_flat]`` states. Cached on ``problem`` so that the
-    same callables (hence the same compiled search) serve every call."""
-    cache = problem.__dict__.setdefault("_batch_augmented", {})
-    key = (layout, n)
-    if key not in cache:
-        def split(xa):
-            return xa[:n], layout.unflatten(xa[n:])
-
-        def dynamics(xa, u):
-            x, p = split(xa)
-            return jnp.concatenate([problem.dynamics(x, u, p), xa[n:]])
-
-        def stage_cost(xa, u):
-            x, p = split(xa)
-            return problem.stage_cost(x, u, p)
-
-        terminal = None
-        if problem.terminal is not None:
-            def terminal(xa):
-                return problem.terminal(*split(xa))
-
-        cache[key] = Problem(dynamics, problem.controls, stage_cost, problem.horizon, terminal)
-    return cache[key]
-
-
-def _check_with_params(problem: Problem, layout: _Layout, x0, p0):
-    """Run the core's callable checks with row 0's parameters bound, so that a
-    mistake is reported against the user's ``f(..., p)`` before compiling.
-    Done once per (layout, state shape and dtype), like ``check_state``."""
-    key = (layout, tuple(x0.shape), jnp.dtype(x0.dtype))
-    done = problem.__dict__.setdefault("_batch_checked", set())
-    if key in done:
-        return
-    bound = Problem(lambda x, u: problem.dynamics(x, u, p0), problem.controls,
-                    lambda x, u: problem.stage_cost(x, u, p0), problem.horizon,
-                    None if problem.terminal is None else (lambda x: problem.terminal(x, p0)))
-    try:
-        check_state(bound, x0)
-    except (TypeError, ValueError) as e:
-        raise type(e)(f"{e} (with params: the callables are called as dynamics(x, u, p), "
-                      "stage_cost(x_next, u, p), terminal(x, p))") from e
-    done.add(key)
 
 
 # ---------------------------------------------------------------------------
@@ -178,22 +88,12 @@ def _check_batch(X0):
 
 def row_memory(problem: Problem, n: int, itemsize: int, solver: str, pop_width: int = 1,
                chunk_nodes: int = DEFAULT_CHUNK_NODES) -> int:
-    """Estimated peak bytes one row needs under the vmapped solvers.
-
-    ``sdfs-vmap``: its node stack (``stack_capacity`` rows of ``n + 2 + N``
-    numbers, twice for the loop's double buffer) plus one iteration's children
-    and their ``L x L`` ranking (``L = K M``). ``exhaustive``: three copies of
-    the largest level chunk (``chunk_nodes`` nodes of ``n + 4`` numbers).
-    """
-    N, M, K = problem.horizon, problem.num_controls, pop_width
-    w = n + 2 + N
+    """Estimated peak bytes one row needs under the vmapped solvers: the sDFS
+    stack (``fj.sdfs``'s ``stack_memory``) or the exhaustive search's level
+    chunks (``fj.exhaustive``'s ``memory``)."""
     if solver == "sdfs-vmap":
-        L = K * M
-        rows = K + stack_capacity(N, M, K) + L
-        return itemsize * (2 * rows * w + L * L + 4 * L * w)
-    p = plan(problem, chunk_nodes)
-    leaves = p.chunk * M ** (N - p.split)
-    return itemsize * (3 * leaves * (n + 4) + M**p.split * (n + 2))
+        return stack_memory(problem, n, itemsize, pop_width)
+    return exhaustive_memory(problem, n, itemsize, chunk_nodes)
 
 
 def _rows_per_chunk(need: int, batch: int, max_memory: int, what: str) -> int:
@@ -219,8 +119,9 @@ class _Pool(NamedTuple):
     popped at depth d, whose path is kept in ``paths``."""
 
     x: jax.Array  # [S, N-1, L, n] level t: the batch of depth t + 1
-    cost: jax.Array  # [S, N-1, L] accumulated costs as expanded (+inf: discarded)
-    next_cost: jax.Array  # [S, N-1] cost of each batch's next node in pop order (+inf: none)
+    cost: jax.Array  # [S, N-1, L] keys as expanded: cost (+ lower bound, if any); +inf: discarded
+    g: Any  # [S, N-1, L] accumulated costs, only with a lower bound (else ``cost`` is the cost); None
+    next_cost: jax.Array  # [S, N-1] key of each batch's next node in pop order (+inf: none)
     next_idx: jax.Array  # [S, N-1] int32 its index in the batch
     paths: jax.Array  # [S, N, K, N] int32 [:, d, j]: inputs leading to the j-th node popped at depth d
     row: jax.Array  # [S] int32 row the slot works on (B: none)
@@ -231,7 +132,8 @@ class _Rows(NamedTuple):
 
     cost: jax.Array  # [B] incumbent cost (+inf: none yet)
     path: jax.Array  # [B, N] int32 incumbent sequence
-    counts: jax.Array  # [B, 4] int32 nodes computed, slot-iterations, negative stage costs, NaN parents
+    counts: jax.Array  # [B, 6] int32 nodes, slot-iterations, negative stage costs, non-finite, overflow, cut
+    #                    (cut: live nodes dropped because the row's node budget ran out)
 
 
 class _Plan(NamedTuple):
@@ -261,21 +163,14 @@ def pool_memory(problem: Problem, n: int, itemsize: int, lanes: int, pop_width: 
     and one iteration's ``lanes * K * M`` children (n + 4), twice for the
     loop's buffers."""
     children = lanes * pop_width * problem.num_controls
-    return itemsize * 2 * (pool_capacity(problem, lanes, pop_width) * (n + 1) + children * (n + 4))
+    per_node = n + (2 if problem.lower_bound is not None else 1)
+    return itemsize * 2 * (pool_capacity(problem, lanes, pop_width) * per_node + children * (n + 4))
 
 
-def pool_row_memory(problem: Problem, n: int, itemsize: int) -> int:
-    """Bytes per row outside the pool: its state and its result (N + 5 numbers)."""
-    return itemsize * (n + problem.horizon + 5)
-
-
-def _min_argmin(a):
-    """Smallest entry along the last axis and its first index (int32). Two plain
-    reductions: XLA:CPU runs a (value, index) argmin reduction as a scalar
-    loop, several times slower."""
-    low = jnp.min(a, axis=-1)
-    first = jnp.min(jnp.where(a == low[..., None], jnp.arange(a.shape[-1], dtype=jnp.int32), a.shape[-1]), axis=-1)
-    return low, jnp.minimum(first, a.shape[-1] - 1)
+def pool_row_memory(problem: Problem, n: int, itemsize: int, param_bytes: int = 0) -> int:
+    """Bytes per row outside the pool: its state, its parameters and its result
+    (N + 7 numbers)."""
+    return itemsize * (n + problem.horizon + 7) + param_bytes
 
 
 def _next_after(batch, cost, idx):
@@ -283,7 +178,7 @@ def _next_after(batch, cost, idx):
     order (cost, then index): its ``(cost, index)``, cost +inf if none."""
     i = jnp.arange(batch.shape[-1], dtype=jnp.int32)
     after = (batch > cost[:, None]) | ((batch == cost[:, None]) & (i > idx[:, None]))
-    return _min_argmin(jnp.where(after, batch, jnp.inf))
+    return first_min(jnp.where(after, batch, jnp.inf))
 
 
 def _take(a, i):
@@ -318,12 +213,17 @@ def _node_paths(paths, depth, idx, M: int):
     return jnp.where(at, (idx % M)[..., None], parent)
 
 
-def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal: bool) -> SearchResult:
-    """Exact sDFS of rows ``X[:n_valid]`` of ``[B, n]`` on a pool of ``lanes``
-    slots (see ``solve_batch``). Returns a batched result."""
+def _pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_width: int,
+                 steal: bool) -> SearchResult:
+    """Exact sDFS of rows ``X[:n_valid]`` of ``[B, n]`` (with ``params[b]``
+    for row b) on a pool of ``lanes`` slots (see ``solve_batch``). A row whose
+    node count exceeds ``budget - K M`` is not expanded further. Returns a
+    batched result."""
     N, M, K, S = problem.horizon, problem.num_controls, pop_width, lanes
     (B, n), L = X.shape, K * M
-    dtype = cost_dtype(problem, X[0])
+    dtype = cost_dtype(problem, X[0], params, batched_params=True)
+    bounded = problem.lower_bound is not None
+    limit = budget - L
     inf = jnp.array(jnp.inf, dtype)
     levels = jnp.arange(N - 1, dtype=jnp.int32)
     first = jnp.arange(K) == 0  # [K]
@@ -337,6 +237,10 @@ def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal
         the next node of the shallowest live batch below another slot's top
         batch (exact: the row's incumbent is shared)."""
         live = pool.next_cost < incumbent(rows, pool.row)[:, None]  # [S, N-1]
+        spent = rows.counts.at[pool.row, 0].get(mode="fill", fill_value=0) > limit  # [S] row's budget is out
+        cut = spent & jnp.any(live, axis=1)
+        rows = rows._replace(counts=rows.counts.at[jnp.where(cut, pool.row, B), 5].add(1, mode="drop"))
+        live = live & ~spent[:, None]
         top = jnp.max(jnp.where(live, levels, -1), axis=1, initial=-1)  # [S] deepest live batch
         free = top < 0
         if steal and N > 2:
@@ -363,7 +267,7 @@ def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal
         # A slot that changes row starts empty: its batches were pruned against the old row.
         pool = pool._replace(next_cost=jnp.where((row != pool.row)[:, None], inf, pool.next_cost), row=row)
         head = jnp.minimum(head + jnp.sum(free, dtype=jnp.int32), n_valid)
-        return pool, head, _Plan(depth=depth, level=top, root=root, victim=victim, robbed=robbed)
+        return pool, rows, head, _Plan(depth=depth, level=top, root=root, victim=victim, robbed=robbed)
 
     def take_out(pool: _Pool, rows: _Rows, todo: _Plan):
         """The planned nodes of every slot ``(x [S, K, n], cost [S, K], alive
@@ -376,8 +280,10 @@ def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal
             idx.append(i)
             pc.append(c)
             c, i = _next_after(batch, c, i)
-        idx, pc = jnp.stack(idx, 1), jnp.stack(pc, 1)  # [S, K]
-        alive = own[:, None] & (pc < best[:, None])  # a prefix: costs ascend
+        idx, pc = jnp.stack(idx, 1), jnp.stack(pc, 1)  # [S, K] keys
+        alive = own[:, None] & (pc < best[:, None])  # a prefix: keys ascend
+        if bounded:
+            pc = jnp.take_along_axis(_take(pool.g, level), idx, axis=1)  # [S, K] costs
         px = jnp.take_along_axis(_take(pool.x, level), idx[..., None], axis=1)  # [S, K, n]
         path = _node_paths(pool.paths, level + 1, idx, M)  # [S, K, N]
         at = own[:, None] & (levels == level[:, None])
@@ -393,6 +299,7 @@ def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal
             # Every robbed slot hands over the next node of its robbed batch and moves past it.
             r_level = jnp.maximum(todo.robbed, 0)
             r_cost, r_idx = _take(pool.next_cost, r_level), _take(pool.next_idx, r_level)
+            r_g = jnp.take_along_axis(_take(pool.g, r_level), r_idx[:, None], axis=1)[:, 0] if bounded else r_cost
             r_x = jnp.take_along_axis(_take(pool.x, r_level), r_idx[:, None, None], axis=1)[:, 0]  # [S, n]
             r_path = _node_paths(pool.paths, r_level + 1, r_idx, M)  # [S, N]
             after_cost, after_idx = _next_after(_take(pool.cost, r_level), r_cost, r_idx)
@@ -401,7 +308,7 @@ def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal
             next_idx = jnp.where(at, after_idx[:, None], next_idx)
             thief, v = (todo.victim >= 0)[:, None] & first, jnp.maximum(todo.victim, 0)
             px = jnp.where(thief[..., None], r_x[v][:, None], px)
-            pc = jnp.where(thief, r_cost[v][:, None], pc)
+            pc = jnp.where(thief, r_g[v][:, None], pc)
             alive = jnp.where((todo.victim >= 0)[:, None], thief, alive)
             path = jnp.where(thief[..., None], r_path[v][:, None], path)
         pool = pool._replace(next_cost=next_cost, next_idx=next_idx, paths=_put(pool.paths, depth, path))
@@ -413,29 +320,34 @@ def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal
         children as its new top batch (pruned lazily, when popped)."""
         best, depth = incumbent(rows, pool.row), todo.depth  # [S]
         pool, px, pc, alive = _materialised(jnp.any(depth >= 0), take_out, pool, rows, todo)
-        ch = expand(problem, px.reshape(S * K, n), pc.reshape(S * K), check_terminal=problem.terminal is not None)
-        cx, cost = ch.x.reshape(S, L, n), ch.cost.reshape(S, L)
+        child_depth, row = depth + 1, pool.row
+        p_nodes = jax.tree_util.tree_map(lambda a: jnp.repeat(a[jnp.minimum(row, B - 1)], K, axis=0), params)
+        ch = expand(problem, px.reshape(S * K, n), pc.reshape(S * K), p_nodes, steps_left=jnp.repeat(N - child_depth, K),
+                    check_terminal=problem.terminal is not None, params_batched=True)
+        cx, cost, key = ch.x.reshape(S, L, n), ch.cost.reshape(S, L), ch.key.reshape(S, L)
         parent_alive = jnp.repeat(alive, M, axis=1)  # [S, L]
         ok = parent_alive & ~ch.bad.reshape(S, L)
-        child_depth, row = depth + 1, pool.row
 
         # Leaves: each slot's cheapest feasible leaf may improve its row's incumbent.
-        cand, leaf = _min_argmin(jnp.where(ok & ch.terminal_ok.reshape(S, L) & (child_depth == N)[:, None], cost, inf))
-        improve = cand < best
+        cand, leaf, improve = best_leaf(ch._replace(terminal_ok=ch.terminal_ok.reshape(S, L), cost=cost), ok,
+                                        (child_depth == N)[:, None], best)
         new_cost = rows.cost.at[jnp.where(improve, row, B)].min(cand, mode="drop")
         winner = improve & (cand == incumbent(rows._replace(cost=new_cost), row))
         path = rows.path.at[jnp.where(winner, row, B)].set(
             _node_paths(pool.paths, jnp.full((S,), N), leaf, M), mode="drop")
 
         # Non-leaves: the slot's new top batch, at level `depth`.
-        batch = jnp.where(ok, cost, inf)
+        batch = jnp.where(ok, key, inf)
         put = jnp.where((depth >= 0) & (child_depth < N), depth, N)  # N: nothing stored
-        nc, ni = _min_argmin(batch)
+        nc, ni = first_min(batch)
         pool = pool._replace(x=_put(pool.x, put, cx), cost=_put(pool.cost, put, batch),
+                             g=_put(pool.g, put, cost) if bounded else None,
                              next_cost=_put(pool.next_cost, put, nc), next_idx=_put(pool.next_idx, put, ni))
-        counts = jnp.stack([M * jnp.sum(alive, axis=1, dtype=jnp.int32), jnp.ones((S,), jnp.int32),
-                            jnp.sum(parent_alive & ch.negative.reshape(S, L), axis=1, dtype=jnp.int32),
-                            jnp.sum(parent_alive & ch.bad.reshape(S, L), axis=1, dtype=jnp.int32)], 1)
+        flags = jnp.where(parent_alive, ch.flags.reshape(S, L), 0)
+        counts = jnp.stack([M * jnp.sum(alive, axis=1, dtype=jnp.int32), jnp.ones((S,), jnp.int32)]
+                           + [jnp.sum((flags & bit) > 0, axis=1, dtype=jnp.int32) for bit in (NEGATIVE, NONFINITE,
+                                                                                                 OVERFLOW)]
+                           + [jnp.zeros((S,), jnp.int32)], 1)
         rows = _Rows(cost=new_cost, path=path,
                      counts=rows.counts.at[jnp.where(depth >= 0, row, B)].add(counts, mode="drop"))
         return pool, rows
@@ -443,66 +355,76 @@ def _pool_search(problem: Problem, X, n_valid, lanes: int, pop_width: int, steal
     def body(carry):
         pool, rows, head, todo = carry
         pool, rows = work(pool, rows, todo)
-        pool, head, todo = plan(pool, rows, head)
+        pool, rows, head, todo = plan(pool, rows, head)
         return pool, rows, head, todo
 
     def pending(carry):
         return jnp.any(carry[3].depth >= 0)
 
     pool = _Pool(x=jnp.zeros((S, N - 1, L, n), X.dtype), cost=jnp.full((S, N - 1, L), inf),
+                 g=jnp.full((S, N - 1, L), inf) if bounded else None,
                  next_cost=jnp.full((S, N - 1), inf), next_idx=jnp.zeros((S, N - 1), jnp.int32),
                  paths=jnp.full((S, N, K, N), -1, jnp.int32), row=jnp.full((S,), B, jnp.int32))
-    rows = _Rows(cost=jnp.full((B,), inf), path=jnp.full((B, N), -1, jnp.int32), counts=jnp.zeros((B, 4), jnp.int32))
-    pool, head, todo = plan(pool, rows, jnp.array(0, jnp.int32))
+    rows = _Rows(cost=jnp.full((B,), inf), path=jnp.full((B, N), -1, jnp.int32), counts=jnp.zeros((B, 6), jnp.int32))
+    pool, rows, head, todo = plan(pool, rows, jnp.array(0, jnp.int32))
     _, rows, _, _ = jax.lax.while_loop(pending, body, (pool, rows, head, todo))
     c = rows.counts
-    return jax.vmap(lambda *a: finish(problem.controls, *a))(rows.cost, rows.path, c[:, 0], c[:, 1], c[:, 2] > 0,
-                                                             c[:, 3] > 0)
+    flags = (c[:, 2] > 0) * NEGATIVE | (c[:, 3] > 0) * NONFINITE | (c[:, 4] > 0) * OVERFLOW
+    return jax.vmap(lambda *a: finish(problem, *a))(rows.cost, rows.path, c[:, 0], c[:, 1], flags, c[:, 5] == 0)
 
 
 # ---------------------------------------------------------------------------
 # The compiled batch.
 # ---------------------------------------------------------------------------
 
-def _per_row(problem: Problem, solver: str, pop_width: int, chunk_nodes: int) -> Callable:
+def _per_row(problem: Problem, solver: str, pop_width: int, chunk_nodes: int, budget) -> Callable:
     if solver == "exhaustive":
-        return lambda x: exhaustive(problem, x, chunk_nodes=chunk_nodes)
-    return lambda x: sdfs(problem, x, pop_width=pop_width)
+        from .exhaustive import _exhaustive
+        return lambda a: _exhaustive(problem, a[0], a[1], chunk_nodes=chunk_nodes)
+    return lambda a: sdfs_search(problem, a[0], a[1], None, budget, pop_width=pop_width, prune=True)
 
 
-def _device_solve(problem: Problem, X, solver: str, pop_width: int, chunk_nodes: int, rows_per_chunk: int,
-                  lanes: int) -> SearchResult:
-    """One device's rows ``[B, n]``, in chunks of ``rows_per_chunk`` rows: a
-    pool search per chunk (``"sdfs"``) or a vmapped per-row search."""
+def _device_solve(problem: Problem, X, params, budget, solver: str, pop_width: int, chunk_nodes: int,
+                  rows_per_chunk: int, lanes: int) -> SearchResult:
+    """One device's rows ``[B, n]`` (and their ``params``), in chunks of
+    ``rows_per_chunk`` rows: a pool search per chunk (``"sdfs"``) or a vmapped
+    per-row search."""
     if solver != "sdfs":
-        return jax.lax.map(_per_row(problem, solver, pop_width, chunk_nodes), X, batch_size=rows_per_chunk)
+        return jax.lax.map(_per_row(problem, solver, pop_width, chunk_nodes, budget), (X, params),
+                           batch_size=rows_per_chunk)
     B, R = X.shape[0], rows_per_chunk
     chunks = -(-B // R)
-    X = jnp.concatenate([X, jnp.broadcast_to(X[-1], (chunks * R - B, X.shape[1]))]).reshape(chunks, R, -1)
-    out = jax.lax.map(lambda a: _pool_search(problem, a[1], jnp.minimum(R, B - a[0] * R), lanes, pop_width, True),
-                      (jnp.arange(chunks, dtype=jnp.int32), X))
+
+    def split(a):  # [B, ...] -> [chunks, R, ...], padded by repeating the last row
+        a = jnp.concatenate([a, jnp.broadcast_to(a[-1], (chunks * R - B,) + a.shape[1:])])
+        return a.reshape((chunks, R) + a.shape[1:])
+
+    out = jax.lax.map(lambda a: _pool_search(problem, a[1], a[2], jnp.minimum(R, B - a[0] * R), budget, lanes,
+                                             pop_width, True),
+                      (jnp.arange(chunks, dtype=jnp.int32), split(X), jax.tree_util.tree_map(split, params)))
     return jax.tree_util.tree_map(lambda a: a.reshape((chunks * R,) + a.shape[2:])[:B], out)
 
 
-def _solve(problem: Problem, X, mesh: Mesh, solver: str, pop_width: int, chunk_nodes: int,
+def _solve(problem: Problem, X, params, budget, *, mesh: Mesh, solver: str, pop_width: int, chunk_nodes: int,
            rows_per_chunk: int, lanes: int) -> SearchResult:
-    """``[B, n]`` -> batched ``SearchResult``. The rows are padded to a multiple
-    of the device count (repeating the last row) and split over ``mesh``; each
-    device solves its share independently (no communication inside the
-    search)."""
+    """``[B, n]`` -> batched ``SearchResult``. The rows (and params) are padded
+    to a multiple of the device count (repeating the last row) and split over
+    ``mesh``; each device solves its share independently (no communication
+    inside the search)."""
     B, devices = X.shape[0], mesh.devices.size
     pad = -B % devices
-    if pad:
-        X = jnp.concatenate([X, jnp.broadcast_to(X[-1], (pad, X.shape[1]))])
+
+    def padded(a):
+        return jnp.concatenate([a, jnp.broadcast_to(a[-1], (pad,) + a.shape[1:])]) if pad else a
+
     # check_vma=False: the searches start their loop carries from constants
     # (not device-varying), which the varying-axes check would refuse.
-    shard = jax.shard_map(lambda Xs: _device_solve(problem, Xs, solver, pop_width, chunk_nodes, rows_per_chunk, lanes),
-                          mesh=mesh, in_specs=PartitionSpec(_AXIS), out_specs=PartitionSpec(_AXIS), check_vma=False)
-    out = shard(X)
+    shard = jax.shard_map(
+        lambda Xs, ps, b: _device_solve(problem, Xs, ps, b, solver, pop_width, chunk_nodes, rows_per_chunk, lanes),
+        mesh=mesh, in_specs=(PartitionSpec(_AXIS), PartitionSpec(_AXIS), PartitionSpec()),
+        out_specs=PartitionSpec(_AXIS), check_vma=False)
+    out = shard(padded(X), jax.tree_util.tree_map(padded, params), budget)
     return jax.tree_util.tree_map(lambda a: a[:B], out) if pad else out
-
-
-_solve_jit = jax.jit(_solve, static_argnames=("mesh", "solver", "pop_width", "chunk_nodes", "rows_per_chunk", "lanes"))
 
 
 _AXIS = "rows"
@@ -518,7 +440,7 @@ def _mesh(devices) -> Mesh:
 
 
 def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_width: int = 1,
-                lanes: int | None = None, chunk_nodes: int = DEFAULT_CHUNK_NODES,
+                lanes: int | None = None, chunk_nodes: int = DEFAULT_CHUNK_NODES, max_nodes=None,
                 max_memory: int = DEFAULT_MAX_MEMORY, devices=None) -> SearchResult:
     """Solve ``problem`` from every row of ``X0``; exact per row.
 
@@ -530,51 +452,59 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         docstring), ``"sdfs-vmap"`` (plain ``jax.vmap`` of ``fj.sdfs``) or
         ``"exhaustive"`` (``jax.vmap`` of the vectorised ``fj.exhaustive``).
       params: optional pytree with leading axis B: row b is solved with
-        ``params[b]``, one compiled call for all rows.
+        ``params[b]``, one compiled call for all rows; new values never
+        recompile.
       pop_width: K of the sDFS solvers (nodes popped per row, or per pool
         slot, per iteration).
       lanes: slots of the ``"sdfs"`` pool on each device: each iteration
         expands up to ``lanes * pop_width * M`` children in one call.
         Default: the rows per device, at most ``DEFAULT_LANES`` = 64: on CPU
         wider iterations gained nothing on the tanks and hopper and were up
-        to 3x slower on the synthetic plant (measured on 2 cores; the cause,
-        somewhere in XLA:CPU's kernels, is not pinned down). A GPU wants far
-        more, see docs/batch.md.
+        to 3x slower on the synthetic plant (measured on 2 cores, see
+        docs/batch.md). A GPU wants far more.
       chunk_nodes: per-row ``chunk_nodes`` of ``"exhaustive"``.
+      max_nodes: optional node budget per row (sDFS solvers): a row stops
+        expanding once its count could pass it and keeps its incumbent, with
+        ``complete=False``. In the pool, slots that share a stolen row check
+        the budget each iteration, so such a row may pass it by at most
+        ``(lanes - 1) * pop_width * M`` nodes.
       max_memory: bytes the batch may use at once on each device (estimate,
-        see ``row_memory``); larger batches are solved in chunks of rows.
+        see ``row_memory``, ``pool_memory``); larger batches are solved in
+        chunks of rows.
       devices: the devices to split the rows over (default: all local
         devices, ``jax.local_devices()``); one device runs everything.
 
     Returns a ``SearchResult`` with leading axis B on every field. Un-jitted, a
     negative stage cost in any row raises ``ValueError`` (as ``fj.sdfs``).
     """
+    if not isinstance(problem, Problem):
+        raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
     if solver not in SOLVERS:
         raise ValueError(f"solver must be one of {list(SOLVERS)}, got {solver!r}")
-    pop_width = check_pop_width(pop_width)
-    if isinstance(max_memory, bool) or not isinstance(max_memory, int) or max_memory < 1:
-        raise ValueError(f"max_memory must be an int >= 1 (bytes), got {max_memory!r}")
+    pop_width = positive_int("pop_width", pop_width)
+    max_memory = positive_int("max_memory", max_memory)
+    if max_nodes is not None and solver == "exhaustive":
+        raise ValueError("max_nodes applies to the sDFS solvers; exhaustive search always visits the whole tree")
+    budget = node_budget(max_nodes)
     X = _check_batch(X0)
     B, n = X.shape
-    if params is not None:
-        layout, flat = _flatten_params(params, B, X.dtype)
-        _check_with_params(problem, layout, X[0], layout.unflatten(flat[0]))
-        problem, X = _augmented(problem, layout, n), jnp.concatenate([X, flat], axis=1)
-    check_state(problem, X[0])
+    params = check_params(params, leading=B)
+    check_state(problem, X[0], params, batched_params=True)
     mesh = _mesh(devices)
-    per_device, width, item = -(-B // mesh.devices.size), X.shape[1], X.dtype.itemsize
+    per_device, item = -(-B // mesh.devices.size), X.dtype.itemsize
+    param_bytes = sum(a.dtype.itemsize * math.prod(a.shape[1:]) for a in jax.tree_util.tree_leaves(params))
     if solver == "sdfs":
-        lanes = min(DEFAULT_LANES, per_device) if lanes is None else lanes
-        if isinstance(lanes, bool) or not isinstance(lanes, int) or lanes < 1:
-            raise ValueError(f"lanes must be an int >= 1, got {lanes!r}")
-        fixed = pool_memory(problem, width, item, lanes, pop_width)
+        lanes = min(DEFAULT_LANES, per_device) if lanes is None else positive_int("lanes", lanes)
+        fixed = pool_memory(problem, n, item, lanes, pop_width)
         if fixed >= max_memory:
             raise ValueError(f"the pool of {lanes} lanes needs about {fixed:,} bytes, more than "
                              f"max_memory={max_memory:,}; lower lanes or pop_width, or raise max_memory")
-        rows = _rows_per_chunk(pool_row_memory(problem, width, item), per_device, max_memory - fixed, "one row")
+        rows = _rows_per_chunk(pool_row_memory(problem, n, item, param_bytes), per_device, max_memory - fixed,
+                               "one row")
     else:
         lanes = None  # unused: keep the compiled batch's cache key
-        need = row_memory(problem, width, item, solver, pop_width, chunk_nodes)
+        need = row_memory(problem, n, item, solver, pop_width, chunk_nodes) + param_bytes
         rows = _rows_per_chunk(need, per_device, max_memory, f"one row of solver={solver!r}")
-    return raise_on_errors(_solve_jit(problem, X, mesh=mesh, solver=solver, pop_width=pop_width,
-                                      chunk_nodes=chunk_nodes, rows_per_chunk=rows, lanes=lanes))
+    run = compiled(_solve, problem, mesh=mesh, solver=solver, pop_width=pop_width, chunk_nodes=chunk_nodes,
+                   rows_per_chunk=rows, lanes=lanes)
+    return raise_on_errors(run(X, params, budget))

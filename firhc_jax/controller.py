@@ -2,11 +2,27 @@
 
 ``FIRHC(problem)`` solves the finite-horizon problem at the current state and
 applies the first input of the optimal sequence. ``simulate`` steps a plant
-(the prediction model by default, or any other ``plant(x, u) -> x_next``) for
-T steps, compiled as one ``lax.scan`` when the plant is traceable.
+for T steps, compiled as one ``lax.scan`` (``compiled=True``) or from Python
+with a jitted decision and per-step solve times (``compiled=False``).
+
+The closed loop separates plant and model (the do-mpc split):
+
+* ``plant(x, u[, p]) -> x_next``: the simulated system (default: the model's
+  ``dynamics``). Its state may differ from the model's.
+* ``observe(x, u_prev[, p]) -> x_model``: what the controller sees, from the
+  plant state and the input it applied last (default: the plant state).
+  ``with_input_memory`` builds one that feeds ``u_prev`` to a switching penalty.
+* ``actuate(x, u[, p]) -> u_plant``: the input the plant receives, from the
+  searched input (default: ``u``): combine it with inputs set by a fixed law,
+  or gate it (valves sealed in flight).
+
+With ``params`` (leaves with leading axis ``steps``) step k calls every
+callable, the problem's and these, with ``params[k]``: a reference trajectory,
+time-varying weights. New values of the same shapes never recompile.
 """
 from __future__ import annotations
 
+import time
 import warnings
 from typing import Callable, NamedTuple, Optional
 
@@ -14,13 +30,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .cache import cached
+from .checks import as_state, check_params, check_state, params_spec
 from .exhaustive import exhaustive
-from .problem import Problem, check_state
+from .problem import Problem, call, input_dtype, is_tracer, positive_int
 from .progress import Progress, tick, tick_python
 from .result import SearchResult
 from .sdfs import sdfs
 
 _SOLVERS = {"sdfs": sdfs, "exhaustive": exhaustive}
+_OPTIONS = {"sdfs": {"pop_width", "max_nodes", "max_memory"}, "exhaustive": {"method", "chunk_nodes", "pop_width"}}
 
 
 class InfeasibleError(RuntimeError):
@@ -30,20 +49,72 @@ class InfeasibleError(RuntimeError):
 class ClosedLoop(NamedTuple):
     """A closed-loop run of T steps."""
 
-    states: jax.Array  # [T+1, n] x(0) .. x(T)
-    inputs: jax.Array  # [T, m] applied inputs (NaN from a step with no feasible input and no fallback)
-    input_indices: jax.Array  # [T] int32 index into controls (-1: none)
-    stage_costs: jax.Array  # [T] realised stage cost of each applied step
+    states: jax.Array  # [T+1, n] plant states x(0) .. x(T)
+    inputs: jax.Array  # [T, m'] inputs applied to the plant (after actuate); NaN when no input was found
+    input_indices: jax.Array  # [T] int32 index into controls of the searched input (-1: none)
+    stage_costs: jax.Array  # [T] model stage cost of the applied step, stage_cost(dynamics(x_model, u), u)
     predicted_costs: jax.Array  # [T] optimal cost of each step's search (+inf: infeasible)
-    nodes: jax.Array  # [T] int32 nodes computed per step (fallback search included)
+    nodes: jax.Array  # [T] int32 nodes of the terminal-constrained search
+    fallback_nodes: jax.Array  # [T] int32 nodes of the fallback search (0 when not used)
     feasible: jax.Array  # [T] bool the terminal constraint could be met
     used_fallback: jax.Array  # [T] bool the input came from the fallback search
+    complete: jax.Array  # [T] bool the deciding search ran to the end (not stopped by max_nodes)
+    solve_times: jax.Array  # [T] seconds per decision (compiled=False only; NaN in a compiled scan)
 
     @property
     def first_infeasible_step(self) -> Optional[int]:
         """Index of the first step without a feasible sequence, or None."""
         bad = np.flatnonzero(~np.asarray(self.feasible))
         return int(bad[0]) if bad.size else None
+
+
+class InputMemory(NamedTuple):
+    """A problem whose model state carries the last input (``with_input_memory``)."""
+
+    problem: Problem  # on states [x, u_prev (m), switching cost of the last step (1)]
+    observe: Callable  # observe(x, u_prev[, p]) -> [x, u_prev, 0] for FIRHC
+
+
+def with_input_memory(problem: Problem, switching_cost: Callable) -> InputMemory:
+    """Penalise input changes (do-mpc's ``rterm``, the FCS-MPC switching term).
+
+    ``switching_cost(u, u_prev[, p]) -> scalar >= 0`` is added to the stage cost
+    of every step, the first one included (``u_prev`` there is the input
+    applied last). The returned problem's state is ``[x, u_prev, s]``: the
+    dynamics store the input just applied and its switching cost ``s``, which
+    the stage cost adds. Use it with ``FIRHC(mem.problem, observe=mem.observe)``;
+    for one search call ``sdfs(mem.problem, mem.observe(x, u_prev))``.
+    Inputs are kept in the state's floating dtype.
+    """
+    m = problem.input_dim
+
+    def split(z):
+        n = z.shape[0] - m - 1
+        return z[:n], z[n:n + m], z[n + m]
+
+    def dynamics(z, u, *p):
+        x, u_prev, _ = split(z)
+        x_next = problem.dynamics(x, u, *p)
+        s = switching_cost(u.astype(z.dtype), u_prev, *p)
+        return jnp.concatenate([x_next, u.astype(z.dtype), jnp.reshape(s, (1,)).astype(z.dtype)])
+
+    def stage_cost(z_next, u, *p):
+        x_next, _, s = split(z_next)
+        return problem.stage_cost(x_next, u, *p) + s
+
+    terminal = lower_bound = None
+    if problem.terminal is not None:
+        def terminal(z, *p):
+            return problem.terminal(split(z)[0], *p)
+    if problem.lower_bound is not None:
+        def lower_bound(z, steps_left, *p):
+            return problem.lower_bound(split(z)[0], steps_left, *p)
+
+    def observe(x, u_prev, *p):
+        return jnp.concatenate([x, jnp.asarray(u_prev, x.dtype).reshape(m), jnp.zeros((1,), x.dtype)])
+
+    return InputMemory(Problem(dynamics, problem.controls, stage_cost, problem.horizon, terminal, lower_bound),
+                       observe)
 
 
 class FIRHC:
@@ -59,126 +130,211 @@ class FIRHC:
         terminal constraint, flagged in ``used_fallback``.
       warm_start: (sdfs only) seed each search with the previous solution
         shifted by one step (the last input repeated); exactness unchanged.
-      **solver_options: passed to the solver (``pop_width`` for sdfs,
-        ``method``/``chunk_nodes`` for exhaustive).
+      observe, actuate: plant/model maps of the closed loop (module docstring).
+      **solver_options: passed to the solver: ``pop_width``, ``max_nodes``,
+        ``max_memory`` for sdfs; ``method``, ``chunk_nodes``, ``pop_width``
+        for exhaustive. Unknown options are refused here.
     """
 
     def __init__(self, problem: Problem, solver: str = "sdfs", *, fallback: Optional[str] = None,
-                 warm_start: bool = False, **solver_options):
+                 warm_start: bool = False, observe: Optional[Callable] = None, actuate: Optional[Callable] = None,
+                 **solver_options):
+        if not isinstance(problem, Problem):
+            raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
         if solver not in _SOLVERS:
             raise ValueError(f"solver must be one of {sorted(_SOLVERS)}, got {solver!r}")
+        unknown = set(solver_options) - _OPTIONS[solver]
+        if unknown:
+            raise TypeError(f"unknown option(s) {sorted(unknown)} for solver={solver!r}; "
+                            f"it accepts {sorted(_OPTIONS[solver])}")
         if fallback not in (None, "unconstrained"):
             raise ValueError(f"fallback must be None or 'unconstrained', got {fallback!r}")
         if warm_start and solver != "sdfs":
             raise ValueError("warm_start applies to solver='sdfs' only")
+        for name, fn in (("observe", observe), ("actuate", actuate)):
+            if fn is not None and not callable(fn):
+                raise TypeError(f"{name} must be callable or None, got {type(fn).__name__}")
         self.problem, self.solver, self.fallback = problem, solver, fallback
         self.warm_start = bool(warm_start)
-        self.solver_options = solver_options
+        self.observe, self.actuate = observe, actuate
+        self.solver_options = dict(solver_options)
         self._relaxed = problem.replace(terminal=None) if fallback and problem.terminal is not None else None
-        self._scan_cache = {}
+        # What a compiled closed loop depends on: equal keys share one executable.
+        self._key = (problem.key, solver, fallback, self.warm_start, observe, actuate,
+                     tuple(sorted(self.solver_options.items())))
 
-    def _search(self, problem, x, previous):
+    def _search(self, problem, x, params, previous):
         opts = dict(self.solver_options)
         if self.warm_start and previous is not None:
-            opts["warm_start"] = jnp.concatenate([previous[1:], previous[-1:]])
-        return _SOLVERS[self.solver](problem, x, **opts)
+            shifted = jnp.concatenate([previous[1:], previous[-1:]])
+            opts["warm_start"] = jnp.where(previous[0] >= 0, shifted, -1)  # -1: none
+        return _SOLVERS[self.solver](problem, x, params=params, **opts)
 
-    def solve(self, x, previous_sequence=None) -> tuple[SearchResult, jax.Array]:
-        """Search at state ``x``; returns ``(result, used_fallback)``.
+    def _solve(self, x, params, previous):
+        """``(deciding result, nodes of the constrained search, used_fallback)``."""
+        result = self._search(self.problem, x, params, previous)
+        if self._relaxed is None:
+            return result, result.nodes, jnp.array(False)
 
+        def fall_back(_):  # only searched when needed (both run under vmap)
+            relaxed = self._search(self._relaxed, x, params, previous)
+            return relaxed._replace(iterations=result.iterations + relaxed.iterations,
+                                    negative_cost=result.negative_cost | relaxed.negative_cost,
+                                    nan_encountered=result.nan_encountered | relaxed.nan_encountered,
+                                    overflow=result.overflow | relaxed.overflow), jnp.array(True)
+
+        if is_tracer(result.feasible):
+            chosen, used = jax.lax.cond(result.feasible, lambda _: (result, jnp.array(False)), fall_back, None)
+        else:
+            chosen, used = (result, jnp.array(False)) if bool(result.feasible) else fall_back(None)
+        return chosen, result.nodes, used
+
+    def solve(self, x, params=None, previous_sequence=None) -> tuple[SearchResult, jax.Array]:
+        """Search at model state ``x``; returns ``(result, used_fallback)``.
+
+        When the fallback decided, ``result`` is the fallback search's, with
+        the first search's iterations added and its error flags kept.
         ``previous_sequence`` seeds the warm start (ignored unless
-        ``warm_start``; a ``-1`` sequence, i.e. infeasible, is not used).
+        ``warm_start``; an all ``-1`` sequence, i.e. infeasible, is no warm
+        start and costs no nodes).
         """
         prev = None
         if self.warm_start and previous_sequence is not None:
-            prev = jnp.asarray(previous_sequence)
-            prev = jnp.where(prev[0] >= 0, prev, 0)
-        result = self._search(self.problem, x, prev)
-        if self._relaxed is None:
-            return result, jnp.array(False)
+            prev = jnp.asarray(previous_sequence, jnp.int32)
+        result, _, used = self._solve(x, params, prev)
+        return result, used
 
-        def fall_back(_):  # only searched when needed (both run under vmap)
-            relaxed = self._search(self._relaxed, x, prev)
-            return relaxed._replace(nodes=result.nodes + relaxed.nodes), jnp.array(True)
-
-        if isinstance(result.feasible, jax.core.Tracer):
-            return jax.lax.cond(result.feasible, lambda _: (result, jnp.array(False)), fall_back, None)
-        return (result, jnp.array(False)) if bool(result.feasible) else fall_back(None)
-
-    def __call__(self, x, previous_sequence=None) -> tuple[jax.Array, SearchResult]:
-        """The FIRHC law: ``(u, result)`` with ``u = controls[sequence[0]]`` (eq. 4)."""
-        result, _ = self.solve(x, previous_sequence)
-        if self.fallback is None and not isinstance(result.feasible, jax.core.Tracer) \
-                and not bool(result.feasible):
+    def __call__(self, x, params=None, previous_sequence=None) -> tuple[jax.Array, SearchResult]:
+        """The FIRHC law at model state ``x``: ``(u, result)`` with
+        ``u = controls[sequence[0]]`` (eq. 4)."""
+        result, _ = self.solve(x, params, previous_sequence)
+        if self.fallback is None and not is_tracer(result.feasible) and not bool(result.feasible):
+            why = (" (the accumulated cost overflowed: scale the cost down or use float64)"
+                   if bool(result.overflow) else "")
             raise InfeasibleError(f"no input sequence of length {self.problem.horizon} meets the terminal "
-                                  "constraint from this state; use fallback='unconstrained' or relax it")
+                                  f"constraint with a finite cost from this state{why}; use "
+                                  "fallback='unconstrained' or relax the constraint")
         return result.first_input, result
 
-    def simulate(self, x0, steps: int, plant: Optional[Callable] = None, *, progress: bool = False,
-                 compiled: bool = True) -> ClosedLoop:
-        """Run the closed loop for ``steps`` steps from ``x0``.
+    # -- closed loop -------------------------------------------------------------
+    def simulate(self, x0, steps: int, plant: Optional[Callable] = None, *, params=None, u0=None,
+                 progress: bool = False, compiled: bool = True) -> ClosedLoop:
+        """Run the closed loop for ``steps`` steps from plant state ``x0``.
 
-        ``plant(x, u) -> x_next`` defaults to the prediction model; it may
-        differ (model error). With ``compiled=True`` the whole run is one
-        ``lax.scan`` (the plant must be traceable); ``compiled=False`` steps
-        an un-traceable plant from Python with a jitted search.
+        Args:
+          plant: ``plant(x, u[, p]) -> x_next``, default the model's dynamics.
+          params: optional pytree whose leaves have leading axis ``steps``:
+            step k is solved (and simulated) with ``params[k]``.
+          u0: the input applied before step 0 (seen by ``observe``); default
+            zeros.
+          compiled: ``True``: one ``lax.scan`` (everything traceable);
+            ``False``: a Python loop over a jitted decision, for a plant that
+            cannot be traced, and with each decision timed in ``solve_times``.
         """
-        if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
-            raise ValueError(f"steps must be an int >= 1, got {steps!r}")
-        x0 = check_state(self.problem, x0)
+        steps = positive_int("steps", steps)
+        x0 = as_state(x0)
+        params = check_params(params, leading=steps, axis="steps")
+        m = self.problem.input_dim
+        u0 = jnp.zeros((m,), input_dtype(self.problem)) if u0 is None else jnp.asarray(u0, input_dtype(self.problem))
+        if u0.shape != (m,):
+            raise ValueError(f"u0 must be one input of shape ({m},), got {tuple(u0.shape)}")
         plant = plant or self.problem.dynamics
+        if not callable(plant):
+            raise TypeError(f"plant must be callable, got {type(plant).__name__}")
+        p0 = None if params is None else jax.tree_util.tree_map(lambda a: a[0], params)
+        pkey, _ = params_spec(p0)
+        cached(("closed-loop check", self._key, plant if compiled else None, x0.shape, jnp.dtype(x0.dtype),
+                jnp.dtype(u0.dtype), pkey),
+               lambda: self._check_loop(plant if compiled else None, x0, u0, p0, params is not None) or True)
         with Progress(steps, f"FIRHC[{self.solver}]", enabled=progress):
             if compiled:
-                run = self._scan_cache.get((plant, steps, progress))
-                if run is None:
-                    run = jax.jit(lambda x: self._scan(plant, x, steps, progress))
-                    self._scan_cache[(plant, steps, progress)] = run
-                out = run(x0)
+                key = ("closed loop", self._key, plant, steps, progress)
+                run = cached(key, lambda: jax.jit(lambda x, u, p: self._scan(plant, x, u, p, steps, progress)))
+                out = run(x0, u0, params)
             else:
-                out = self._python_loop(plant, x0, steps, progress)
-        if self.fallback is None and not bool(jnp.all(out.feasible)):
+                out = self._python_loop(plant, x0, u0, params, steps, progress)
+        if self.fallback is None and not is_tracer(out.feasible) and not bool(jnp.all(out.feasible)):
             warnings.warn(f"closed loop: no feasible input sequence at step {out.first_infeasible_step}; "
                           "inputs are NaN from there (set fallback='unconstrained' to continue)",
                           RuntimeWarning, stacklevel=2)
         return out
 
-    def _decide(self, x, previous):
-        """One control decision: ``(u, sequence, record-without-state)``."""
-        result, used = self.solve(x, previous)
-        return result.first_input, result.sequence, (result.sequence[0], result.cost, result.nodes,
-                                                     result.feasible & ~used, used)
+    def _check_loop(self, plant, x0, u0, p0, with_params):
+        """Check observe, actuate and (when traced) plant abstractly, each blamed by name."""
+        def shape(fn, name, *args):
+            try:
+                return jax.eval_shape(lambda p, *a: call(fn, p, *a), p0 if with_params else None, *args)
+            except (TypeError, ValueError) as e:
+                raise type(e)(f"{name} failed on the closed loop's shapes: {e}") from e
 
-    def _record(self, x_next, u, decision):
-        idx, pred, nodes, feasible, used = decision
-        return (x_next, u, idx, self.problem.stage_cost(x_next, u), pred, nodes, feasible, used)
+        x = jax.ShapeDtypeStruct(x0.shape, x0.dtype)
+        u = jax.ShapeDtypeStruct(u0.shape, u0.dtype)
+        xm = shape(self.observe, "observe(x, u_prev[, p])", x, u) if self.observe else x
+        if not isinstance(xm, jax.ShapeDtypeStruct):
+            raise TypeError(f"observe must return one array (the model state), got {type(xm).__name__}")
+        check_state(self.problem, jnp.zeros(xm.shape, xm.dtype), p0)
+        up = shape(self.actuate, "actuate(x, u[, p])", x, u) if self.actuate else u
+        if not isinstance(up, jax.ShapeDtypeStruct):
+            raise TypeError(f"actuate must return one array (the plant input), got {type(up).__name__}")
+        if plant is None:
+            return
+        out = shape(plant, "plant(x, u[, p])", x, up)
+        if not isinstance(out, jax.ShapeDtypeStruct) or out.shape != x.shape or out.dtype != x.dtype:
+            desc = f"shape {tuple(out.shape)} dtype {out.dtype}" if isinstance(out, jax.ShapeDtypeStruct) \
+                else type(out).__name__
+            raise TypeError(f"plant(x, u[, p]) must return the next plant state, shape {tuple(x.shape)} dtype "
+                            f"{x.dtype} like x0; got {desc}")
 
-    def _scan(self, plant, x0, steps, progress):
-        def body(carry, k):
-            x, previous = carry
-            u, seq, decision = self._decide(x, previous)
-            x_next = plant(x, u)
+    def _decide(self, x, u_prev, previous, p):
+        """One decision from plant state ``x``: ``(u, u_plant, sequence, record)``
+        where record lacks the next state."""
+        xm = call(self.observe, p, x, u_prev) if self.observe else x
+        result, nodes, used = self._solve(xm, p, previous if self.warm_start else None)
+        u = result.first_input
+        u_plant = call(self.actuate, p, x, u) if self.actuate else u
+        idx = result.sequence[0]
+        u_model = jnp.asarray(self.problem.controls)[jnp.maximum(idx, 0)]
+        stage = call(self.problem.stage_cost, p, call(self.problem.dynamics, p, xm, u_model), u_model)
+        record = (u_plant, idx, jnp.where(idx >= 0, stage, jnp.nan), result.cost, nodes,
+                  jnp.where(used, result.nodes, 0), result.feasible & ~used, used, result.complete)
+        return u, u_plant, result.sequence, record
+
+    def _scan(self, plant, x0, u0, params, steps, progress):
+        def body(carry, inp):
+            x, u_prev, previous = carry
+            k, p = inp
+            u, u_plant, seq, record = self._decide(x, u_prev, previous, p)
+            x_next = call(plant, p, x, u_plant)
             if progress:
                 tick(k)
-            return (x_next, seq), self._record(x_next, u, decision)
+            return (x_next, u, seq), (x_next,) + record
 
         prev0 = jnp.full((self.problem.horizon,), -1, jnp.int32)
-        _, rec = jax.lax.scan(body, (x0, prev0), jnp.arange(steps))
-        return _closed_loop(x0, rec)
+        _, rec = jax.lax.scan(body, (x0, u0, prev0), (jnp.arange(steps), params))
+        return _closed_loop(x0, rec, jnp.full((steps,), jnp.nan))
 
-    def _python_loop(self, plant, x0, steps, progress):
-        decide = jax.jit(self._decide)
-        x, previous, records = x0, jnp.full((self.problem.horizon,), -1, jnp.int32), []
+    def _python_loop(self, plant, x0, u0, params, steps, progress):
+        decide = cached(("closed-loop decision", self._key), lambda: jax.jit(self._decide))
+        x, u, previous = x0, u0, jnp.full((self.problem.horizon,), -1, jnp.int32)
+        records, times = [], []
         for k in range(steps):
-            u, previous, decision = decide(x, previous)
-            x_next = jnp.asarray(plant(x, u), x.dtype)
-            records.append(self._record(x_next, u, decision))
-            x = x_next
+            p = None if params is None else jax.tree_util.tree_map(lambda a: a[k], params)
+            t0 = time.perf_counter()
+            u, u_plant, previous, record = jax.block_until_ready(decide(x, u, previous, p))
+            times.append(time.perf_counter() - t0)
+            x_next = call(plant, p, x, u_plant)
+            if not hasattr(x_next, "shape") or tuple(np.shape(x_next)) != x.shape:
+                raise TypeError(f"plant(x, u[, p]) must return the next plant state of shape {tuple(x.shape)} "
+                                f"like x0, got {type(x_next).__name__} of shape {np.shape(x_next)} at step {k}")
+            x = jnp.asarray(x_next, x.dtype)
+            records.append((x,) + record)
             if progress:
                 tick_python(k)
-        return _closed_loop(x0, jax.tree.map(lambda *a: jnp.stack(a), *records))
+        return _closed_loop(x0, jax.tree.map(lambda *a: jnp.stack(a), *records), jnp.asarray(times))
 
 
-def _closed_loop(x0, rec) -> ClosedLoop:
-    xs, us, idx, stage, pred, nodes, feas, used = rec
+def _closed_loop(x0, rec, times) -> ClosedLoop:
+    xs, us, idx, stage, pred, nodes, fb_nodes, feas, used, complete = rec
     return ClosedLoop(states=jnp.concatenate([x0[None], xs]), inputs=us, input_indices=idx, stage_costs=stage,
-                      predicted_costs=pred, nodes=nodes, feasible=feas, used_fallback=used)
+                      predicted_costs=pred, nodes=nodes, fallback_nodes=fb_nodes, feasible=feas, used_fallback=used,
+                      complete=complete, solve_times=times)

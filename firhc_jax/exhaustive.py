@@ -5,20 +5,27 @@ The tree is expanded level by level, each level in one batched call. To bound
 memory it is split at depth ``s``: the ``M^s`` prefixes of depth ``s`` are
 expanded first, then processed in chunks of ``C`` prefixes by a ``lax.scan``;
 each chunk expands its subtrees down to the leaves (at most ``chunk_nodes``
-leaves at once) and keeps its cheapest feasible leaf. Leaves are visited in
-lexicographic order of their input sequences and ties keep the first, so the
-result is the lexicographically first optimal sequence.
+leaves at once) and keeps its cheapest feasible leaf. ``C`` divides ``M^s``, so
+no chunk is padded. Leaves are visited in lexicographic order of their input
+sequences and ties keep the first, so the result is the lexicographically
+first optimal sequence.
+
+Levels are unrolled in Python only while they widen (at most
+``log_M(chunk_nodes)`` of them on each side of the split); with ``M = 1`` the
+levels are one ``lax.scan``, so compile time does not grow with N.
+``iterations`` counts batched calls of ``dynamics``.
 """
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from .nodes import expand
-from .problem import Problem, check_state, cost_dtype
+from .cache import compiled
+from .checks import check_params, check_state, cost_dtype
+from .nodes import best_leaf, expand
+from .problem import Problem, positive_int
 from .result import SearchResult, finish, raise_on_errors
 
 DEFAULT_CHUNK_NODES = 1 << 20
@@ -29,8 +36,8 @@ class Plan(NamedTuple):
     """How the tree is split (all static)."""
 
     split: int  # s, depth of the prefixes materialised at once
-    chunk: int  # C, prefixes per chunk
-    chunks: int  # number of chunks (the last one padded)
+    chunk: int  # C, prefixes per chunk (a divisor of M^s)
+    chunks: int  # M^s / C
 
 
 def plan(problem: Problem, chunk_nodes: int = DEFAULT_CHUNK_NODES) -> Plan:
@@ -41,96 +48,128 @@ def plan(problem: Problem, chunk_nodes: int = DEFAULT_CHUNK_NODES) -> Plan:
     node count overflows int32.
     """
     N, M = problem.horizon, problem.num_controls
-    if not isinstance(chunk_nodes, int) or chunk_nodes < 1:
-        raise ValueError(f"chunk_nodes must be an int >= 1, got {chunk_nodes!r}")
+    chunk_nodes = positive_int("chunk_nodes", chunk_nodes)
     total = problem.tree_size()
     if total > _INT32_MAX:
         raise ValueError(f"exhaustive search of M={M}, N={N} has {total:,} nodes, more than the int32 node "
                          "counter holds; use fj.sdfs or a shorter horizon")
+    if M == 1:
+        return Plan(0, 1, 1)
     split = next(s for s in range(N + 1) if M ** (N - s) <= chunk_nodes)
     if M**split > chunk_nodes:
         raise ValueError(
             f"exhaustive search of M={M}, N={N} ({total:,} nodes) does not fit chunk_nodes={chunk_nodes:,}: "
             f"it would need {M**split:,} prefixes in memory at once; raise chunk_nodes or use fj.sdfs")
-    chunk = min(M**split, chunk_nodes // M ** (N - split))
-    return Plan(split, chunk, math.ceil(M**split / chunk))
+    most = max(1, chunk_nodes // M ** (N - split))
+    chunk = max(d for d in range(1, min(most, M**split) + 1) if M**split % d == 0)
+    return Plan(split, chunk, M**split // chunk)
 
 
-def _descend(problem, x, cost, valid, levels, leaf_level):
-    """Expand ``levels`` levels below ``[B]`` nodes, each level in one batched
-    call, children flattened in lexicographic order. Returns the deepest level
-    ``x [B*M^levels, n]``, ``cost``, ``valid`` (at the leaf level: feasible),
-    the node count and the error flags. NaN nodes are never expanded."""
-    M = problem.num_controls
-    nodes = jnp.array(0, jnp.int32)
-    neg = nan = jnp.array(False)
-    for level in range(levels):
-        last = leaf_level and level == levels - 1
-        ch = expand(problem, x, cost, check_terminal=last)
+def memory(problem: Problem, n: int, itemsize: int, chunk_nodes: int = DEFAULT_CHUNK_NODES) -> int:
+    """Estimated peak bytes: three copies of the largest level chunk (``n + 4``
+    numbers a node) and the prefix level."""
+    p = plan(problem, chunk_nodes)
+    leaves = p.chunk * problem.num_controls ** (problem.horizon - p.split)
+    return itemsize * (3 * leaves * (n + 4) + problem.num_controls ** p.split * (n + 2))
+
+
+def _descend(problem, x, cost, valid, params, first_depth, levels, leaf_level):
+    """Expand ``levels`` levels below ``[B]`` nodes of depth ``first_depth``,
+    each level in one batched call, children flattened in lexicographic order.
+    Returns the deepest level ``x [B*M^levels, n]``, ``cost``, ``valid`` (at
+    the leaf level: feasible), the node count and the error flags. Non-finite
+    nodes are never expanded."""
+    M, N = problem.num_controls, problem.horizon
+
+    def level(x, cost, valid, depth, last):
+        ch = expand(problem, x, cost, params, steps_left=N - depth - 1, check_terminal=last)
         parent = valid[:, None]
-        nodes = nodes + M * jnp.sum(valid, dtype=jnp.int32)
-        neg = neg | jnp.any(parent & ch.negative)
-        nan = nan | jnp.any(parent & ch.bad)
+        nodes = M * jnp.sum(valid, dtype=jnp.int32)
+        flags = jax.lax.reduce_or(jnp.where(parent, ch.flags, 0), axes=(0, 1))
         ok = parent & ~ch.bad & ch.terminal_ok if last else parent & ~ch.bad
-        x, cost, valid = ch.x.reshape(-1, x.shape[-1]), ch.cost.reshape(-1), ok.reshape(-1)
-    return x, cost, valid, nodes, neg, nan
+        return ch.x.reshape(-1, x.shape[-1]), ch.cost.reshape(-1), ok.reshape(-1), nodes, flags
+
+    nodes, flags = jnp.array(0, jnp.int32), jnp.array(0, jnp.int32)
+    inner = levels - 1 if leaf_level else levels
+    if M == 1 and inner > 1:  # levels that do not widen: one scan, whatever N
+        def step(carry, depth):
+            x, cost, valid, nodes, flags = carry
+            x, cost, valid, n_, f_ = level(x, cost, valid, depth, False)
+            return (x, cost, valid, nodes + n_, flags | f_), None
+
+        (x, cost, valid, nodes, flags), _ = jax.lax.scan(
+            step, (x, cost, valid, nodes, flags), first_depth + jnp.arange(inner))
+        done = inner
+    else:
+        done = 0
+    for k in range(done, levels):
+        x, cost, valid, n_, f_ = level(x, cost, valid, first_depth + k, leaf_level and k == levels - 1)
+        nodes, flags = nodes + n_, flags | f_
+    return x, cost, valid, nodes, flags
 
 
-def _exhaustive(problem: Problem, x0, chunk_nodes: int) -> SearchResult:
+def _exhaustive(problem: Problem, x0, params, *, chunk_nodes: int) -> SearchResult:
     N, M = problem.horizon, problem.num_controls
     split, chunk, chunks = plan(problem, chunk_nodes)
-    dtype = cost_dtype(problem, x0)
+    dtype = cost_dtype(problem, x0, params)
     inf = jnp.array(jnp.inf, dtype)
-
-    # Prefix level s, padded to chunks * C with invalid entries.
-    px, pc, pok, nodes, neg, nan = _descend(problem, x0[None], jnp.zeros((1,), dtype), jnp.ones((1,), bool),
-                                            split, leaf_level=split == N)
-    pad = chunks * chunk - M**split
-    px = jnp.concatenate([px, jnp.zeros((pad,) + px.shape[1:], px.dtype)])
-    pc = jnp.concatenate([pc, jnp.zeros((pad,), dtype)])
-    pok = jnp.concatenate([pok, jnp.zeros((pad,), bool)])
+    px, pc, pok, nodes, flags = _descend(problem, x0[None], jnp.zeros((1,), dtype), jnp.ones((1,), bool), params,
+                                         0, split, leaf_level=split == N)
     sub = M ** (N - split)  # leaves per prefix
 
     def scan_chunk(carry, inp):
-        best_cost, best_leaf, nodes, neg, nan = carry
+        best_cost, best_leaf_index, nodes, flags = carry
         k, x, c, ok = inp
-        lx, lc, lok, n_, neg_, nan_ = _descend(problem, x, c, ok, N - split, leaf_level=split < N)
-        leaf_cost = jnp.where(lok, lc, inf)
-        i = jnp.argmin(leaf_cost)
-        improve = leaf_cost[i] < best_cost
-        return (jnp.where(improve, leaf_cost[i], best_cost),
-                jnp.where(improve, k * chunk * sub + i.astype(jnp.int32), best_leaf),
-                nodes + n_, neg | neg_, nan | nan_), None
+        lx, lc, lok, n_, f_ = _descend(problem, x, c, ok, params, split, N - split, leaf_level=split < N)
+        ch = _Leaves(cost=lc, terminal_ok=jnp.ones_like(lok))
+        cost, i, improve = best_leaf(ch, lok, True, best_cost)
+        return (jnp.where(improve, cost, best_cost),
+                jnp.where(improve, k * chunk * sub + i, best_leaf_index),
+                nodes + n_, flags | f_), None
 
-    init = (inf, jnp.array(0, jnp.int32), nodes, neg, nan)
+    init = (inf, jnp.array(0, jnp.int32), nodes, flags)
     xs = (jnp.arange(chunks, dtype=jnp.int32), px.reshape(chunks, chunk, -1),
           pc.reshape(chunks, chunk), pok.reshape(chunks, chunk))
-    (best_cost, best_leaf, nodes, neg, nan), _ = jax.lax.scan(scan_chunk, init, xs)
+    (best_cost, best_index, nodes, flags), _ = jax.lax.scan(scan_chunk, init, xs)
 
-    digits = (best_leaf // (M ** jnp.arange(N - 1, -1, -1, dtype=jnp.int32))) % M
-    return finish(problem.controls, best_cost, digits, nodes, jnp.array(chunks, jnp.int32), neg, nan)
+    weights = jnp.array([M**k for k in range(N - 1, -1, -1)], jnp.int32) if M > 1 else jnp.ones((N,), jnp.int32)
+    digits = (best_index // weights) % M
+    levels_called = split + chunks * (N - split)
+    return finish(problem, best_cost, digits, nodes, jnp.array(levels_called, jnp.int32), flags, True)
 
 
-_exhaustive_jit = jax.jit(_exhaustive, static_argnames=("chunk_nodes",))
+class _Leaves(NamedTuple):
+    """A flat leaf level seen through ``best_leaf``'s interface."""
+
+    cost: jax.Array  # [L]
+    terminal_ok: jax.Array  # [L]
 
 
-def exhaustive(problem: Problem, x0, *, method: str = "levels", chunk_nodes: int = DEFAULT_CHUNK_NODES,
-               pop_width: int = 1) -> SearchResult:
+def exhaustive(problem: Problem, x0, *, params=None, method: str = "levels",
+               chunk_nodes: int = DEFAULT_CHUNK_NODES, pop_width: int = 1) -> SearchResult:
     """Exact optimum by visiting every node of the tree (``nodes == problem.tree_size()``).
 
     Args:
+      params: optional parameter pytree passed to every callable (as ``fj.sdfs``).
       method: ``"levels"`` (default) the vectorised level-by-level search, the
         fastest way to visit every node; ``"dfs"`` the sDFS machinery with
         pruning off (``pop_width`` applies), the like-for-like baseline that
         isolates what pruning saves.
       chunk_nodes: most nodes held in one batched call by ``"levels"``; bounds
-        memory at about ``chunk_nodes * (n + 4) * itemsize * 3`` bytes.
+        memory at about ``chunk_nodes * (n + 4) * itemsize * 3`` bytes
+        (``memory``).
+
+    The lower bound, if the problem has one, is not used: this is the reference.
     """
     if method == "dfs":
         from .sdfs import exhaustive_dfs
-        return exhaustive_dfs(problem, x0, pop_width=pop_width)
+        return exhaustive_dfs(problem, x0, params=params, pop_width=pop_width)
     if method != "levels":
         raise ValueError(f"method must be 'levels' or 'dfs', got {method!r}")
-    x0 = check_state(problem, x0)
+    if not isinstance(problem, Problem):
+        raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
+    params = check_params(params)
+    x0 = check_state(problem, x0, params)
     plan(problem, chunk_nodes)  # refuse before tracing
-    return raise_on_errors(_exhaustive_jit(problem, x0, chunk_nodes=chunk_nodes))
+    search = compiled(_exhaustive, problem, chunk_nodes=chunk_nodes)  # the bound is computed, unused, dropped by XLA
+    return raise_on_errors(search(x0, params))

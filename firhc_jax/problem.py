@@ -2,19 +2,32 @@
 
 Notation used throughout the package:
 
-* ``x`` ``[n]``   plant state.
+* ``x`` ``[n]``   state of the prediction model.
 * ``u`` ``[m]``   one control input, a row of the finite control set.
 * ``controls`` ``[M, m]``  the finite control set S, ``M`` inputs.
 * ``N``           prediction horizon (``Problem.horizon``).
+* ``p``           parameters: any pytree of arrays (a reference, weights, a
+  set point), passed to the solvers as ``params=``. Values change without
+  recompiling; only their shapes and dtypes are compiled in.
 
-Callable contracts (all must be traceable by ``jax.jit`` and ``jax.vmap``):
+Callable contracts (all must be traceable by ``jax.jit`` and ``jax.vmap``).
+Without ``params`` they are called without ``p``; with ``params`` (not None)
+every callable takes ``p`` as its last argument:
 
-* ``dynamics(x, u) -> x_next``  ``[n] x [m] -> [n]``, same dtype as ``x``.
-* ``stage_cost(x_next, u) -> c`` scalar, ``c >= 0``: the cost of the step
+* ``dynamics(x, u[, p]) -> x_next``  ``[n] x [m] -> [n]``, same dtype as ``x``.
+* ``stage_cost(x_next, u[, p]) -> c`` scalar, ``c >= 0``: the cost of the step
   that produced ``x_next`` with input ``u``. Non-negativity is what makes
   pruning in sDFS exact.
-* ``terminal(x) -> bool`` scalar, tested on ``x(k+N)``: the terminal
+* ``terminal(x[, p]) -> bool`` scalar, tested on ``x(k+N)``: the terminal
   constraint (eq. 3), in practice a tolerance set. ``None``: unconstrained.
+* ``lower_bound(x, steps_left[, p]) -> scalar``: optional admissible bound on
+  the cost of the ``steps_left`` (traced int32) steps still to come from ``x``,
+  ``+inf`` where the terminal set cannot be reached in that many steps. With it
+  every search prunes a node when ``cost + bound`` is not below the incumbent.
+
+Nothing in a search is differentiable (it is a discrete argmin); the cost of
+a returned sequence can be re-evaluated differentiably with
+``firhc_jax.nodes.rollout_cost``.
 """
 from __future__ import annotations
 
@@ -29,8 +42,23 @@ import numpy as np
 Array = Any
 
 
-def _is_tracer(x) -> bool:
+def is_tracer(x) -> bool:
     return isinstance(x, jax.core.Tracer)
+
+
+def positive_int(name: str, value, minimum: int = 1) -> int:
+    """``value`` as a Python int >= ``minimum`` (NumPy integers accepted), or a
+    ``TypeError``/``ValueError`` naming the argument. The one validator for
+    every count and size argument of the package."""
+    if isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be an int >= {minimum}, got a bool")
+    try:
+        out = operator.index(value)
+    except TypeError:
+        raise TypeError(f"{name} must be an int >= {minimum}, got {value!r} of type {type(value).__name__}") from None
+    if out < minimum:
+        raise ValueError(f"{name} must be an int >= {minimum}, got {out}")
+    return out
 
 
 @jax.tree_util.register_pytree_node_class
@@ -39,18 +67,20 @@ class Problem:
     """A finite-input receding horizon problem.
 
     Args:
-      dynamics: ``dynamics(x, u) -> x_next`` (see module docstring).
+      dynamics: ``dynamics(x, u[, p]) -> x_next`` (see module docstring).
       controls: ``[M, m]`` finite control set; a 1-D ``[M]`` array means m = 1.
-      stage_cost: ``stage_cost(x_next, u) -> scalar >= 0``.
+      stage_cost: ``stage_cost(x_next, u[, p]) -> scalar >= 0``.
       horizon: prediction horizon N >= 1.
-      terminal: optional ``terminal(x) -> bool`` tested on the last predicted
-        state; ``None`` means no terminal constraint.
+      terminal: optional ``terminal(x[, p]) -> bool`` tested on the last
+        predicted state; ``None`` means no terminal constraint.
+      lower_bound: optional admissible ``lower_bound(x, steps_left[, p])``.
 
-    A ``Problem`` is a static pytree (no array leaves): the callables, the
-    horizon and the control set are compiled into the search as constants, so
-    XLA can fold input-only arithmetic, and solving the same problem again
-    (or a rebuilt one with the same callables and control values) reuses the
-    compiled search. ``controls`` is kept as a read-only NumPy array.
+    A ``Problem`` is a pytree with no array leaves: the callables, the horizon
+    and the control set are static, compiled into the search as constants.
+    Two problems with the same callables (the same function objects), horizon
+    and control values share one compiled search; everything that changes
+    between solves belongs in ``params``. ``controls`` is kept as a read-only
+    NumPy array.
     """
 
     dynamics: Callable
@@ -58,14 +88,21 @@ class Problem:
     stage_cost: Callable
     horizon: int
     terminal: Optional[Callable] = None
+    lower_bound: Optional[Callable] = None
 
     def __post_init__(self):
         for name in ("dynamics", "stage_cost"):
             if not callable(getattr(self, name)):
                 raise TypeError(f"Problem.{name} must be callable, got {type(getattr(self, name)).__name__}")
-        if self.terminal is not None and not callable(self.terminal):
-            raise TypeError(f"Problem.terminal must be callable or None, got {type(self.terminal).__name__}")
-        object.__setattr__(self, "horizon", _check_horizon(self.horizon))
+        for name in ("terminal", "lower_bound"):
+            value = getattr(self, name)
+            if value is not None and not callable(value):
+                raise TypeError(f"Problem.{name} must be callable or None, got {type(value).__name__}")
+        horizon = positive_int("horizon", self.horizon)
+        if horizon > _MAX_HORIZON:
+            raise ValueError(f"horizon {horizon} is larger than {_MAX_HORIZON:,}: the search's node paths and "
+                             "stack grow with N and N^2")
+        object.__setattr__(self, "horizon", horizon)
         object.__setattr__(self, "controls", _check_controls(self.controls))
 
     # -- sizes -------------------------------------------------------------
@@ -81,25 +118,34 @@ class Problem:
 
     def tree_size(self) -> int:
         """Child nodes of the full search tree: sum_{i=1..N} M^i."""
-        M = self.num_controls
-        return sum(M**i for i in range(1, self.horizon + 1))
+        M, N = self.num_controls, self.horizon
+        return N if M == 1 else (M ** (N + 1) - M) // (M - 1)
 
     def replace(self, **changes) -> "Problem":
         """A copy with some fields changed (e.g. ``terminal=None``)."""
         return dataclasses.replace(self, **changes)
 
+    @property
+    def key(self) -> tuple:
+        """Hashable identity of what a compiled search depends on."""
+        return (self.dynamics, self.stage_cost, self.horizon, self.terminal, self.lower_bound,
+                _ControlsKey(self.controls))
+
     # -- pytree (static: everything is auxiliary data) -------------------------
     def tree_flatten(self):
-        return (), (self.dynamics, self.stage_cost, self.horizon, self.terminal, _ControlsKey(self.controls))
+        return (), self.key
 
     @classmethod
     def tree_unflatten(cls, aux, leaves):
         obj = object.__new__(cls)  # already validated
-        dynamics, stage_cost, horizon, terminal, key = aux
+        dynamics, stage_cost, horizon, terminal, lower_bound, key = aux
         for name, value in (("dynamics", dynamics), ("controls", key.array), ("stage_cost", stage_cost),
-                            ("horizon", horizon), ("terminal", terminal)):
+                            ("horizon", horizon), ("terminal", terminal), ("lower_bound", lower_bound)):
             object.__setattr__(obj, name, value)
         return obj
+
+
+_MAX_HORIZON = 100_000
 
 
 class _ControlsKey:
@@ -118,26 +164,25 @@ class _ControlsKey:
         return isinstance(other, _ControlsKey) and self._key == other._key
 
 
-def _check_horizon(horizon) -> int:
-    if isinstance(horizon, bool):
-        raise TypeError("horizon must be an int >= 1, got a bool")
-    try:
-        value = operator.index(horizon)
-    except TypeError:
-        raise TypeError(f"horizon must be an int >= 1, got {horizon!r} of type {type(horizon).__name__}") from None
-    if value < 1:
-        raise ValueError(f"horizon must be an int >= 1, got {value}")
-    return value
-
-
 def _check_controls(controls) -> np.ndarray:
-    if _is_tracer(controls):
+    if is_tracer(controls):
         raise TypeError("controls must be concrete values, not a traced array: the control set is compiled "
-                        "into the search; build the Problem outside jit/vmap")
+                        "into the search as a constant. Build the Problem outside jit/vmap, or pass the "
+                        "changing values through params")
+    if controls is None:
+        raise TypeError("controls is None: pass the finite control set as an array [M, m] or [M]")
     try:
-        arr = np.asarray(jnp.asarray(controls))  # jnp decides the dtype (float32 unless x64 is enabled)
-    except TypeError as e:
-        raise TypeError(f"controls must be a numeric array [M, m] or [M]: {e}") from None
+        given = np.asarray(controls)
+    except ValueError as e:  # ragged nested lists
+        raise ValueError(f"controls must be a rectangular array [M, m] or [M]: {e}") from None
+    if given.dtype == object or not (np.issubdtype(given.dtype, np.number) or given.dtype == np.bool_):
+        raise TypeError(f"controls must be a real numeric or boolean array [M, m] or [M], got dtype {given.dtype}")
+    if np.issubdtype(given.dtype, np.complexfloating):
+        raise TypeError("controls must be real, got a complex dtype")
+    arr = np.asarray(jnp.asarray(given))  # jnp decides the dtype (float32/int32 unless x64 is enabled)
+    if given.size and given.dtype.kind in "iu" and not np.array_equal(arr.astype(given.dtype), given):
+        raise ValueError(f"controls of dtype {given.dtype} do not fit JAX's {arr.dtype} (values would wrap); "
+                         "enable x64 or use smaller values")
     if arr.ndim == 1:
         arr = arr[:, None]
     if arr.ndim != 2:
@@ -146,102 +191,49 @@ def _check_controls(controls) -> np.ndarray:
         raise ValueError("controls is empty: the control set needs at least one input (M >= 1)")
     if arr.shape[1] == 0:
         raise ValueError(f"controls has inputs of dimension 0 (shape {tuple(arr.shape)}); need m >= 1")
-    if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
-        raise TypeError(f"controls must be numeric, got dtype {arr.dtype}")
     if np.issubdtype(arr.dtype, np.inexact) and not np.all(np.isfinite(arr)):
         raise ValueError("controls contains NaN or inf")
+    if not np.issubdtype(arr.dtype, np.inexact) and not np.array_equal(arr.astype(np.float32), arr):
+        raise ValueError("integer controls must be exactly representable in float32 (|u| <= 2^24): the input "
+                         "a search returns is floating, so that an infeasible search can return NaN")
     arr = arr.copy()
     arr.flags.writeable = False
     return arr
+
+
+def input_dtype(problem: Problem):
+    """dtype of ``first_input``: the controls' own if floating, else the default
+    float (float32, or float64 with x64), so that infeasible can be NaN."""
+    if np.issubdtype(problem.controls.dtype, np.inexact):
+        return problem.controls.dtype
+    return jax.dtypes.canonicalize_dtype(np.float64)
 
 
 def quadratic_cost(lam, x_s, beta=0.0, u_e=None) -> Callable:
     """Stage cost of eq. (2): ``sum(lam * (x - x_s)^2) + sum(beta * (u - u_e)^2)``.
 
     ``lam`` and ``beta`` are scalars or per-component weights (the paper's
-    vectors of preferences); they must be non-negative. ``u_e`` defaults to 0.
+    vectors of preferences); they must be finite and non-negative. ``u_e``
+    defaults to 0. Inputs are promoted to the state's floating dtype before
+    ``u_e`` is subtracted, so integer or boolean controls keep real targets.
     """
-    lam_np, beta_np = np.asarray(lam, dtype=float), np.asarray(beta, dtype=float)
-    if np.any(lam_np < 0) or np.any(beta_np < 0):
-        raise ValueError("quadratic_cost weights lam and beta must be non-negative")
+    for name, w in (("lam", lam), ("beta", beta)):
+        w_np = np.asarray(w, dtype=float)
+        if not np.all(np.isfinite(w_np)) or np.any(w_np < 0):
+            raise ValueError(f"quadratic_cost weight {name} must be finite and non-negative, got {w!r}")
+    for name, v in (("x_s", x_s), ("u_e", u_e)):
+        if v is not None and not np.all(np.isfinite(np.asarray(v, dtype=float))):
+            raise ValueError(f"quadratic_cost target {name} must be finite, got {v!r}")
 
     def stage_cost(x_next, u):
-        dx = x_next - jnp.asarray(x_s, dtype=x_next.dtype)
-        du = u - (0.0 if u_e is None else jnp.asarray(u_e, dtype=u.dtype))
-        lam_ = jnp.asarray(lam, dtype=x_next.dtype)
-        beta_ = jnp.asarray(beta, dtype=x_next.dtype)
-        return jnp.sum(lam_ * dx**2) + jnp.sum(beta_ * du.astype(x_next.dtype) ** 2)
+        dtype = x_next.dtype
+        dx = x_next - jnp.asarray(x_s, dtype=dtype)
+        du = u.astype(dtype) - (0.0 if u_e is None else jnp.asarray(u_e, dtype=dtype))
+        return jnp.sum(jnp.asarray(lam, dtype=dtype) * dx**2) + jnp.sum(jnp.asarray(beta, dtype=dtype) * du**2)
 
     return stage_cost
 
 
-# ---------------------------------------------------------------------------
-# Checks of a problem against an initial state, done once per (shape, dtype).
-# ---------------------------------------------------------------------------
-
-def check_state(problem: Problem, x0) -> jax.Array:
-    """Validate ``x0`` against ``problem`` and return it as an array.
-
-    Raises ``ValueError``/``TypeError`` naming the mismatch before anything is
-    compiled: ``x0`` not 1-D, ``dynamics`` changing shape or dtype,
-    ``stage_cost`` not scalar, ``terminal`` not a boolean scalar, NaN in ``x0``.
-    """
-    if not _is_tracer(x0):
-        x_np = np.asarray(x0)
-        if x_np.dtype.kind in "fc" and not np.all(np.isfinite(x_np)):
-            raise ValueError(f"x0 contains NaN or inf: {x_np}")
-        x0 = jnp.asarray(x0)
-    if x0.ndim != 1:
-        raise ValueError(
-            f"x0 must be a 1-D state vector [n], got shape {tuple(x0.shape)}; "
-            "for a batch of states use jax.vmap or fj.solve_batch")
-    if not jnp.issubdtype(x0.dtype, jnp.inexact):
-        raise TypeError(f"x0 must have a floating dtype, got {x0.dtype}")
-    key = (tuple(x0.shape), jnp.dtype(x0.dtype))
-    cache = problem.__dict__.setdefault("_checked", set())
-    if key not in cache:
-        _check_callables(problem, jax.ShapeDtypeStruct(x0.shape, x0.dtype))
-        cache.add(key)
-    return x0
-
-
-def _call_shape(fn, name, signature, *args):
-    try:
-        return jax.eval_shape(fn, *args)
-    except (TypeError, ValueError) as e:  # re-raise with the callable named, keep the cause
-        shapes = ", ".join(f"{tuple(a.shape)} {a.dtype}" for a in args)
-        cls = TypeError if isinstance(e, TypeError) else ValueError
-        raise cls(f"{name}{signature} failed on inputs of shape/dtype ({shapes}): {e}") from e
-
-
-def _check_callables(problem: Problem, x: jax.ShapeDtypeStruct):
-    u = jax.ShapeDtypeStruct(problem.controls.shape[1:], problem.controls.dtype)
-    out = _call_shape(problem.dynamics, "dynamics", "(x, u)", x, u)
-    if not isinstance(out, jax.ShapeDtypeStruct):
-        raise TypeError(f"dynamics(x, u) must return one array [n], got {type(out).__name__}")
-    if out.shape != x.shape:
-        raise ValueError(
-            f"dynamics(x, u) returned shape {tuple(out.shape)} but x0 has shape {tuple(x.shape)}; "
-            "x0 must have the shape of the state that dynamics returns")
-    if out.dtype != x.dtype:
-        raise TypeError(
-            f"dynamics(x, u) changed the state dtype from {x.dtype} to {out.dtype}; "
-            "cast x0 (or the constants/controls inside dynamics) so that the dtypes agree")
-    c = _call_shape(problem.stage_cost, "stage_cost", "(x_next, u)", x, u)
-    if not isinstance(c, jax.ShapeDtypeStruct) or c.shape != ():
-        shape = getattr(c, "shape", type(c).__name__)
-        raise ValueError(f"stage_cost(x_next, u) must return a scalar, got shape {shape}")
-    if not jnp.issubdtype(c.dtype, jnp.floating):
-        raise TypeError(f"stage_cost(x_next, u) must return a floating scalar, got dtype {c.dtype}")
-    if problem.terminal is not None:
-        t = _call_shape(problem.terminal, "terminal", "(x)", x)
-        if not isinstance(t, jax.ShapeDtypeStruct) or t.shape != () or t.dtype != jnp.bool_:
-            is_array = isinstance(t, jax.ShapeDtypeStruct)
-            desc = f"shape {tuple(t.shape)} dtype {t.dtype}" if is_array else type(t).__name__
-            raise TypeError(f"terminal(x) must return a boolean scalar, got {desc}")
-
-
-def cost_dtype(problem: Problem, x0) -> jnp.dtype:
-    """dtype of accumulated costs: that of ``stage_cost``'s output."""
-    u = jax.ShapeDtypeStruct(problem.controls.shape[1:], problem.controls.dtype)
-    return jax.eval_shape(problem.stage_cost, jax.ShapeDtypeStruct(x0.shape, x0.dtype), u).dtype
+def call(fn: Callable, params, *args):
+    """``fn(*args)`` without parameters, ``fn(*args, params)`` with them."""
+    return fn(*args) if params is None else fn(*args, params)

@@ -1,55 +1,57 @@
-"""A dependency-free text progress bar for long runs (closed loops, sweeps).
+"""Progress bars for long runs (closed loops, sweeps), drawn by tqdm.
 
 ``with Progress(total, "label") as bar: bar.update(k)`` from Python loops.
-Inside a compiled loop call ``tick(step)``: it reports through
-``jax.debug.callback`` to the innermost active bar, so a cached compiled
-function reports to whichever bar is open when it runs (no retracing).
+Inside a compiled loop call ``tick(step)`` (only when progress is on: it is a
+host callback per step): it reports through ``jax.debug.callback`` to the
+innermost active bar, so a cached compiled function reports to whichever bar
+is open when it runs (no retracing).
+
+The bar reads "compiling" until the first step is done and its clock starts
+then, so rates and ETAs exclude compilation. tqdm picks the notebook or
+terminal rendering and keeps non-TTY logs readable.
 """
 from __future__ import annotations
 
 import sys
-import time
 
 import jax
+from tqdm.auto import tqdm
 
 _active: list = []
 
 
 class Progress:
-    """Prints ``label [#####.....] k/total  elapsed  eta`` on stderr; silent when disabled."""
+    """A tqdm bar of ``total`` steps labelled ``label``; nothing when disabled."""
 
     def __init__(self, total: int, label: str = "", enabled: bool = True, stream=None):
         self.total, self.label, self.enabled = max(int(total), 1), label, enabled
         self.stream = stream or sys.stderr
-        self.start = time.perf_counter()
-        self._last, self._shown = -1.0, -1
+        self._bar, self._started = None, False
 
     def update(self, done: int):
-        if not self.enabled or done == self._shown:
+        """Report that ``done`` steps are finished."""
+        if self._bar is None:
             return
-        now = time.perf_counter()
-        if done < self.total and now - self._last < 0.1:
-            return
-        self._last, self._shown = now, done
-        frac = min(done / self.total, 1.0)
-        elapsed = now - self.start
-        eta = f"{elapsed / frac - elapsed:6.1f}s" if frac > 0 else "     ?"
-        bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
-        self.stream.write(f"\r{self.label} [{bar}] {done}/{self.total}  {elapsed:6.1f}s  eta {eta}")
-        self.stream.flush()
+        if not self._started:  # first step: compilation is over, start the clock now
+            self._started = True
+            self._bar.set_description(self.label)
+            self._bar.reset(total=self.total)
+        if done > self._bar.n:
+            self._bar.update(done - self._bar.n)
 
     def __enter__(self):
         _active.append(self)
-        self.start = time.perf_counter()
-        self.update(0)
+        if self.enabled:
+            self._bar = tqdm(total=self.total, desc=f"{self.label} (compiling)", file=self.stream,
+                             mininterval=0.1, dynamic_ncols=True)
         return self
 
     def __exit__(self, *exc):
         _active.remove(self)
-        if self.enabled:
-            self.update(self.total)
-            self.stream.write("\n")
-            self.stream.flush()
+        if self._bar is not None:
+            if exc[0] is None:
+                self.update(self.total)
+            self._bar.close()
 
 
 def tick_python(step) -> None:

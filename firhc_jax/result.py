@@ -8,54 +8,68 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .nodes import NEGATIVE, NONFINITE, OVERFLOW
+from .problem import Problem, input_dtype
+
 
 class SearchResult(NamedTuple):
     """Outcome of one search (a pytree; batched searches add a leading axis).
 
     ``cost`` is ``+inf`` and ``feasible`` False when no input sequence meets
     the terminal constraint; then ``sequence`` is all ``-1`` and
-    ``first_input`` is NaN (for floating controls): never a made-up input.
+    ``first_input`` is NaN: never a made-up input. ``first_input`` is always
+    floating (integer and boolean control sets are promoted), so that this
+    holds for every control set.
     """
 
     cost: jax.Array  # [] optimal accumulated cost, +inf if infeasible
     sequence: jax.Array  # [N] int32 indices into controls, -1 if infeasible
-    first_input: jax.Array  # [m] controls[sequence[0]], the input to apply (eq. 4)
+    first_input: jax.Array  # [m] floating: controls[sequence[0]], the input to apply (eq. 4); NaN if infeasible
     nodes: jax.Array  # [] int32 child nodes computed (the paper's count)
-    feasible: jax.Array  # [] bool some sequence met the terminal constraint
+    feasible: jax.Array  # [] bool some sequence met the terminal constraint (with a finite cost)
     iterations: jax.Array  # [] int32 loop iterations (batched calls of dynamics)
-    negative_cost: jax.Array  # [] bool a negative stage cost was met (exactness lost)
-    nan_encountered: jax.Array  # [] bool a NaN state or cost was met (such nodes are discarded)
+    negative_cost: jax.Array  # [] bool a negative stage cost was computed (exactness lost)
+    nan_encountered: jax.Array  # [] bool a non-finite (NaN or inf) state or a NaN cost was computed; discarded
+    overflow: jax.Array  # [] bool a finite cost plus a finite stage cost overflowed to +inf
+    complete: jax.Array  # [] bool the search ran to the end (not stopped by max_nodes): the result is optimal
 
 
-def finish(controls, cost, sequence, nodes, iterations, negative_cost, nan_encountered) -> SearchResult:
-    """Assemble a ``SearchResult`` from a search's final carry."""
+def finish(problem: Problem, cost, sequence, nodes, iterations, flags, complete) -> SearchResult:
+    """Assemble a ``SearchResult`` from a search's final state."""
     feasible = jnp.isfinite(cost)
     sequence = jnp.where(feasible, sequence, -1).astype(jnp.int32)
-    first = jnp.asarray(controls)[jnp.maximum(sequence[0], 0)]
-    if jnp.issubdtype(controls.dtype, jnp.inexact):
-        first = jnp.where(feasible, first, jnp.nan)
-    return SearchResult(cost=cost, sequence=sequence, first_input=first, nodes=nodes,
-                        feasible=feasible, iterations=iterations,
-                        negative_cost=negative_cost, nan_encountered=nan_encountered)
+    controls = jnp.asarray(problem.controls, input_dtype(problem))
+    first = jnp.where(feasible, controls[jnp.maximum(sequence[0], 0)], jnp.nan)
+    return SearchResult(cost=cost, sequence=sequence, first_input=first, nodes=nodes, feasible=feasible,
+                        iterations=iterations, negative_cost=(flags & NEGATIVE) > 0,
+                        nan_encountered=(flags & NONFINITE) > 0, overflow=(flags & OVERFLOW) > 0,
+                        complete=jnp.asarray(complete, bool))
 
 
 def raise_on_errors(result: SearchResult) -> SearchResult:
     """In an un-jitted call, turn the result's error flags into exceptions.
 
     A negative stage cost raises ``ValueError`` (pruning was unsafe, so the
-    answer may not be optimal). NaN states or costs only warn: those nodes were
-    discarded, never treated as cheap, and the result is exact over the rest.
-    Inside ``jit``/``vmap`` the flags stay in the result for the caller.
+    answer may not be optimal). Non-finite states or costs, and cost
+    overflow, only warn: those nodes were discarded, never treated as cheap,
+    and the result is exact over the rest. Inside ``jit``/``vmap`` the flags
+    stay in the result for the caller.
     """
     if isinstance(result.cost, jax.core.Tracer):
         return result
-    negative, nan = jax.device_get((result.negative_cost, result.nan_encountered))  # one sync
+    negative, nan, overflow = jax.device_get((result.negative_cost, result.nan_encountered, result.overflow))
     if np.any(negative):
         raise ValueError(
             "stage_cost returned a negative value during the search; sDFS is exact only for "
-            "non-negative stage costs (eq. 2). Shift or square the cost so that it is >= 0.")
+            "non-negative stage costs (eq. 2). Shift or square the cost so that it is >= 0 "
+            "(fj.check_problem samples states to test this before you trust a problem).")
     if np.any(nan):
-        warnings.warn("NaN states or costs were met during the search; those nodes were discarded "
-                      "(treated as infeasible). Check dynamics/stage_cost near this state.",
+        warnings.warn("non-finite (NaN or inf) states or NaN costs were met during the search; those nodes were "
+                      "discarded (treated as infeasible). Check dynamics/stage_cost near this state.",
+                      RuntimeWarning, stacklevel=3)
+    if np.any(overflow):
+        warnings.warn("accumulated costs overflowed to +inf during the search (the cost dtype is too narrow for "
+                      "these stage costs); overflowed sequences count as infinitely expensive, so a result "
+                      "reported infeasible may only be too expensive. Scale the cost down or use float64.",
                       RuntimeWarning, stacklevel=3)
     return result

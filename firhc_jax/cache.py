@@ -1,0 +1,71 @@
+"""One bounded cache for everything the package compiles or checks per problem.
+
+Every solver keeps its compiled search here, keyed by the problem's callables,
+horizon and control values (``Problem.key``) and the solver's static options:
+the same callables, shapes and dtypes reuse one executable, and a rebuilt
+``Problem`` with the same callables finds it again. The cache holds at most
+``max_size`` entries (default 64) and evicts the least recently used; an evicted
+entry's ``jax.jit`` object, and with it its executables, is freed. So a process
+that builds problem after problem (a notebook, a parameter study, a controller
+that re-identifies its plant) keeps a bounded amount of compiled code instead
+of pinning one executable per problem for ever (measured in docs/cache.md).
+
+``clear_cache()`` empties it; ``set_cache_size(n)`` changes the bound;
+``cache_info()`` reports its use.
+"""
+from __future__ import annotations
+
+import collections
+import functools
+from typing import Any, Callable, Hashable
+
+import jax
+
+DEFAULT_MAX_SIZE = 64
+_entries: "collections.OrderedDict[Hashable, Any]" = collections.OrderedDict()
+_max_size = DEFAULT_MAX_SIZE
+_stats = {"hits": 0, "misses": 0}
+
+
+def cached(key: Hashable, build: Callable[[], Any]) -> Any:
+    """The entry for ``key``, built by ``build()`` on a miss (least recently
+    used entries are evicted beyond ``max_size``)."""
+    try:
+        value = _entries[key]
+    except KeyError:
+        _stats["misses"] += 1
+        value = _entries[key] = build()
+        while len(_entries) > _max_size:
+            _entries.popitem(last=False)
+        return value
+    _stats["hits"] += 1
+    _entries.move_to_end(key)
+    return value
+
+
+def compiled(fn: Callable, problem, **static) -> Callable:
+    """``jax.jit`` of ``fn(problem, *args, **static)`` for this problem and
+    these static options, from the cache."""
+    key = ("jit", fn, problem.key, tuple(sorted(static.items())))
+    return cached(key, lambda: jax.jit(functools.partial(fn, problem, **static)))
+
+
+def clear_cache() -> None:
+    """Drop every cached compiled search and check (``jax.clear_caches()``
+    also drops JAX's own caches)."""
+    _entries.clear()
+
+
+def set_cache_size(max_size: int) -> None:
+    """Keep at most ``max_size`` (>= 1) compiled searches and checks."""
+    from .problem import positive_int
+
+    global _max_size
+    _max_size = positive_int("max_size", max_size)
+    while len(_entries) > _max_size:
+        _entries.popitem(last=False)
+
+
+def cache_info() -> dict:
+    """``{"size", "max_size", "hits", "misses"}`` of the cache."""
+    return {"size": len(_entries), "max_size": _max_size, **_stats}
