@@ -168,8 +168,11 @@ def launch_local(args, num_processes: int, *, timeout: float | None = None, env:
             logs.append((out, err))
             procs.append(subprocess.Popen(command, env={**base, ENV_PROCESS_ID: str(i)}, stdout=out, stderr=err,
                                           cwd=cwd))
-        while any(p.poll() is None for p in procs):
-            if any(p.returncode not in (None, 0) for p in procs):
+        while True:
+            codes = [p.poll() for p in procs]  # every process, not only up to the first still running
+            if all(c is not None for c in codes):
+                break
+            if any(c not in (None, 0) for c in codes):
                 break  # one failed: the others would block in a collective
             if deadline is not None and time.monotonic() > deadline:
                 raise subprocess.TimeoutExpired(command, timeout)
