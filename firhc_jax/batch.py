@@ -38,8 +38,8 @@ Devices. The rows are split over a 1-D mesh of every device of the job
 (``jax.devices()``; over all processes after ``jax.distributed.initialize``)
 with ``shard_map``; each device runs its own pool (or vmap) on its share, with
 no communication inside the search. Over several processes the rows enter as
-one array replicated on every device and the result is all-gathered at the
-end, so every process reads all of it.
+one global array (laid out as a single process's jit would lay them out) and
+the result is all-gathered at the end, so every process reads all of it.
 """
 from __future__ import annotations
 

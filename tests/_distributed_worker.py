@@ -52,6 +52,13 @@ def main(path):
         for field in fj.SearchResult._fields:
             out[f"{name}.{field}"] = np.asarray(getattr(res, field))  # readable on every process
     out["devices"] = np.array([jax.device_count(), jax.process_count()])
+    if jax.process_count() > 1:  # a batch that differs between processes is refused on every process
+        rp = make(7, 3, 1, 5, 4, "loose")
+        try:
+            fj.solve_batch(rp.problem(), np.full((4, 3), 0.1 * jax.process_index()))
+        except ValueError as e:
+            assert "X0 differs between processes" in str(e), e
+            out["refused"] = np.array(True)
     np.savez(path, **out)
     print("worker done", jax.process_index(), flush=True)
 

@@ -20,7 +20,7 @@ from firhc_jax.models.synthetic import benchmark_state
 
 TESTS = Path(__file__).parent
 ROOT = TESTS.parent
-TIMEOUT = 120  # s for a whole job; it takes about 10 s on 2 shared cores
+TIMEOUT = 120  # s for a whole job (a safety net: the job itself takes seconds)
 
 
 def child_env(devices: int) -> dict:
@@ -75,6 +75,7 @@ def test_two_processes_give_the_single_process_result(tmp_path):
     p0, p1, ref = (np.load(tmp_path / f"{name}.npz") for name in ("p0", "p1", "ref"))
     np.testing.assert_array_equal(p0["devices"], [2, 2])
     np.testing.assert_array_equal(ref["devices"], [2, 1])
+    assert p0["refused"] and p1["refused"]  # different X0 on the two processes: a ValueError on both
     one = {}
     for name, solve in worker.cases():  # this process: 1 device
         res = solve()

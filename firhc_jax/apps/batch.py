@@ -101,7 +101,11 @@ def run(args) -> int:
             print(f"batch: processes {failed} failed (exit {[done[i].returncode for i in failed]})", file=sys.stderr)
             return 1
         return 0
-    distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+    try:
+        distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+        X0 = distributed.load_states(args.states)
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"batch: {e}") from None
 
     import jax
     import numpy as np
@@ -110,7 +114,7 @@ def run(args) -> int:
     from ..batch import DEFAULT_MAX_MEMORY, solve_batch
 
     jax.config.update("jax_enable_x64", not args.float32)
-    X0 = distributed.load_states(args.states).astype(np.float32 if args.float32 else np.float64)
+    X0 = X0.astype(np.float32 if args.float32 else np.float64)
     problem = make_problem(args)
     options = dict(solver=args.solver, lanes=args.lanes, pop_width=args.pop_width,
                    max_memory=args.max_memory or DEFAULT_MAX_MEMORY)
