@@ -31,19 +31,23 @@ vmapped solvers need ``row_memory`` per row. A batch that would exceed
 ``max_memory`` bytes is solved in chunks of rows (``lax.map``), and a pool or
 row that does not fit on its own is refused before anything is compiled.
 
-Devices. The rows are split over a 1-D mesh of the local devices with
-``shard_map``; each device runs its own pool (or vmap) on its share, with no
-communication inside the search.
+Devices. The rows are split over a 1-D mesh of every device of the job
+(``jax.devices()``; over all processes after ``jax.distributed.initialize``)
+with ``shard_map``; each device runs its own pool (or vmap) on its share, with
+no communication inside the search. Over several processes the rows enter as
+one global array (laid out as a single process's jit would lay them out) and
+the result is all-gathered at the end, so every process reads all of it.
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, PartitionSpec
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .cache import compiled
 from .checks import check_params, check_state, cost_dtype
@@ -431,12 +435,56 @@ _AXIS = "rows"
 
 
 def _mesh(devices) -> Mesh:
-    """1-D mesh over ``devices`` (default: every local device). Meshes over the
+    """1-D mesh over ``devices`` (default: every device of the job,
+    ``jax.devices()``: the local devices in a single process). Meshes over the
     same devices compare equal, so the compiled batch is reused."""
-    devices = list(jax.local_devices() if devices is None else devices)
+    if devices is None:
+        devices = jax.devices()
+    elif isinstance(devices, (str, bytes, jax.Device)) or not isinstance(devices, (list, tuple, np.ndarray)):
+        raise TypeError(f"devices must be a list of jax devices (e.g. jax.devices()[:2]) or None, got {devices!r}")
+    devices = list(devices)
     if not devices:
-        raise ValueError("devices is empty; pass None for all local devices")
+        raise ValueError("devices is empty; pass None for all devices of the job (jax.devices())")
+    for i, d in enumerate(devices):
+        if not isinstance(d, jax.Device):
+            raise TypeError(f"devices[{i}] must be a jax device (from jax.devices()), got {d!r}")
+    if len(set(devices)) != len(devices):
+        raise ValueError(f"devices lists a device more than once: {devices}")
+    if len({d.platform for d in devices}) > 1:
+        raise ValueError(f"devices mixes platforms: {sorted({d.platform for d in devices})}")
     return Mesh(np.array(devices), (_AXIS,))
+
+
+def _global_rows(X, mesh: Mesh):
+    """Multi-process mesh: every process's ``X`` (the same rows everywhere) as
+    one global array over ``mesh``; a fingerprint of the rows is
+    compared across processes first, so that differing ``X0`` fail loudly."""
+    import hashlib
+
+    from jax.experimental import multihost_utils
+
+    if isinstance(X, jax.Array) and not X.is_fully_addressable and not X.is_fully_replicated:
+        raise ValueError("X0 is a jax.Array sharded over several processes; pass the same host (NumPy) array "
+                         "[B, n] on every process")
+    host = np.asarray(X)
+    digest = np.frombuffer(hashlib.sha256(host.tobytes()).digest(), np.uint8)
+    fingerprint = np.concatenate([np.array(host.shape, np.int64).view(np.uint8), digest])
+    every = np.asarray(multihost_utils.process_allgather(fingerprint))  # [processes, 48]
+    if not np.all(every == every[0]):
+        differ = np.flatnonzero(np.any(every != every[0], axis=1)).tolist()
+        raise ValueError(f"X0 differs between processes (processes {differ} differ from process 0): every "
+                         "process must pass the same batch (X0 and params)")
+    # The layout a single process's jit picks for the same call (rows split when they divide evenly, else
+    # replicated and padded inside): the same partitioned program, hence bit-identical results.
+    spec = PartitionSpec(_AXIS) if host.shape[0] % mesh.devices.size == 0 else PartitionSpec()
+    return jax.make_array_from_callback(host.shape, NamedSharding(mesh, spec), lambda i: host[i])
+
+
+@functools.partial(jax.jit, static_argnames="mesh")
+def _replicated(tree, mesh: Mesh):
+    """``tree`` replicated over every device of ``mesh`` (an all-gather across
+    processes), so that each process can read the whole result."""
+    return jax.lax.with_sharding_constraint(tree, NamedSharding(mesh, PartitionSpec()))
 
 
 def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_width: int = 1,
@@ -471,8 +519,12 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
       max_memory: bytes the batch may use at once on each device (estimate,
         see ``row_memory``, ``pool_memory``); larger batches are solved in
         chunks of rows.
-      devices: the devices to split the rows over (default: all local
-        devices, ``jax.local_devices()``); one device runs everything.
+      devices: the devices to split the rows over (default: every device of
+        the job, ``jax.devices()``: the local devices in a single process, all
+        processes' devices after ``jax.distributed.initialize``); one device
+        runs everything. Over several processes, every process passes the
+        same ``X0`` (and ``params``) and gets the whole result, replicated on
+        every device.
 
     Returns a ``SearchResult`` with leading axis B on every field. Un-jitted, a
     negative stage cost in any row raises ``ValueError`` (as ``fj.sdfs``).
@@ -505,6 +557,11 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         lanes = None  # unused: keep the compiled batch's cache key
         need = row_memory(problem, n, item, solver, pop_width, chunk_nodes) + param_bytes
         rows = _rows_per_chunk(need, per_device, max_memory, f"one row of solver={solver!r}")
+    multi = mesh.is_multi_process and not isinstance(X, jax.core.Tracer)
+    if multi:
+        X = _global_rows(X, mesh)
+        params = jax.tree_util.tree_map(lambda a: _global_rows(a, mesh), params)
     run = compiled(_solve, problem, mesh=mesh, solver=solver, pop_width=pop_width, chunk_nodes=chunk_nodes,
                    rows_per_chunk=rows, lanes=lanes)
-    return raise_on_errors(run(X, params, budget))
+    out = run(X, params, budget)
+    return raise_on_errors(_replicated(out, mesh) if multi else out)

@@ -1,0 +1,71 @@
+"""Worker of tests/test_distributed.py: solve a fixed set of batches with
+fj.solve_batch and save every result field to an .npz.
+
+    python tests/_distributed_worker.py OUT.npz [COORDINATOR NUM_PROCESSES PROCESS_ID]
+
+With a coordinator it first joins that job (gloo CPU collectives); without,
+it runs as a single process on whatever devices XLA_FLAGS gives it. Every
+process of a job must get the same batches (fixed seeds here) and checks that
+it can read the whole result, replicated on every device of the job.
+"""
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import firhc_jax as fj
+from random_problems import make
+
+B = 10  # even: the rows are split as they are; the params case takes B - 1 (padded over 2 devices)
+
+
+def param_problem():
+    def dynamics(x, u, p):
+        return jnp.stack([x[0] + 0.1 * x[1], x[1] + 0.1 * (u[0] - jnp.sin(x[0]))])
+
+    def cost(x, u, p):
+        return jnp.sum((x - p["r"]) ** 2) + p["w"] * u[0] ** 2
+
+    return fj.Problem(dynamics, jnp.array([-1.0, 0.0, 1.0]), cost, 4)
+
+
+def cases():
+    rp = make(7, 3, 1, 5, 4, "loose")
+    X0 = np.random.default_rng(B).uniform(-1, 1, (B, 3))
+    for solver in ("sdfs", "sdfs-vmap", "exhaustive"):
+        yield solver, lambda s=solver: fj.solve_batch(rp.problem(), X0, solver=s)
+    rng = np.random.default_rng(3)
+    params = {"r": rng.uniform(-0.5, 0.5, (B - 1, 2)), "w": rng.uniform(0.0, 0.2, B - 1)}
+    Xp = rng.uniform(-1, 1, (B - 1, 2))
+    yield "params", lambda: fj.solve_batch(param_problem(), Xp, params=params)
+
+
+def main(path):
+    out = {}
+    for name, solve in cases():
+        res = solve()
+        assert res.cost.shape == (B - (name == "params"),), (name, res.cost.shape)
+        if jax.process_count() > 1:  # a single process keeps the rows sharded over its devices
+            assert res.cost.is_fully_replicated, (name, res.cost.sharding)
+        assert len(res.cost.sharding.device_set) == jax.device_count(), (name, res.cost.sharding)
+        for field in fj.SearchResult._fields:
+            out[f"{name}.{field}"] = np.asarray(getattr(res, field))  # readable on every process
+    out["devices"] = np.array([jax.device_count(), jax.process_count()])
+    if jax.process_count() > 1:  # a batch that differs between processes is refused on every process
+        rp = make(7, 3, 1, 5, 4, "loose")
+        try:
+            fj.solve_batch(rp.problem(), np.full((4, 3), 0.1 * jax.process_index()))
+        except ValueError as e:
+            assert "X0 differs between processes" in str(e), e
+            out["refused"] = np.array(True)
+    np.savez(path, **out)
+    print("worker done", jax.process_index(), flush=True)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 5:  # join the job before any other JAX work
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+        jax.distributed.initialize(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), initialization_timeout=60)
+    jax.config.update("jax_enable_x64", True)
+    main(sys.argv[1])

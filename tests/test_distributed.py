@@ -1,0 +1,173 @@
+"""fj.solve_batch over several processes of one JAX job (two local CPU
+processes joined on 127.0.0.1 with gloo collectives), the devices argument,
+firhc_jax.distributed and ``python -m firhc_jax batch``."""
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+import _distributed_worker as worker
+import firhc_jax as fj
+from firhc_jax import distributed
+from firhc_jax.batch import _mesh
+from firhc_jax.cli import main as cli_main
+from firhc_jax.models.synthetic import benchmark_state
+
+TESTS = Path(__file__).parent
+ROOT = TESTS.parent
+TIMEOUT = 120  # s for a whole job (a safety net: the job itself takes seconds)
+
+
+def child_env(devices: int) -> dict:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_") or k == "JAX_ENABLE_X64"}
+    env.update(XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}", JAX_PLATFORMS="cpu",
+               PYTHONPATH=os.pathsep.join([str(TESTS), str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    return env
+
+
+def run_all(commands, tmp_path, timeout=TIMEOUT):
+    """Start every ``(argv, env)`` at once and wait for all; on a failure or
+    the timeout kill every process still running (always, in ``finally``)."""
+    procs, logs = [], []
+    deadline = time.monotonic() + timeout
+    try:
+        for i, (argv, env) in enumerate(commands):
+            log = open(tmp_path / f"proc{i}.log", "w+")
+            logs.append(log)
+            procs.append(subprocess.Popen([sys.executable, *argv], env=env, cwd=ROOT, stdout=log,
+                                          stderr=subprocess.STDOUT))
+        while True:
+            codes = [p.poll() for p in procs]
+            if all(c is not None for c in codes) or any(c not in (None, 0) for c in codes):
+                break
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+        for p in procs:
+            p.wait()
+    texts = []
+    for log in logs:
+        log.seek(0)
+        texts.append(log.read())
+        log.close()
+    for i, p in enumerate(procs):
+        assert p.returncode == 0, f"process {i} exit {p.returncode} (killed on timeout or another's failure):\n" \
+                                  + texts[i][-3000:]
+
+
+def test_two_processes_give_the_single_process_result(tmp_path):
+    """2 processes x 1 device: every process gets the whole batch's result, identical (costs, sequences, node
+    counts) to 1 process x 2 devices; costs and sequences also match 1 process x 1 device."""
+    port = distributed.free_port()
+    script = str(TESTS / "_distributed_worker.py")
+    run_all([([script, tmp_path / "p0.npz", f"127.0.0.1:{port}", "2", "0"], child_env(1)),
+             ([script, tmp_path / "p1.npz", f"127.0.0.1:{port}", "2", "1"], child_env(1)),
+             ([script, tmp_path / "ref.npz"], child_env(2))], tmp_path)
+    p0, p1, ref = (np.load(tmp_path / f"{name}.npz") for name in ("p0", "p1", "ref"))
+    np.testing.assert_array_equal(p0["devices"], [2, 2])
+    np.testing.assert_array_equal(ref["devices"], [2, 1])
+    assert p0["refused"] and p1["refused"]  # different X0 on the two processes: a ValueError on both
+    one = {}
+    for name, solve in worker.cases():  # this process: 1 device
+        res = solve()
+        one.update({f"{name}.{field}": np.asarray(getattr(res, field)) for field in fj.SearchResult._fields})
+    for key in one:
+        np.testing.assert_array_equal(p0[key], p1[key], err_msg=key)
+        np.testing.assert_array_equal(p0[key], ref[key], err_msg=key)
+        name, field = key.split(".")
+        # On 1 device the pool shares its lanes between all rows: other node counts; costs may differ in the
+        # last bit where XLA vectorises a transcendental differently for 5 and 10 rows per device.
+        if field == "cost":
+            np.testing.assert_allclose(p0[key], one[key], rtol=1e-14, atol=0, err_msg=key)
+        elif field not in ("nodes", "iterations") or name in ("sdfs-vmap", "exhaustive"):
+            np.testing.assert_array_equal(p0[key], one[key], err_msg=key)
+    assert np.any(p0["sdfs.feasible"]) and not np.all(p0["sdfs.nodes"] == 0)
+
+
+def test_batch_command_on_two_local_processes(tmp_path):
+    """``python -m firhc_jax batch --launch-local 2``'s machinery (launch_local and the app on 2 processes)
+    gives the costs and sequences of a single-process run of the same command."""
+    X0 = np.asarray(benchmark_state()) + np.random.default_rng(0).normal(0, 0.3, (24, 3))
+    distributed.save_states(tmp_path / "X0.npz", X0)
+    args = ["batch", "--plant", "synthetic", "-N", "3", "--states", str(tmp_path / "X0.npz")]
+    assert cli_main(args + ["--out", str(tmp_path / "one.npz")]) == 0
+    done = distributed.launch_local(["-m", "firhc_jax", *args, "--out", tmp_path / "two.npz"], 2,
+                                    timeout=TIMEOUT, env=child_env(1), capture=True, cwd=ROOT)
+    assert [d.returncode for d in done] == [0, 0], [d.stderr[-2000:] for d in done]
+    assert "2 devices (2 processes)" in done[0].stdout
+    one, meta1 = distributed.load_result(tmp_path / "one.npz")
+    two, meta2 = distributed.load_result(tmp_path / "two.npz")
+    assert (meta1["processes"], meta2["processes"], meta2["devices"]) == (1, 2, 2) and meta2["seconds"] > 0
+    np.testing.assert_array_equal(one.sequence, two.sequence)
+    np.testing.assert_allclose(one.cost, two.cost, rtol=1e-14, atol=0)
+    assert one.cost.shape == (24,) and np.all(one.feasible)
+
+
+def test_launcher_kills_the_job_when_a_process_fails(tmp_path):
+    """Process 1 fails at once; process 0 would wait for it forever: both are gone within the timeout."""
+    code = "import os, time, sys\nif os.environ['JAX_PROCESS_ID'] == '1': sys.exit(3)\ntime.sleep(60)"
+    t0 = time.monotonic()
+    done = distributed.launch_local(["-c", code], 2, timeout=30, capture=True)
+    assert [d.returncode for d in done][1] == 3 and done[0].returncode != 0
+    assert time.monotonic() - t0 < 20
+    with pytest.raises(subprocess.TimeoutExpired):
+        distributed.launch_local(["-c", "import time; time.sleep(60)"], 2, timeout=1)
+
+
+def test_default_devices_are_every_device_of_the_job():
+    assert list(_mesh(None).devices.flat) == jax.devices()
+    assert list(_mesh(tuple(jax.devices())).devices.flat) == jax.devices()
+
+
+@pytest.mark.parametrize("devices, error, match", [
+    ("cpu", TypeError, "devices must be a list of jax devices"),
+    (0, TypeError, "devices must be a list"),
+    ([0], TypeError, r"devices\[0\] must be a jax device"),
+    (["cpu"], TypeError, r"devices\[0\] must be a jax device"),
+    ([], ValueError, "devices is empty"),
+    ("dup", ValueError, "more than once")])
+def test_bad_devices_are_refused_clearly(devices, error, match):
+    if devices == "dup":
+        devices = [jax.devices()[0]] * 2
+    p = fj.Problem(lambda x, u: x + u, np.array([-1.0, 1.0]), lambda x, u: x[0] ** 2, 2)
+    with pytest.raises(error, match=match):
+        fj.solve_batch(p, np.ones((3, 1)), devices=devices)
+
+
+def test_a_bare_device_is_refused():
+    p = fj.Problem(lambda x, u: x + u, np.array([-1.0, 1.0]), lambda x, u: x[0] ** 2, 2)
+    with pytest.raises(TypeError, match="devices must be a list of jax devices"):
+        fj.solve_batch(p, np.ones((3, 1)), devices=jax.devices()[0])
+
+
+def test_npz_files_and_job_settings(tmp_path, monkeypatch):
+    np.savez(tmp_path / "bad.npz", states=np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="no array 'X0'"):
+        distributed.load_states(tmp_path / "bad.npz")
+    distributed.save_states(tmp_path / "flat.npz", np.zeros((2, 3)))
+    np.testing.assert_array_equal(distributed.load_states(tmp_path / "flat.npz"), np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="not a solve_batch result"):
+        distributed.load_result(tmp_path / "flat.npz")
+    for var in (distributed.ENV_COORDINATOR, distributed.ENV_NUM_PROCESSES, distributed.ENV_PROCESS_ID):
+        monkeypatch.delenv(var, raising=False)
+    assert distributed.job_settings() is None
+    assert distributed.initialize() is False  # nothing described: a single process, nothing done
+    with pytest.raises(ValueError, match="needs the coordinator address"):
+        distributed.job_settings("127.0.0.1:1234")
+    with pytest.raises(ValueError, match=r"process_id must be an int in \[0, 1\]"):
+        distributed.job_settings("127.0.0.1:1234", 2, 2)
+    with pytest.raises(ValueError, match="host:port"):
+        distributed.job_settings("localhost", 2, 0)
+    monkeypatch.setenv(distributed.ENV_COORDINATOR, "10.0.0.1:99")
+    monkeypatch.setenv(distributed.ENV_NUM_PROCESSES, "4")
+    monkeypatch.setenv(distributed.ENV_PROCESS_ID, "3")
+    assert distributed.job_settings() == ("10.0.0.1:99", 4, 3)
