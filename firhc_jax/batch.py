@@ -50,7 +50,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .cache import compiled
-from .checks import check_params, check_state, cost_dtype
+from .checks import check_params, check_state, cost_dtype, strong
 from .exhaustive import DEFAULT_CHUNK_NODES, exhaustive
 from .exhaustive import memory as exhaustive_memory
 from .nodes import NEGATIVE, NONFINITE, OVERFLOW, best_leaf, expand, first_min
@@ -73,7 +73,7 @@ def _check_batch(X0):
         X = X0
     else:
         try:
-            X = jnp.asarray(X0)
+            X = strong(X0)
         except TypeError as e:
             raise TypeError(f"X0 must be a numeric array [B, n]: {e}") from None
     if X.ndim != 2:

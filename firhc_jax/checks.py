@@ -17,6 +17,14 @@ from .problem import Problem, call, is_tracer
 CALLABLE_FORMS = "dynamics(x, u, p), stage_cost(x_next, u, p), terminal(x, p), lower_bound(x, steps_left, p)"
 
 
+def strong(a) -> jax.Array:
+    """``a`` as a JAX array without weak type: a weakly typed array (from a
+    Python scalar, ``jnp.full(n, 0.2)``) would compile a second search for the
+    same shapes and dtypes."""
+    a = jnp.asarray(a)
+    return jnp.asarray(a, a.dtype) if a.weak_type else a
+
+
 def check_params(params, leading: int | None = None, what: str = "params", axis: str = "B"):
     """``params`` with every leaf a JAX array (or tracer), or a clear error.
 
@@ -44,7 +52,7 @@ def check_params(params, leading: int | None = None, what: str = "params", axis:
                                 f"of dtype {getattr(arr, 'dtype', '?')}")
             if kind == "f" and not np.all(np.isfinite(np.asarray(arr))):
                 raise ValueError(f"{name} contains NaN or inf")
-            a = jnp.asarray(arr)
+            a = strong(arr)
         if leading is not None and (a.ndim == 0 or a.shape[0] != leading):
             raise ValueError(f"{name} must have leading axis {axis} = {leading}, got shape {tuple(a.shape)}")
         out.append(a)
@@ -77,7 +85,7 @@ def as_state(x0, name: str = "x0") -> jax.Array:
             raise TypeError(f"{name} must be a numeric array [n], got dtype {x_np.dtype}")
         if x_np.dtype.kind == "f" and not np.all(np.isfinite(x_np)):
             raise ValueError(f"{name} contains NaN or inf: {x_np}")
-        x0 = jnp.asarray(x0)
+        x0 = strong(x0)
     if x0.ndim != 1:
         raise ValueError(
             f"{name} must be a 1-D state vector [n], got shape {tuple(x0.shape)}; "

@@ -1,0 +1,93 @@
+"""Random problems whose every number is a parameter: one compiled search per
+shape serves every draw, so the property tests compile once per strategy.
+
+The input values themselves are parameters too: the problem's control set is
+the indices ``0..M-1`` and ``p["U"][i]`` is the input vector of index ``i``.
+Each problem has a NumPy twin for the independent brute force.
+"""
+from __future__ import annotations
+
+import functools
+import itertools
+
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import strategies as st
+
+import firhc_jax as fj
+
+SHAPES = ((1, 1, 3, 4), (2, 2, 4, 3), (3, 1, 2, 6), (2, 3, 5, 3))  # (n, m, M, N)
+
+
+def dynamics(x, u, p, xp=jnp):
+    """Elementwise (no matmul) so that every batch size rounds alike."""
+    v = p["U"][u[..., 0].astype(int)] if xp is jnp else u
+    n, m = p["W"].shape[-1], p["V"].shape[-1]
+    z = p["b"] + sum(p["W"][:, j] * x[..., j, None] for j in range(n)) \
+        + sum(p["V"][:, j] * v[..., j, None] for j in range(m))
+    return xp.tanh(z) + p["a"] * x
+
+
+def stage_cost(x, u, p, xp=jnp):
+    v = p["U"][u[..., 0].astype(int)] if xp is jnp else u
+    return xp.sum(p["q"] * (x - p["r"]) ** 2 + 0.1 * xp.abs(xp.sin(3 * x)), axis=-1) + xp.sum(p["w"] * v**2, axis=-1)
+
+
+def terminal(x, p, xp=jnp):
+    return xp.sum((x - p["r"]) ** 2, axis=-1) < p["radius"]
+
+
+@functools.lru_cache(maxsize=None)
+def problem(shape, constrained: bool = True, lower_bound=None) -> fj.Problem:
+    """The one problem of this shape (same callables every call: one compile)."""
+    n, m, M, N = shape
+    return fj.Problem(dynamics, jnp.arange(M, dtype=jnp.float32), stage_cost, N,
+                      terminal if constrained else None, lower_bound)
+
+
+def draw_params(rng: np.random.Generator, shape, tightness: str = "loose") -> dict:
+    n, m, M, N = shape
+    radius = {"loose": 1.0, "tight": 0.02, "none": np.inf}[tightness] * n
+    return {"W": rng.normal(0, 0.8, (n, n)), "V": rng.normal(0, 1.0, (n, m)), "b": rng.normal(0, 0.2, n),
+            "a": rng.uniform(0.2, 0.9, n), "q": rng.uniform(0.0, 2.0, n), "r": rng.normal(0, 0.5, n),
+            "w": rng.uniform(0.0, 0.3, m), "U": rng.uniform(-1.5, 1.5, (M, m)),
+            "radius": np.float64(min(radius, 1e30))}
+
+
+def as_jax(params: dict, dtype=jnp.float64) -> dict:
+    return {k: jnp.asarray(v, dtype) for k, v in params.items()}
+
+
+def cost_to_go(shape, params, x, steps):
+    """Brute-force optimal cost of ``steps`` steps from ``x`` (+inf if the
+    terminal set cannot be reached), NumPy float64, and the best sequence."""
+    n, m, M, N = shape
+    if steps == 0:
+        return (0.0 if terminal(np.asarray(x, float), params, xp=np) else np.inf), np.zeros(0, int)
+    seqs = np.array(list(itertools.product(range(M), repeat=steps)))
+    xs = np.broadcast_to(np.asarray(x, float), (len(seqs), n))
+    cost = np.zeros(len(seqs))
+    for t in range(steps):
+        u = params["U"][seqs[:, t]]
+        xs = dynamics(xs, u, params, xp=np)
+        cost = cost + stage_cost(xs, u, params, xp=np)
+    cost = np.where(terminal(xs, params, xp=np), cost, np.inf)
+    return cost.min(), seqs[int(np.argmin(cost))]
+
+
+def same_cost(a, b, rtol=1e-9):
+    """Equal optimal costs (the tests run in float64; the brute force sums in
+    another order)."""
+    if np.isinf(b):
+        return np.isinf(a)
+    return abs(a - b) <= rtol * max(1.0, abs(b))
+
+
+@st.composite
+def cases(draw, tightness=("none", "loose", "tight")):
+    """(shape, params, x0) with every number random."""
+    shape = draw(st.sampled_from(SHAPES))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    params = draw_params(rng, shape, draw(st.sampled_from(tightness)))
+    x0 = np.asarray(draw(st.lists(st.floats(-1, 1), min_size=shape[0], max_size=shape[0])))
+    return shape, params, x0

@@ -1,0 +1,202 @@
+"""Parameters on every solver: exact against a brute force for random values,
+and new values never retrace."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import firhc_jax as fj
+from param_problems import SHAPES, as_jax, cases, cost_to_go, draw_params, problem, same_cost
+
+SETTINGS = settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def _check(result, shape, params, x0, name):
+    ref, _ = cost_to_go(shape, params, x0, shape[3])
+    assert same_cost(float(result.cost), ref), (name, float(result.cost), ref)
+    assert bool(result.feasible) == np.isfinite(ref), name
+    if np.isfinite(ref):  # the sequence really achieves the cost
+        again = _rollout(shape, params, x0, np.asarray(result.sequence))
+        assert same_cost(again, float(result.cost)), name
+    else:
+        assert np.all(np.asarray(result.sequence) == -1) and np.all(np.isnan(result.first_input)), name
+
+
+def _rollout(shape, params, x0, seq):
+    from param_problems import dynamics, stage_cost, terminal
+    x, cost = np.asarray(x0, float), 0.0
+    for i in seq:
+        u = params["U"][i]
+        x = dynamics(x, u, params, xp=np)
+        cost += float(stage_cost(x, u, params, xp=np))
+    return cost if terminal(x, params, xp=np) else np.inf
+
+
+@SETTINGS
+@given(cases(), st.sampled_from([1, 2, 3]))
+def test_sdfs_and_exhaustive_with_params_match_brute_force(case, pop_width):
+    shape, params, x0 = case
+    p, prm = problem(shape), as_jax(params)
+    _check(fj.sdfs(p, x0, params=prm), shape, params, x0, "sdfs")
+    _check(fj.sdfs(p, x0, params=prm, pop_width=pop_width), shape, params, x0, f"sdfs K={pop_width}")
+    _check(fj.exhaustive(p, x0, params=prm), shape, params, x0, "exhaustive")
+    _check(fj.exhaustive(p, x0, params=prm, method="dfs"), shape, params, x0, "exhaustive dfs")
+
+
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.sampled_from(SHAPES), st.integers(0, 2**32 - 1), st.sampled_from(["sdfs", "sdfs-vmap", "exhaustive"]),
+       st.sampled_from([1, 2]), st.sampled_from([1, 3]))
+def test_solve_batch_with_random_params_per_row_matches_brute_force(shape, seed, solver, pop_width, lanes):
+    rng = np.random.default_rng(seed)
+    B = 4
+    rows = [draw_params(rng, shape, t) for t in ("none", "loose", "tight", "loose")]
+    batched = {k: jnp.asarray(np.stack([r[k] for r in rows])) for k in rows[0]}
+    X0 = rng.uniform(-1, 1, (B, shape[0]))
+    res = fj.solve_batch(problem(shape), X0, params=batched, solver=solver, pop_width=pop_width,
+                         lanes=lanes if solver == "sdfs" else None)
+    for b in range(B):
+        _check(jax.tree_util.tree_map(lambda a: a[b], res), shape, rows[b], X0[b], f"{solver} row {b}")
+
+
+def _counting(shape):
+    """A problem of ``shape`` whose dynamics count their traces."""
+    from param_problems import dynamics, stage_cost, terminal
+    traces = []
+
+    def counted(x, u, p):
+        if isinstance(x, jax.core.Tracer):  # a trace, not an eager plant step
+            traces.append(1)
+        return dynamics(x, u, p)
+
+    return fj.Problem(counted, jnp.arange(shape[2], dtype=jnp.float32), stage_cost, shape[3], terminal), traces
+
+
+@pytest.mark.parametrize("solve", [
+    lambda p, x, prm: fj.sdfs(p, x, params=prm),
+    lambda p, x, prm: fj.sdfs(p, x, params=prm, max_nodes=50),
+    lambda p, x, prm: fj.exhaustive(p, x, params=prm),
+    lambda p, x, prm: fj.exhaustive(p, x, params=prm, method="dfs"),
+    lambda p, x, prm: fj.solve_batch(p, jnp.stack([x, -x]), params=jax.tree_util.tree_map(
+        lambda a: jnp.stack([a, a * 0.5]), prm)),
+    lambda p, x, prm: fj.FIRHC(p, fallback="unconstrained")(x, prm),
+], ids=["sdfs", "sdfs-budget", "exhaustive", "exhaustive-dfs", "solve_batch", "FIRHC"])
+def test_new_param_values_never_retrace(solve):
+    shape = SHAPES[1]
+    p, traces = _counting(shape)
+    rng = np.random.default_rng(0)
+    x0 = jnp.asarray(rng.uniform(-1, 1, shape[0]))
+    solve(p, x0, as_jax(draw_params(rng, shape)))
+    before = len(traces)
+    assert before > 0
+    for _ in range(3):
+        solve(p, x0 * 0.3, as_jax(draw_params(rng, shape)))
+    assert len(traces) == before
+
+
+def test_simulate_with_new_params_does_not_retrace():
+    shape = SHAPES[0]
+    p, traces = _counting(shape)
+    rng = np.random.default_rng(1)
+    steps = 4
+    ctrl = fj.FIRHC(p, fallback="unconstrained")
+
+    def params():
+        rows = [draw_params(rng, shape) for _ in range(steps)]
+        return {k: jnp.asarray(np.stack([r[k] for r in rows])) for k in rows[0]}
+
+    for compiled in (True, False):
+        ctrl.simulate(jnp.zeros(shape[0]), steps, params=params(), compiled=compiled)
+        before = len(traces)
+        ctrl.simulate(jnp.full(shape[0], 0.2), steps, params=params(), compiled=compiled)
+        fj.FIRHC(p, fallback="unconstrained").simulate(jnp.zeros(shape[0]), steps, params=params(),
+                                                       compiled=compiled)  # a second controller, same problem
+        assert len(traces) == before, compiled
+
+
+# ----------------------------------------------------------------- closed loop with a moving reference
+def _tracking():
+    """A 2-state plant tracking a reference ``p["ref"]`` [N, 2] that moves within
+    the horizon: the model state carries the step within the horizon."""
+    N = 3
+    U = np.array([-1.0, -0.3, 0.0, 0.4, 1.0])
+
+    def plant(x, u):
+        return np.array([x[0] + 0.1 * x[1], 0.9 * x[1] + 0.2 * u[0]])
+
+    def dynamics(z, u, p):
+        x, k = z[:2], z[2]
+        x_next = jnp.stack([x[0] + 0.1 * x[1], 0.9 * x[1] + 0.2 * u[0]])
+        return jnp.concatenate([x_next, (k + 1)[None]])
+
+    def stage_cost(z, u, p):
+        ref = p["ref"][jnp.clip(z[2].astype(int) - 1, 0, N - 1)]
+        return jnp.sum((z[:2] - ref) ** 2) + p["w"] * u[0] ** 2
+
+    def observe(x, u_prev, p):
+        return jnp.concatenate([x, jnp.zeros(1, x.dtype)])
+
+    return N, U, plant, fj.Problem(dynamics, U, stage_cost, N), observe
+
+
+def test_closed_loop_with_moving_reference_matches_brute_force_receding_horizon():
+    N, U, plant_np, prob, observe = _tracking()
+    steps = 12
+    t = np.arange(steps + N)
+    ref = np.stack([0.5 * np.sin(0.4 * t), 0.2 * np.cos(0.4 * t)], 1)
+    refs = np.stack([ref[k + 1:k + 1 + N] for k in range(steps)])  # [steps, N, 2]: step k sees ref(k+1..k+N)
+    w = np.linspace(0.01, 0.2, steps)
+    ctrl = fj.FIRHC(prob, observe=observe)
+    run = ctrl.simulate(jnp.zeros(2), steps, plant=lambda x, u, p: jnp.stack(
+        [x[0] + 0.1 * x[1], 0.9 * x[1] + 0.2 * u[0]]), params={"ref": jnp.asarray(refs), "w": jnp.asarray(w)})
+    # The brute-force receding horizon loop, in NumPy.
+    import itertools
+    x = np.zeros(2)
+    for k in range(steps):
+        best, first = np.inf, None
+        for seq in itertools.product(range(len(U)), repeat=N):
+            z, c = x, 0.0
+            for i, s in enumerate(seq):
+                z = plant_np(z, U[s:s + 1])
+                c += np.sum((z - refs[k, i]) ** 2) + w[k] * U[s] ** 2
+            if c < best - 1e-12:
+                best, first = c, s_first if (s_first := seq[0]) is not None else None
+        assert np.isclose(float(run.predicted_costs[k]), best, rtol=1e-9), k
+        assert int(run.input_indices[k]) == first, k
+        x = plant_np(x, U[first:first + 1])
+        np.testing.assert_allclose(np.asarray(run.states[k + 1]), x, rtol=1e-12, atol=1e-12)
+
+
+def test_switching_penalty_matches_brute_force():
+    """with_input_memory: lambda_u |u(k) - u(k-1)| inside the horizon and at its
+    first step (against the input applied last)."""
+    U = np.array([-1.0, 0.0, 1.0])
+    N, lam = 3, 0.7
+
+    def dyn(x, u):
+        return jnp.stack([0.8 * x[0] + 0.3 * u[0]])
+
+    base = fj.Problem(dyn, U, lambda x, u: (x[0] - 0.5) ** 2, N)
+    mem = fj.with_input_memory(base, lambda u, u_prev: lam * jnp.sum(jnp.abs(u - u_prev)))
+    import itertools
+    for x0, u_prev in ((0.0, -1.0), (0.4, 1.0), (-0.3, 0.0)):
+        best = np.inf
+        for seq in itertools.product(range(3), repeat=N):
+            x, c, last = x0, 0.0, u_prev
+            for s in seq:
+                x = 0.8 * x + 0.3 * U[s]
+                c += (x - 0.5) ** 2 + lam * abs(U[s] - last)
+                last = U[s]
+            best = min(best, c)
+        z0 = mem.observe(jnp.array([x0]), jnp.array([u_prev]))
+        for r in (fj.sdfs(mem.problem, z0), fj.exhaustive(mem.problem, z0)):
+            assert np.isclose(float(r.cost), best, rtol=1e-12), (x0, u_prev, float(r.cost), best)
+    # In closed loop the applied input reaches the next decision: a large penalty holds the input.
+    stiff = fj.with_input_memory(base, lambda u, u_prev: 100.0 * jnp.sum(jnp.abs(u - u_prev)))
+    held = fj.FIRHC(stiff.problem, observe=stiff.observe).simulate(jnp.array([0.5]), 6, plant=dyn,
+                                                                    u0=jnp.array([1.0]))
+    assert np.all(np.asarray(held.inputs)[:, 0] == 1.0)
+    free = fj.FIRHC(fj.with_input_memory(base, lambda u, u_prev: 0.0 * jnp.sum(u)).problem,
+                    observe=mem.observe).simulate(jnp.array([0.5]), 6, plant=dyn, u0=jnp.array([1.0]))
+    assert not np.all(np.asarray(free.inputs)[:, 0] == 1.0)
