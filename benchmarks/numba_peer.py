@@ -11,7 +11,9 @@ kernels below are written with explicit ``fma`` where XLA fuses, fastmath off. T
 synthetic and linear plants exactly. On the tank plant, XLA recomputes each RK4 stage in several kernels
 and, in a pipe-difference ``k13 m13 - k32 m32`` (modes 6 and 16 only), LLVM picks which product to fuse by
 its use count in that kernel; the peer fuses the first, as LLVM does by default, and differs in the last
-bit on a few children of those two modes.
+bit on a few children of those two modes. Inside the search loop XLA also fuses the synthetic plant's cost
+differently from a lone expansion, so there the peer's costs can differ in the last bit; sequences and
+node counts agree (checked by ``tests/test_numba_peer.py`` and ``engine_bench.py``).
 """
 from __future__ import annotations
 
@@ -100,10 +102,11 @@ def linear_problem(horizon: int, num_controls: int = 17, seed: int = 0):
     return fj.Problem(dynamics, np.arange(num_controls, dtype=float)[:, None], stage_cost, horizon)
 
 
-def tank_params(params: tanks.TankParams = tanks.TankParams(), set_point=tanks.SET_POINT,
+def tank_params(params: tanks.TankParams | None = None, set_point=tanks.SET_POINT,
                 switch_penalty: float = 0.0):
     """Peer parameters of ``tanks.make_problem``: ``(coefficients [17, 5], toggles [17, 17], set point [3],
     (dt, height, substeps, switch_penalty))``."""
+    params = params or tanks.TankParams()
     dt = params.ts / params.substeps
     return (tanks.mode_coefficients(params), tanks._TOGGLES, np.asarray(set_point, float),
             (dt, params.height, params.substeps, float(switch_penalty)))
@@ -181,14 +184,14 @@ def sdfs(children, P, x0, M, N):
     """Table 1: pop the top node; if it is not cheaper than the incumbent, prune it; else compute its M
     children: at depth N the cheapest (lowest input among equals) improves a strictly dearer incumbent,
     above it those cheaper than the incumbent are pushed, the cheapest (lowest input) on top.
-    Returns ``(cost, sequence [N], nodes, iterations)``; iterations counts expanded nodes."""
+    Returns ``(cost, sequence [N], nodes)``."""
     n = x0.shape[0]
     cap = (N - 1) * (M - 1) + 1
     sx, sc = np.empty((cap, n)), np.empty(cap)
     sd, su = np.empty(cap, np.int64), np.empty(cap, np.int64)
     cx, stage, cost = np.empty((M, n)), np.empty(M), np.empty(M)
     order, path, best_path = np.empty(M, np.int64), np.empty(N, np.int64), np.full(N, -1, np.int64)
-    best, nodes, iterations = np.inf, 0, 0
+    best, nodes = np.inf, 0
     sx[0, :], sc[0], sd[0], su[0], size = x0, 0.0, 0, -1, 1
     while size > 0:
         size -= 1
@@ -199,7 +202,6 @@ def sdfs(children, P, x0, M, N):
             continue
         children(P, sx[size], cx, stage)
         nodes += M
-        iterations += 1
         if d + 1 == N:
             for i in range(M):
                 if c + stage[i] < best:
@@ -221,7 +223,7 @@ def sdfs(children, P, x0, M, N):
             i = order[j]
             sx[size, :], sc[size], sd[size], su[size] = cx[i], cost[i], d + 1, i
             size += 1
-    return best, best_path, nodes, iterations
+    return best, best_path, nodes
 
 
 @numba.njit
@@ -267,5 +269,5 @@ def sdfs_batch(children, P, X0, M, N):
     B = X0.shape[0]
     costs, seqs, nodes = np.empty(B), np.empty((B, N), np.int64), np.empty(B, np.int64)
     for b in range(B):
-        costs[b], seqs[b], nodes[b], _ = sdfs(children, P, X0[b], M, N)
+        costs[b], seqs[b], nodes[b] = sdfs(children, P, X0[b], M, N)
     return costs, seqs, nodes
