@@ -33,10 +33,11 @@ def median_time(fn, repeats):
 
 
 def check(name, ref_cost, ref_seq, cost, seq, ref_nodes=None, nodes=None):
-    """Fail loudly if the peer and the library disagree (sequences exactly, costs within 2 ulps)."""
+    """Fail loudly if the peer and the library disagree: sequences (and node counts) exactly, costs to 1e-13
+    (the last bits of a tank or synthetic state can differ, see ``numba_peer``)."""
     if not np.array_equal(np.asarray(ref_seq), np.asarray(seq)):
         raise AssertionError(f"{name}: sequences differ")
-    np.testing.assert_allclose(np.asarray(cost), np.asarray(ref_cost), rtol=4e-16, atol=0, err_msg=name)
+    np.testing.assert_allclose(np.asarray(cost), np.asarray(ref_cost), rtol=1e-13, atol=0, err_msg=name)
     if ref_nodes is not None and not np.array_equal(np.asarray(ref_nodes), np.asarray(nodes)):
         raise AssertionError(f"{name}: node counts differ")
 
