@@ -1,0 +1,155 @@
+"""The JAX engine against compiled scalar code: every time as a ratio to the Numba peer (``numba_peer.py``).
+
+One process, float64, medians after a warm-up. Rows: the fixed cost of one jitted call (N = 1, M = 1);
+single sDFS solves (``jax.jit(fj.sdfs)``, K = 1) of the linear, synthetic and three-tank plants at N = 5;
+the tanks' mean over a closed loop; batches (``fj.solve_batch`` against one core solving row after row);
+exhaustive search of the tanks. Each row checks that the peer found the library's sequences (and, for
+single solves, its node counts). Needs ``pip install -e ".[bench]"``.
+
+    python benchmarks/engine_bench.py [--quick] [--repeats 7]
+"""
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+
+import jax
+import numpy as np
+
+M = 17
+
+
+def median_time(fn, repeats):
+    """Median wall time of ``fn()`` after one warm-up call (which compiles); returns ``(seconds, result)``."""
+    out = jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), out
+
+
+def check(name, ref_cost, ref_seq, cost, seq, ref_nodes=None, nodes=None):
+    """Fail loudly if the peer and the library disagree: sequences (and node counts) exactly, costs to 1e-13
+    (the last bits of a tank or synthetic state can differ, see ``numba_peer``)."""
+    if not np.array_equal(np.asarray(ref_seq), np.asarray(seq)):
+        raise AssertionError(f"{name}: sequences differ")
+    np.testing.assert_allclose(np.asarray(cost), np.asarray(ref_cost), rtol=1e-13, atol=0, err_msg=name)
+    if ref_nodes is not None and not np.array_equal(np.asarray(ref_nodes), np.asarray(nodes)):
+        raise AssertionError(f"{name}: node counts differ")
+
+
+def tank_states(problem, steps):
+    """Controller states along the sDFS closed loop from the paper's initial levels."""
+    from firhc_jax.apps.tanks import closed_loop
+
+    return closed_loop(problem, "sdfs", steps).states[:-1]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="smoke run: N = 3, small batches, few repeats")
+    ap.add_argument("--repeats", type=int, default=7)
+    args = ap.parse_args(argv)
+    jax.config.update("jax_enable_x64", True)
+    import numba
+
+    import firhc_jax as fj
+    import numba_peer as peer
+    from firhc_jax.models import tanks
+    from firhc_jax.models.synthetic import benchmark_state, synthetic_problem
+
+    N = 3 if args.quick else 5
+    reps = 2 if args.quick else args.repeats
+    batches = (16, 64) if args.quick else (256, 4096)
+    rng = np.random.default_rng(0)
+    rows = []
+
+    def add(name, t_numba, t_jax, nodes, jax_nodes=None, note=""):
+        jax_nodes = nodes if jax_nodes is None else jax_nodes
+        rows.append((name, t_numba, t_jax, nodes, jax_nodes, note))
+
+    def single(name, problem, children, params, x, note=""):
+        """One state; the peer's time is per solve over a compiled loop of solves (no Python dispatch)."""
+        jitted = jax.jit(fj.sdfs)
+        t_jax, ref = median_time(lambda: jitted(problem, x), reps)
+        Mp, Np = problem.num_controls, problem.horizon
+        cost, seq, nodes = peer.sdfs(children, params, x, Mp, Np)
+        check(name, ref.cost, ref.sequence, cost, seq, ref.nodes, nodes)
+        X = np.tile(x, (max(1, min(1000, 50_000 // nodes)), 1))
+        t_nb, _ = median_time(lambda: peer.sdfs_batch(children, params, X, Mp, Np), reps)
+        add(name, t_nb / len(X), t_jax, nodes, note=note + f"{int(ref.iterations)} iterations, "
+            f"{1e6 * t_jax / int(ref.iterations):.2f} us/iteration (JAX)")
+
+    # Fixed cost of a jitted call: one node, one input.
+    single("fixed cost: N=1, M=1 (linear)", peer.linear_problem(1, 1), peer.linear_children, peer.linear_plant(1),
+           np.ones(3))
+
+    lin, lin_p = peer.linear_problem(N), peer.linear_plant()
+    single(f"linear N={N}", lin, peer.linear_children, lin_p, np.array([1.5, -1.0, 0.8]))
+    syn = synthetic_problem(M, N, dtype=np.float64)
+    single(f"synthetic N={N}", syn, peer.synthetic_children, peer.synthetic_params(syn),
+           np.asarray(benchmark_state(np.float64)))
+
+    tank, tank_p = tanks.make_problem(N), peer.tank_params()
+    states = tank_states(tank, 30 if args.quick else 100)
+    counts = peer.sdfs_batch(peer.tank_children_simd, tank_p, states, M, N)[2]
+    hard = states[int(np.argmax(counts))]
+    single(f"tanks N={N}, hardest closed-loop state, peer one child at a time", tank, peer.tank_children, tank_p, hard)
+    simd = peer.tank_children_simd  # the faster peer: every tanks row below uses it
+    single(f"tanks N={N}, hardest closed-loop state", tank, simd, tank_p, hard)
+
+    jitted = jax.jit(fj.sdfs)
+
+    def jax_loop():
+        return [jitted(tank, x) for x in states]
+
+    t_jax, refs = median_time(jax_loop, max(1, reps // 2))
+    t_nb, (costs, seqs, nodes) = median_time(lambda: peer.sdfs_batch(simd, tank_p, states, M, N),
+                                             max(1, reps // 2))
+    check("tanks closed loop", [r.cost for r in refs], [r.sequence for r in refs], costs, seqs,
+          [r.nodes for r in refs], nodes)
+    T = len(states)
+    add(f"tanks N={N}, mean over {T} closed-loop states", t_nb / T, t_jax / T, int(nodes.sum()) // T,
+        note="one call per state")
+
+    for B in batches:
+        X_lin = rng.uniform(-2, 2, (B, 3))
+        X_tank = states[rng.integers(0, T, B)]  # closed-loop states with levels moved by up to 5 mm
+        X_tank[:, :3] += rng.uniform(-0.005, 0.005, (B, 3))
+        for name, problem, children, params, X in (("linear", lin, peer.linear_children, lin_p, X_lin),
+                                                   ("tanks", tank, simd, tank_p, X_tank)):
+            t_jax, ref = median_time(lambda problem=problem, X=X: fj.solve_batch(problem, X), max(1, reps // 2))
+            t_nb, (costs, seqs, nodes) = median_time(
+                lambda children=children, params=params, X=X: peer.sdfs_batch(children, params, X, M, N),
+                max(1, reps // 2))
+            check(f"{name} batch {B}", ref.cost, ref.sequence, costs, seqs)
+            add(f"batch {name} N={N}, B={B} (fj.solve_batch)", t_nb, t_jax, int(nodes.sum()),
+                int(np.asarray(ref.nodes).sum()), note="Numba: one core, row after row")
+
+    t_jax, ref = median_time(lambda: fj.exhaustive(tank, hard), max(1, reps // 3))
+    t_nb, (cost, seq, nodes) = median_time(lambda: peer.exhaustive(simd, tank_p, hard, M, N),
+                                           max(1, reps // 3))
+    check("tanks exhaustive", ref.cost, ref.sequence, cost, seq, ref.nodes, nodes)
+    add(f"exhaustive tanks N={N} (fj.exhaustive, levels)", t_nb, t_jax, nodes, note="hardest state")
+
+    print(f"# JAX engine vs Numba peer, float64, {'quick' if args.quick else 'full'} run; jax {jax.__version__}, "
+          f"numba {numba.__version__}; {platform.machine()}, {jax.local_device_count()} JAX device(s); "
+          f"medians of {reps} after a warm-up")
+    print("| problem | Numba | JAX | nodes (Numba / JAX) | Numba ns/node | JAX ns/node | JAX / Numba | note |")
+    print("|---|---:|---:|---:|---:|---:|---:|---|")
+    for name, t_nb, t_jax, nodes, jax_nodes, note in rows:
+        nodes_txt = f"{nodes:,}" if nodes == jax_nodes else f"{nodes:,} / {jax_nodes:,}"
+        print(f"| {name} | {_ms(t_nb)} | {_ms(t_jax)} | {nodes_txt} | {1e9 * t_nb / nodes:.1f} | "
+              f"{1e9 * t_jax / jax_nodes:.1f} | {t_jax / t_nb:.1f}x | {note} |")
+
+
+def _ms(t):
+    return f"{1e3 * t:.3f} ms" if t < 1 else f"{t:.2f} s"
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,56 @@
+"""The Numba peers (``benchmarks/numba_peer.py``) agree with ``fj.sdfs`` and ``fj.exhaustive``:
+same sequence and node count, same cost (to the last bit on the linear plant; to 1e-13 where
+XLA's fused multiply-adds differ between kernels, see the peer's docstring)."""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import firhc_jax as fj
+from firhc_jax.models import tanks
+from firhc_jax.models.synthetic import benchmark_state, synthetic_problem
+
+pytest.importorskip("numba")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import numba_peer as peer  # noqa: E402
+
+N = 3
+
+
+def _cases():
+    rng = np.random.default_rng(7)
+    syn = synthetic_problem(17, N, dtype=np.float64)
+    x_syn = np.vstack([np.asarray(benchmark_state(np.float64)), rng.uniform(-1, 1, (3, 3))])
+    x_tank = np.zeros((4, 5))
+    x_tank[:, :3] = rng.uniform(0.05, 0.5, (4, 3))
+    x_tank[:, 3] = rng.integers(0, tanks.NUM_MODES, 4)
+    tank = tanks.make_problem(N)
+    return [("synthetic", syn, peer.synthetic_children, peer.synthetic_params(syn), x_syn, 1e-13),
+            ("linear", peer.linear_problem(N), peer.linear_children, peer.linear_plant(), rng.uniform(-2, 2, (4, 3)),
+             0.0),
+            ("tanks", tank, peer.tank_children, peer.tank_params(), x_tank, 1e-13),
+            ("tanks simd", tank, peer.tank_children_simd, peer.tank_params(), x_tank, 1e-13)]
+
+
+@pytest.mark.parametrize("case", _cases(), ids=lambda c: c[0])
+def test_peer_matches_library(case):
+    _, problem, children, params, states, rtol = case
+    M = problem.num_controls
+    for x in states:
+        ref, es_ref = fj.sdfs(problem, x), fj.exhaustive(problem, x)
+        cost, seq, nodes = peer.sdfs(children, params, x, M, N)
+        es_cost, es_seq, es_nodes = peer.exhaustive(children, params, x, M, N)
+        assert (nodes, seq.tolist()) == (int(ref.nodes), np.asarray(ref.sequence).tolist())
+        assert (es_nodes, es_seq.tolist()) == (int(es_ref.nodes), np.asarray(es_ref.sequence).tolist())
+        np.testing.assert_allclose([cost, es_cost], [float(ref.cost), float(es_ref.cost)], rtol=rtol, atol=0)
+
+
+def test_batched_peer_solves_each_row():
+    problem = peer.linear_problem(N)
+    X = np.random.default_rng(1).uniform(-2, 2, (5, 3))
+    costs, seqs, nodes = peer.sdfs_batch(peer.linear_children, peer.linear_plant(), X, 17, N)
+    for b, x in enumerate(X):
+        ref = fj.sdfs(problem, x)
+        assert (costs[b], seqs[b].tolist(), nodes[b]) == (float(ref.cost), np.asarray(ref.sequence).tolist(),
+                                                          int(ref.nodes))
