@@ -75,7 +75,7 @@ def closed_loop(horizon: int, solver: str = "sdfs", steps: int = 1600, lambda_u:
 
 
 def spectrum(signal: np.ndarray, ts: float) -> tuple[np.ndarray, np.ndarray]:
-    """One-sided amplitude spectrum ``(f [Hz], |X| [A peak])`` of a record of whole fundamental cycles."""
+    """One-sided amplitude spectrum ``(f [Hz], |X| [A peak])``; free of leakage over whole fundamental cycles."""
     n = signal.shape[0]
     amp = np.abs(np.fft.rfft(signal)) * 2.0 / n
     amp[0] /= 2.0
@@ -83,16 +83,21 @@ def spectrum(signal: np.ndarray, ts: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def distortion(signal: np.ndarray, params: model.InverterParams) -> tuple[float, float]:
-    """``(fundamental peak amplitude (A), THD)`` of a record of whole cycles.
+    """``(fundamental peak amplitude (A), THD)`` of a record sampled at ``params.ts``.
 
-    THD counts every non-fundamental component up to the Nyquist frequency
-    (harmonics and the inter-harmonics of the variable switching pattern), dc
-    excluded: sqrt(sum |X_f|^2, f != 0, f0) / |X_f0|.
+    The fundamental is the least-squares fit of dc + cos + sin at the reference
+    frequency; THD is the rms of what the fit leaves over the rms of the
+    fundamental. Over whole cycles this is the DFT definition with every
+    non-fundamental bin up to the Nyquist frequency counted (harmonics and the
+    inter-harmonics of the variable switching pattern), dc excluded; unlike
+    the DFT it stays meaningful for records of part of a cycle.
     """
-    f, amp = spectrum(signal, params.ts)
-    k0 = int(np.argmin(np.abs(f - params.frequency)))
-    rest = np.delete(amp, [0, k0])
-    return float(amp[k0]), float(np.sqrt(np.sum(rest**2)) / amp[k0])
+    w = 2.0 * np.pi * params.frequency * params.ts * np.arange(signal.shape[0])
+    basis = np.stack([np.ones_like(w), np.cos(w), np.sin(w)], axis=1)  # [T, 3]
+    coef, *_ = np.linalg.lstsq(basis, signal, rcond=None)
+    amplitude = float(np.hypot(coef[1], coef[2]))
+    residual = signal - basis @ coef
+    return amplitude, float(np.sqrt(np.mean(residual**2)) / (amplitude / np.sqrt(2.0)))
 
 
 def summarize(run: InverterRun, horizon: int, solver: str, lambda_u: float, params: model.InverterParams,
@@ -153,7 +158,8 @@ def plot(run: InverterRun, path: Path, params: model.InverterParams, title: str 
     ax_i.legend(loc="upper right", ncol=4, fontsize=8)
     ax_i.set_title(title)
     phase_a = model.to_phases(run.currents[:-1])[:, 0]
-    f, amp = spectrum(phase_a, params.ts)
+    whole = phase_a.shape[0] // params.steps_per_cycle * params.steps_per_cycle  # spectrum over whole cycles
+    f, amp = spectrum(phase_a[:whole or None], params.ts)
     fundamental, thd = distortion(phase_a, params)
     ax_s.semilogy(f[1:] * 1e-3, np.maximum(amp[1:] / fundamental * 100.0, 1e-4), color="tab:blue", lw=0.7)
     ax_s.set_ylim(1e-3, 200)
