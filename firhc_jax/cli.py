@@ -10,8 +10,8 @@ import importlib
 import sys
 
 # Subcommand modules, in the order shown by --help.
-_APPS = ("firhc_jax.apps.example", "firhc_jax.apps.hopper", "firhc_jax.apps.tanks", "firhc_jax.apps.batch",
-         "firhc_jax.apps.bench")
+_APPS = ("firhc_jax.apps.example", "firhc_jax.apps.hopper", "firhc_jax.apps.tanks", "firhc_jax.apps.inverter",
+         "firhc_jax.apps.batch", "firhc_jax.apps.bench")
 
 
 def build_parser() -> argparse.ArgumentParser:

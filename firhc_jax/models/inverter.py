@@ -1,0 +1,150 @@
+"""Two-level three-phase voltage source inverter feeding an RL load (FCS-MPC current control).
+
+Each leg x in {a, b, c} connects its phase to the negative (S_x = 0) or the
+positive (S_x = 1) dc rail, so the inverter has 2^3 = 8 switch states
+``SWITCH_STATES`` ``[8, 3]`` (V0 .. V7; V0 and V7 both apply the zero vector).
+In the alpha-beta frame (amplitude-invariant Clarke transform) a state applies
+
+    v_alpha = Vdc/3 (2 S_a - S_b - S_c),   v_beta = Vdc/sqrt(3) (S_b - S_c)
+
+to the load L di/dt = v - R i, decoupled and identical in alpha and beta.
+Over one sample T_s with v held (zero-order hold) the exact solution is
+
+    i(k+1) = a i(k) + b v(k),   a = exp(-R T_s / L),   b = (1 - a) / R,
+
+and forward Euler (the discretisation of Rodriguez et al. 2007) gives
+a = 1 - R T_s / L, b = T_s / L. ``make_plant`` and ``make_problem`` take either.
+
+Controller state ``[i_alpha, i_beta, j]``: the currents (A) and the index j of
+the predicted step they belong to (0 at the measurement, j after j predicted
+steps). The reference moves within the horizon, so it is a parameter: for the
+decision at step k, ``p["ref"]`` ``[N, 2]`` holds i_ref(k+1) .. i_ref(k+N) and the
+stage cost of predicted step j is |i_ref(k+j) - i(k+j)|^2 (A^2). The counter j
+picks the row, so the search stays a plain ``Problem`` and a new reference never
+recompiles. The switching penalty ``p["lambda_u"]`` (A^2 per leg change) acts on
+the previous input through ``firhc_jax.with_input_memory``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+import firhc_jax as fj
+
+DISCRETISATIONS = ("exact", "euler")
+
+# Leg states (S_a, S_b, S_c) of V0 .. V7, ordered around the hexagon; V0 and V7 are the zero vector.
+SWITCH_STATES = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 1, 1], [0, 0, 1], [1, 0, 1], [1, 1, 1]],
+                         dtype=float)
+
+
+@dataclasses.dataclass(frozen=True)
+class InverterParams:
+    """Circuit, sampling and reference (SI units).
+
+    The values are the benchmark of Rodriguez et al., "Predictive current
+    control of a voltage source inverter", IEEE Trans. Ind. Electron. 54(1),
+    2007, as quoted in issue 9 (the paper itself was not available here to
+    check them; its load also has a back-EMF, which this RL load leaves out).
+    """
+
+    vdc: float = 520.0  # V, dc-link voltage
+    r: float = 10.0  # ohm, load resistance per phase
+    l: float = 10e-3  # noqa: E741  H, load inductance per phase
+    ts: float = 25e-6  # s, sampling time T_s (40 kHz)
+    amplitude: float = 10.0  # A, peak of the sinusoidal phase current reference
+    frequency: float = 50.0  # Hz, reference frequency
+
+    @property
+    def steps_per_cycle(self) -> int:
+        """Samples per fundamental period (800 with the defaults)."""
+        return round(1.0 / (self.frequency * self.ts))
+
+
+def voltage(u, vdc):
+    """Alpha-beta voltage ``(v_alpha, v_beta)`` of leg states ``u`` ``[..., 3]`` (0/1), elementwise."""
+    sa, sb, sc = u[..., 0], u[..., 1], u[..., 2]
+    return vdc / 3.0 * (2.0 * sa - sb - sc), vdc / math.sqrt(3.0) * (sb - sc)
+
+
+def discretise(params: InverterParams = InverterParams(), method: str = "exact") -> tuple[float, float]:
+    """``(a, b)`` of i(k+1) = a i(k) + b v(k): exact zero-order hold or forward Euler."""
+    if method not in DISCRETISATIONS:
+        raise ValueError(f"method must be one of {DISCRETISATIONS}, got {method!r}")
+    if method == "exact":
+        a = math.exp(-params.r * params.ts / params.l)
+        return a, -math.expm1(-params.r * params.ts / params.l) / params.r
+    return 1.0 - params.r * params.ts / params.l, params.ts / params.l
+
+
+def make_plant(params: InverterParams = InverterParams(), method: str = "exact"):
+    """``plant(i, u) -> i_next``: currents ``[2]`` (alpha, beta, A) after one sample with leg states ``u`` ``[3]``."""
+    a, b = discretise(params, method)
+
+    def plant(i, u):
+        v_alpha, v_beta = voltage(u.astype(i.dtype), params.vdc)
+        return jnp.stack([a * i[0] + b * v_alpha, a * i[1] + b * v_beta])
+
+    return plant
+
+
+def reference(params: InverterParams, times) -> np.ndarray:
+    """Alpha-beta current reference ``[..., 2]`` (A) at ``times`` (s): phase a peaks at t = 0."""
+    w = 2.0 * np.pi * params.frequency * np.asarray(times, dtype=float)
+    return params.amplitude * np.stack([np.cos(w), np.sin(w)], axis=-1)
+
+
+def horizon_references(params: InverterParams, steps: int, horizon: int) -> np.ndarray:
+    """``[steps, N, 2]``: for the decision at step k, the reference at steps k+1 .. k+N."""
+    k = np.arange(steps)[:, None] + np.arange(1, horizon + 1)[None, :]
+    return reference(params, k * params.ts)
+
+
+def to_phases(i_ab) -> np.ndarray:
+    """Phase quantities ``[..., 3]`` (a, b, c) from alpha-beta ``[..., 2]`` (inverse amplitude-invariant Clarke)."""
+    i_ab = np.asarray(i_ab)
+    al, be = i_ab[..., 0], i_ab[..., 1]
+    return np.stack([al, -0.5 * al + 0.5 * math.sqrt(3.0) * be, -0.5 * al - 0.5 * math.sqrt(3.0) * be], axis=-1)
+
+
+def switching_cost(u, u_prev, p):
+    """``lambda_u`` times the number of legs that change state (A^2 per leg change)."""
+    return p["lambda_u"] * jnp.sum(jnp.abs(u - u_prev))
+
+
+def make_problem(horizon: int, params: InverterParams = InverterParams(), method: str = "exact") -> fj.InputMemory:
+    """The FIRHC problem with its switching penalty, as ``(problem, observe)``.
+
+    ``problem`` tracks ``p["ref"]`` ``[N, 2]`` over the horizon and charges
+    ``p["lambda_u"]`` per leg change, the first step's against the input
+    applied last; ``observe(i, u_prev, p)`` builds its state from the plant's
+    currents ``[2]`` (step counter 0). Use them as
+    ``FIRHC(problem, observe=observe)`` with per-step parameters
+    ``{"ref": [T, N, 2], "lambda_u": [T]}``. Each call makes new callables
+    (a new compilation): build the problem once per run.
+    """
+    plant = make_plant(params, method)
+
+    def dynamics(x, u, p):  # [i_alpha, i_beta, j] -> one step later
+        return jnp.concatenate([plant(x[:2], u), x[2:] + 1.0])
+
+    def stage_cost(x_next, u, p):
+        ref = p["ref"][x_next[2].astype(jnp.int32) - 1]  # [2] reference of this predicted step
+        e_alpha, e_beta = ref[0] - x_next[0], ref[1] - x_next[1]
+        return e_alpha * e_alpha + e_beta * e_beta
+
+    mem = fj.with_input_memory(fj.Problem(dynamics, SWITCH_STATES, stage_cost, horizon), switching_cost)
+
+    def observe(i, u_prev, p):
+        return mem.observe(jnp.concatenate([i, jnp.zeros((1,), i.dtype)]), u_prev, p)
+
+    return fj.InputMemory(mem.problem, observe)
+
+
+def initial_currents(params: InverterParams = InverterParams()) -> np.ndarray:
+    """Load currents ``[2]`` at t = 0 on the reference: the run starts in steady state."""
+    return reference(params, 0.0)
+

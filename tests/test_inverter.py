@@ -1,0 +1,141 @@
+"""Two-level inverter with RL load: discretisation, reference plumbing, exactness of the closed loop, CLI."""
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.linalg import expm
+
+from firhc_jax import cli
+from firhc_jax.apps import inverter as app
+from firhc_jax.models import inverter as model
+
+jax.config.update("jax_enable_x64", True)
+
+P = model.InverterParams()
+
+
+def test_switch_states_give_the_hexagon_and_two_zero_vectors():
+    v_alpha, v_beta = model.voltage(model.SWITCH_STATES, P.vdc)
+    radius = np.hypot(v_alpha, v_beta)
+    np.testing.assert_allclose(radius[[0, 7]], 0.0, atol=1e-12)
+    np.testing.assert_allclose(radius[1:7], 2.0 * P.vdc / 3.0, rtol=1e-14)
+    angles = np.degrees(np.arctan2(v_beta[1:7], v_alpha[1:7])) % 360.0
+    np.testing.assert_allclose(angles, [0, 60, 120, 180, 240, 300], atol=1e-9)
+    assert len({tuple(s) for s in model.SWITCH_STATES}) == 8
+
+
+def test_exact_discretisation_matches_the_matrix_exponential():
+    # continuous alpha-beta model d/dt i = A i + B v with v held over T_s
+    A, B = -P.r / P.l * np.eye(2), np.eye(2) / P.l
+    aug = expm(np.block([[A, B], [np.zeros((2, 4))]]) * P.ts)
+    Ad, Bd = aug[:2, :2], aug[:2, 2:]
+    plant = jax.jit(model.make_plant(P, "exact"))
+    rng = np.random.default_rng(0)
+    for u in model.SWITCH_STATES:
+        i = rng.uniform(-15.0, 15.0, 2)
+        v = np.array(model.voltage(u, P.vdc))
+        np.testing.assert_allclose(np.asarray(plant(jnp.asarray(i), jnp.asarray(u))), Ad @ i + Bd @ v,
+                                   rtol=1e-12, atol=1e-12)
+
+
+def test_euler_is_first_order_close_to_exact():
+    a_exact, b_exact = model.discretise(P, "exact")
+    a_euler, b_euler = model.discretise(P, "euler")
+    x = P.r * P.ts / P.l
+    assert a_euler == 1.0 - x and b_euler == P.ts / P.l
+    assert a_exact - a_euler == pytest.approx(x * x / 2.0 - x**3 / 6.0, rel=1e-3)  # exp(-x) = 1 - x + x^2/2 - ...
+    assert (b_euler - b_exact) / b_euler == pytest.approx(x / 2.0, rel=2e-2)
+    with pytest.raises(ValueError, match="method"):
+        model.discretise(P, "rk4")
+
+
+def test_problem_tracks_each_predicted_step_against_its_own_reference():
+    horizon = 3
+    mem = model.make_problem(horizon, P)
+    refs = model.horizon_references(P, 1, horizon)[0]  # [3, 2]: references at steps 1, 2, 3
+    p = {"ref": jnp.asarray(refs), "lambda_u": jnp.asarray(2.0)}
+    i0 = jnp.asarray(model.initial_currents(P))
+    z = mem.observe(i0, jnp.zeros(3), p)
+    plant = model.make_plant(P)
+    i, total = i0, 0.0
+    for j, u in enumerate(model.SWITCH_STATES[[1, 1, 7]]):  # V1, V1, V7: 1 change, 0, then 2 legs change
+        z = mem.problem.dynamics(z, jnp.asarray(u), p)
+        i = plant(i, jnp.asarray(u))
+        total += float(mem.problem.stage_cost(z, jnp.asarray(u), p))
+        assert float(z[2]) == j + 1
+    expected = sum(float(np.sum((refs[j] - np.asarray(step)) ** 2)) for j, step in enumerate(
+        _rollout(plant, i0, model.SWITCH_STATES[[1, 1, 7]]))) + 2.0 * (1 + 0 + 2)
+    assert total == pytest.approx(expected, rel=1e-12)
+
+
+def _rollout(plant, i, inputs):
+    out = []
+    for u in inputs:
+        i = plant(i, jnp.asarray(u))
+        out.append(i)
+    return out
+
+
+@pytest.mark.parametrize("lambda_u", [0.0, 1.0])
+def test_sdfs_and_exhaustive_closed_loops_agree(lambda_u):
+    runs = {s: app.closed_loop(3, s, steps=200, lambda_u=lambda_u) for s in ("sdfs", "exhaustive")}
+    np.testing.assert_array_equal(runs["sdfs"].predicted_costs, runs["exhaustive"].predicted_costs)
+    np.testing.assert_array_equal(runs["sdfs"].currents, runs["exhaustive"].currents)
+    assert np.all(runs["exhaustive"].nodes == 8 + 64 + 512)
+    assert runs["sdfs"].nodes.mean() < 0.25 * (8 + 64 + 512)
+
+
+def test_switching_penalty_lowers_switching_frequency():
+    steps = model.InverterParams().steps_per_cycle // 2  # half a cycle
+    summaries = [app.summarize(app.closed_loop(2, "sdfs", steps, lam), 2, "sdfs", lam, P) for lam in (0.0, 2.0)]
+    free, penalised = summaries
+    assert penalised["switching_frequency_hz"] < 0.6 * free["switching_frequency_hz"]
+    assert penalised["rms_tracking_error"] > free["rms_tracking_error"]  # the price: a larger ripple
+    assert free["rms_tracking_error"] < 0.3
+
+
+def test_distortion_of_a_pure_sine_and_of_a_known_harmonic():
+    t = np.arange(P.steps_per_cycle * 2) * P.ts
+    w = 2 * math.pi * P.frequency
+    fundamental, thd = app.distortion(3.0 * np.cos(w * t + 0.3), P)
+    assert fundamental == pytest.approx(3.0, rel=1e-12) and thd < 1e-12
+    fundamental, thd = app.distortion(3.0 * np.cos(w * t) + 0.15 * np.sin(5 * w * t) + 0.5, P)
+    assert fundamental == pytest.approx(3.0, rel=1e-12) and thd == pytest.approx(0.05, rel=1e-12)
+    f, amp = app.spectrum(3.0 * np.cos(w * t) + 0.15 * np.sin(5 * w * t), P.ts)  # the DFT agrees over whole cycles
+    assert amp[np.argmin(abs(f - P.frequency))] == pytest.approx(3.0, rel=1e-12)
+    fundamental, thd = app.distortion(3.0 * np.cos(w * t[:300] - 1.0) + 0.5, P)  # 3/8 of a cycle
+    assert fundamental == pytest.approx(3.0, rel=1e-9) and thd < 1e-9
+
+
+def test_cli_writes_summary_and_figure(tmp_path):
+    argv = ["inverter", "--horizon", "2", "--cycles", "0.25", "--out", str(tmp_path), "--no-progress"]
+    assert cli.main(argv) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    for key in ("rms_tracking_error", "current_amplitude", "switching_frequency_hz", "solve_time_median_s",
+                "nodes_mean", "nodes_max", "horizon", "solver"):
+        assert key in summary, key
+    assert summary["horizon"] == 2 and summary["solver"] == "sdfs" and summary["steps"] == 200
+    assert summary["rms_tracking_error"] < 1.0 and 0 < summary["switching_frequency_hz"] < 20_000
+    assert (tmp_path / "inverter_N2_sdfs.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--horizon", "0"], "between 1 and"),
+    (["--solver", "bfs"], "invalid choice"),
+    (["--cycles", "0"], "--cycles: must be a number > 0"),
+    (["--lambda-u", "-1"], ">= 0"),
+    (["--model", "rk4"], "invalid choice"),
+])
+def test_cli_rejects_bad_input(argv, message, capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["inverter", *argv])
+    assert e.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_cli_rejects_run_shorter_than_two_samples(tmp_path):
+    with pytest.raises(SystemExit, match="at least two samples"):
+        cli.main(["inverter", "--cycles", "0.001", "--out", str(tmp_path)])
