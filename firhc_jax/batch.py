@@ -51,7 +51,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .cache import compiled
 from .checks import check_params, check_state, cost_dtype, strong
-from .exhaustive import DEFAULT_CHUNK_NODES, exhaustive
+from .exhaustive import DEFAULT_CHUNK_NODES
 from .exhaustive import memory as exhaustive_memory
 from .nodes import NEGATIVE, NONFINITE, OVERFLOW, best_leaf, expand, first_min
 from .problem import Problem, positive_int
@@ -326,8 +326,9 @@ def _pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_w
         pool, px, pc, alive = _materialised(jnp.any(depth >= 0), take_out, pool, rows, todo)
         child_depth, row = depth + 1, pool.row
         p_nodes = jax.tree_util.tree_map(lambda a: jnp.repeat(a[jnp.minimum(row, B - 1)], K, axis=0), params)
-        ch = expand(problem, px.reshape(S * K, n), pc.reshape(S * K), p_nodes, steps_left=jnp.repeat(N - child_depth, K),
-                    check_terminal=problem.terminal is not None, params_batched=True)
+        ch = expand(problem, px.reshape(S * K, n), pc.reshape(S * K), p_nodes,
+                    steps_left=jnp.repeat(N - child_depth, K), check_terminal=problem.terminal is not None,
+                    params_batched=True)
         cx, cost, key = ch.x.reshape(S, L, n), ch.cost.reshape(S, L), ch.key.reshape(S, L)
         parent_alive = jnp.repeat(alive, M, axis=1)  # [S, L]
         ok = parent_alive & ~ch.bad.reshape(S, L)

@@ -314,15 +314,19 @@ class FIRHC:
         return _closed_loop(x0, rec, jnp.full((steps,), jnp.nan))
 
     def _python_loop(self, plant, x0, u0, params, steps, progress):
-        decide = cached(("closed-loop decision", self._key), lambda: jax.jit(self._decide))
         x, u, previous = x0, u0, jnp.full((self.problem.horizon,), -1, jnp.int32)
+        rows = [None if params is None else jax.tree_util.tree_map(lambda a, k=k: a[k], params) for k in range(steps)]
+        args = (x, u, previous, rows[0])
+        spec = jax.tree_util.tree_map(lambda a: (a.shape, jnp.dtype(a.dtype)), args)
+        # Compiled ahead of time (and cached), so that solve_times never include compilation.
+        decide = cached(("closed-loop decision", self._key, jax.tree_util.tree_structure(args), str(spec)),
+                        lambda: jax.jit(self._decide).lower(*args).compile())
         records, times = [], []
         for k in range(steps):
-            p = None if params is None else jax.tree_util.tree_map(lambda a: a[k], params)
             t0 = time.perf_counter()
-            u, u_plant, previous, record = jax.block_until_ready(decide(x, u, previous, p))
+            u, u_plant, previous, record = jax.block_until_ready(decide(x, u, previous, rows[k]))
             times.append(time.perf_counter() - t0)
-            x_next = call(plant, p, x, u_plant)
+            x_next = call(plant, rows[k], x, u_plant)
             if not hasattr(x_next, "shape") or tuple(np.shape(x_next)) != x.shape:
                 raise TypeError(f"plant(x, u[, p]) must return the next plant state of shape {tuple(x.shape)} "
                                 f"like x0, got {type(x_next).__name__} of shape {np.shape(x_next)} at step {k}")

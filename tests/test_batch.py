@@ -82,7 +82,8 @@ def test_pool_without_stealing_is_fj_sdfs_row_by_row():
     p = make(9, 3, 2, 4, 4, "loose").problem()
     X0 = states(9, 7, 3)
     for pop_width in (1, 2):
-        pool = jax.jit(_pool_search, static_argnums=(0, 5, 6, 7))(p, X0, None, 7, node_budget(None), 3, pop_width, False)
+        pool = jax.jit(_pool_search, static_argnums=(0, 5, 6, 7))(p, X0, None, 7, node_budget(None), 3, pop_width,
+                                                                  False)
         plain = solve_batch(p, X0, solver="sdfs-vmap", pop_width=pop_width)
         for field in ("nodes", "sequence", "feasible"):
             np.testing.assert_array_equal(getattr(pool, field), getattr(plain, field), err_msg=field)

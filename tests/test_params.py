@@ -57,7 +57,7 @@ def test_solve_batch_with_random_params_per_row_matches_brute_force(shape, seed,
     res = fj.solve_batch(problem(shape), X0, params=batched, solver=solver, pop_width=pop_width,
                          lanes=lanes if solver == "sdfs" else None)
     for b in range(B):
-        _check(jax.tree_util.tree_map(lambda a: a[b], res), shape, rows[b], X0[b], f"{solver} row {b}")
+        _check(jax.tree_util.tree_map(lambda a, b=b: a[b], res), shape, rows[b], X0[b], f"{solver} row {b}")
 
 
 def _counting(shape):
