@@ -63,8 +63,8 @@ def tanks_case(horizon: int, seconds: float = 200.0) -> Case:
     from . import tanks
 
     problem = model.make_problem(horizon)
-    run = tanks.closed_loop(problem, "sdfs", int(seconds // model.TankParams().ts))
-    return _case("tanks", problem, run.states[:-1])
+    loop, _ = tanks.simulate(problem, "sdfs", int(seconds // model.TankParams().ts))
+    return _case("tanks", problem, np.asarray(loop.states[:-1]))
 
 
 def synthetic_case(horizon: int, count: int = 8, work: int = 0) -> Case:
