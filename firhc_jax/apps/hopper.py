@@ -29,8 +29,13 @@ The robot is dropped from rest at the apex of the specified flight (foot at
   nothing (NaN everywhere; it has not happened), valve b stays closed and the
   step is counted as unsolved.
 
-Everything runs in one compiled ``lax.scan``; solve times are measured
-afterwards by re-solving the recorded controller states one by one.
+The closed loop is ``FIRHC.simulate``, one step per control period:
+``observe`` maps the plant state ``[6]`` to the model's ``[5]``, ``actuate``
+adds side a's law and seals the valves in flight, and the plant integrates
+one period. The CLI runs it from Python (``compiled=False``) so that every
+decision is timed; tests and benchmarks run it as one compiled ``lax.scan``.
+The figures' plant-step trajectory is re-integrated from the recorded states
+and commands.
 """
 from __future__ import annotations
 
@@ -174,6 +179,8 @@ def plant(params: hm.HopperParams):
 
 @functools.lru_cache(maxsize=None)
 def _fine_trajectory(params: hm.HopperParams):
+    """``fn(X [S, 6], cmd [S, 2]) -> [S, SUBSTEPS, 6]``: every plant step of each recorded period, all periods
+    at once (the loop's samples again, to round-off: vmap may fuse differently)."""
     return jax.jit(jax.vmap(lambda X, cmd: _period(X, cmd, params)[1]))
 
 
