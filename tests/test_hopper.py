@@ -118,26 +118,46 @@ def test_static_equilibrium_is_an_equilibrium():
 def test_closed_loop_sdfs_equals_exhaustive_and_hops():
     # Horizon 4 keeps the exhaustive closed loop's compile short; docs/hopper.md reports N = 5-8.
     runs = {s: app.simulate(0.6, 4, s, progress=False) for s in ("sdfs", "exhaustive")}
-    np.testing.assert_array_equal(runs["sdfs"].X, runs["exhaustive"].X)
-    np.testing.assert_array_equal(runs["sdfs"].cmd, runs["exhaustive"].cmd)
-    r = runs["sdfs"]
-    m = app.hop_metrics(r)
+    np.testing.assert_array_equal(runs["sdfs"][1], runs["exhaustive"][1])
+    np.testing.assert_array_equal(runs["sdfs"][0].inputs, runs["exhaustive"][0].inputs)
+    loop, X = runs["sdfs"]
+    m = app.hop_metrics(X)
     assert len(m["t_air"]) == 1 and m["t_air"][0] == pytest.approx(0.2, rel=0.05)
-    assert np.all(r.solved)
-    assert np.max(np.abs(r.X[:, 0] - r.X[:, 2])) < P.stroke / 2
-    assert np.all(r.nodes[r.contact] <= 3 + 9 + 27 + 81)
+    assert np.all(np.asarray(loop.input_indices) >= 0)
+    assert np.max(np.abs(X[:, 0] - X[:, 2])) < P.stroke / 2
+    # The fine trajectory re-run from the recorded commands passes through the loop's samples.
+    np.testing.assert_allclose(X[::app.SUBSTEPS], np.asarray(loop.states), rtol=1e-14, atol=1e-12)
+    c = app.contact(np.asarray(loop.states[:-1]))
+    assert 0 < np.count_nonzero(c) < len(c)
+    nodes, cmd = np.asarray(loop.nodes), np.asarray(loop.inputs)
+    assert np.all(nodes[c] <= 3 + 9 + 27 + 81)
+    # In flight both valves are sealed and the search is the trivial one (greedy path, 3N nodes).
+    assert np.all(cmd[~c] == 0) and np.all(nodes[~c] == 3 * 4) and np.all(np.asarray(loop.feasible)[~c])
+    assert np.any(cmd[c, 1] != 0)  # valve b acts in contact
+
+
+def test_timed_loop_is_the_compiled_one():
+    loop, X = app.simulate(0.3, 4, "sdfs", progress=False)
+    timed, X_timed = app.simulate(0.3, 4, "sdfs", progress=False, timed=True)
+    np.testing.assert_array_equal(X, X_timed)
+    np.testing.assert_array_equal(loop.nodes, timed.nodes)
+    times = np.asarray(timed.solve_times)
+    assert np.all(np.isnan(np.asarray(loop.solve_times)))
+    assert np.all((times > 0) & (times < 0.5))  # compilation is not in the first decision's time
 
 
 def test_cli_writes_summary_and_figures(tmp_path):
     out = tmp_path / "hop"
     # Horizon 4 and 0.6 s reuse the closed loop compiled by the test above.
-    assert cli.main(["hopper", "--horizon", "4", "--seconds", "0.6", "--out", str(out)]) == 0
+    assert cli.main(["hopper", "--horizon", "4", "--seconds", "0.6", "--out", str(out), "--no-progress"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     for key in ("T2", "E_d", "t_hop_mean", "t_air_mean", "hops", "infeasible_steps", "nodes_min", "nodes_max",
                 "nodes_mean", "solve_time_mean_s", "horizon", "solver"):
         assert key in summary, key
     assert summary["horizon"] == 4 and summary["solver"] == "sdfs" and summary["hops"] == 1
     assert summary["T2"] == pytest.approx(0.161, abs=1e-3)
+    assert summary["contact_steps"] < summary["control_steps"] == 120 and summary["nodes_min"] == 3 * 4
+    assert summary["solve_time_mean_s"] > 0 and summary["unsolved_steps"] == 0
     assert len(list(out.glob("hopper_fig*.png"))) == 5
 
 

@@ -110,16 +110,26 @@ def test_switch_penalty_counts_toggled_actuators():
 @pytest.mark.parametrize("horizon", [3, 4])
 def test_sdfs_and_exhaustive_closed_loops_are_identical(problems, horizon):
     steps = 12  # 24 s: the whole transient into the 5 mm band
-    runs = {s: app.closed_loop(problems[horizon], s, steps) for s in ("sdfs", "exhaustive")}
+    runs = {s: app.simulate(problems[horizon], s, steps)[0] for s in ("sdfs", "exhaustive")}
     np.testing.assert_array_equal(runs["sdfs"].states, runs["exhaustive"].states)
-    np.testing.assert_array_equal(runs["sdfs"].modes, runs["exhaustive"].modes)
-    assert np.all(runs["exhaustive"].nodes == problems[horizon].tree_size())
-    assert np.all(runs["sdfs"].nodes < problems[horizon].tree_size())
+    np.testing.assert_array_equal(runs["sdfs"].input_indices, runs["exhaustive"].input_indices)
+    assert np.all(np.asarray(runs["exhaustive"].nodes) == problems[horizon].tree_size())
+    assert np.all(np.asarray(runs["sdfs"].nodes) < problems[horizon].tree_size())
+
+
+def test_timed_loop_is_the_compiled_one(problems):
+    loop, compile_s = app.simulate(problems[3], "sdfs", 6)
+    timed, timed_compile_s = app.simulate(problems[3], "sdfs", 6, timed=True)
+    np.testing.assert_array_equal(loop.states, timed.states)
+    np.testing.assert_array_equal(loop.nodes, timed.nodes)
+    assert compile_s is None and timed_compile_s > 0
+    times = np.asarray(timed.solve_times)
+    assert np.all(np.isnan(np.asarray(loop.solve_times))) and np.all((times > 0) & (times < 0.5))
 
 
 def test_levels_settle_within_5_mm_and_stay(problems):
-    run = app.closed_loop(problems[3], "sdfs", steps=40)
-    errors = run.states[:, :3] - np.asarray(model.SET_POINT)  # [41, 3]
+    loop, _ = app.simulate(problems[3], "sdfs", steps=40)
+    errors = np.asarray(loop.states)[:, :3] - np.asarray(model.SET_POINT)  # [41, 3]
     settled = app.settling_time(errors, P.ts, 0.005)
     assert settled is not None and settled <= 30.0
     assert np.max(np.abs(errors[int(settled / P.ts):])) <= 0.005
@@ -139,6 +149,8 @@ def test_cli_writes_summary_and_figure(tmp_path):
         assert key in summary, key
     assert summary["horizon"] == 3 and summary["solver"] == "sdfs" and len(summary["final_levels"]) == 3
     assert summary["max_abs_error_last_20s"] <= 0.005
+    assert 0 < summary["solve_time_median_s"] <= summary["solve_time_max_s"] and summary["compile_time_s"] > 0
+    assert len(summary["modes"]) == 30 and summary["fallback_steps"] == 0
     assert (tmp_path / "tanks_N3_sdfs.png").stat().st_size > 10_000
 
 

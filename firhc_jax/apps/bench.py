@@ -51,9 +51,11 @@ class Case(NamedTuple):
 def hopper_case(horizon: int, seconds: float = 2.0) -> Case:
     from . import hopper
 
-    run = hopper.simulate(seconds, horizon, "sdfs", progress=False)
-    return _case("hopper", hopper.controller(hopper.hm.HopperParams(), horizon).problem,
-                 run.z[run.contact])
+    params = hopper.hm.HopperParams()
+    loop, _ = hopper.simulate(seconds, horizon, "sdfs", params, progress=False)
+    states = np.asarray(loop.states[:-1])
+    searched = jax.vmap(lambda X: hopper.observe(X, None))(states[hopper.contact(states)])  # model states in contact
+    return _case("hopper", hopper.problem(params, horizon), searched)
 
 
 def tanks_case(horizon: int, seconds: float = 200.0) -> Case:
@@ -61,8 +63,8 @@ def tanks_case(horizon: int, seconds: float = 200.0) -> Case:
     from . import tanks
 
     problem = model.make_problem(horizon)
-    run = tanks.closed_loop(problem, "sdfs", int(seconds // model.TankParams().ts))
-    return _case("tanks", problem, run.states[:-1])
+    loop, _ = tanks.simulate(problem, "sdfs", int(seconds // model.TankParams().ts))
+    return _case("tanks", problem, np.asarray(loop.states[:-1]))
 
 
 def synthetic_case(horizon: int, count: int = 8, work: int = 0) -> Case:

@@ -29,8 +29,13 @@ The robot is dropped from rest at the apex of the specified flight (foot at
   nothing (NaN everywhere; it has not happened), valve b stays closed and the
   step is counted as unsolved.
 
-Everything runs in one compiled ``lax.scan``; solve times are measured
-afterwards by re-solving the recorded controller states one by one.
+The closed loop is ``FIRHC.simulate``, one step per control period:
+``observe`` maps the plant state ``[6]`` to the model's ``[5]``, ``actuate``
+adds side a's law and seals the valves in flight, and the plant integrates
+one period. The CLI runs it from Python (``compiled=False``) so that every
+decision is timed; tests and benchmarks run it as one compiled ``lax.scan``.
+The figures' plant-step trajectory is re-integrated from the recorded states
+and commands.
 """
 from __future__ import annotations
 
@@ -39,7 +44,6 @@ import functools
 import json
 import os
 import time
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -47,7 +51,6 @@ import numpy as np
 
 import firhc_jax as fj
 from firhc_jax.models import hopper as hm
-from firhc_jax.progress import Progress, tick
 
 from ._args import number
 
@@ -59,11 +62,12 @@ LAMBDA1, LAMBDA2, BETA = 1.0, 0.1, 10.0  # weights of cost (24)
 VALVE_B = (-0.01, 0.0, 0.01)  # u: exhaust, closed, supply (the paper's scaling)
 ENERGY_TOL = 0.02  # J, terminal constraint |E(k+N) - E_d| <= tol
 A_DEADBAND = 0.01  # relative: side a charges below (1 - 1%) of the reference pressure
-SOLVERS = {"sdfs": fj.sdfs, "exhaustive": fj.exhaustive}
+SUBSTEPS = int(round(CONTROL_PERIOD / PLANT_DT))  # plant steps per control period
+IN_FLIGHT = 2.0  # model state's airborne flag for a decision taken in flight (see ``problem``)
 
 
 # ---------------------------------------------------------------------------
-# Controller
+# Controller and closed loop
 # ---------------------------------------------------------------------------
 
 def side_a_law(s, Pa, p: hm.HopperParams):
@@ -77,36 +81,37 @@ def side_a_law(s, Pa, p: hm.HopperParams):
     return jnp.where(Pa < (1 - A_DEADBAND) * Pa_ref, 1.0, 0.0)
 
 
-class Controller(NamedTuple):
-    """The FIRHC problem for side b and what it was built from."""
+def liftoff_velocity(p: hm.HopperParams) -> float:
+    """Body lift-off velocity targeted (m/s): eq. (19) for the centre of mass (module docstring)."""
+    return (p.M + p.m) / p.M * hm.desired_energy(T_HOP, T_AIR, p).xdot_t1
 
-    params: hm.HopperParams
-    horizon: int
-    gait: hm.Gait  # the paper's desired gait and E_d (eqs. 17-20)
-    v_liftoff: float  # m/s, body lift-off velocity targeted: eq. (19) for the centre of mass
-    E_target: float  # J, the controller's E_d for the static charge of air
-    problem: fj.Problem  # with the terminal constraint
-    fallback: fj.Problem  # the same without it
+
+def static_target(p: hm.HopperParams) -> float:
+    """The controller's E_d (J) for the static charge of air."""
+    return float(hm.orbit_energy(np.array([0.0, 0.0, p.P_a0, p.P_b0]), liftoff_velocity(p), p))
 
 
 @functools.lru_cache(maxsize=None)
-def controller(params: hm.HopperParams, horizon: int) -> Controller:
-    """Build (once per parameters and horizon: the search reuses its compiled code) the FIRHC problem.
+def problem(params: hm.HopperParams, horizon: int) -> fj.Problem:
+    """The FIRHC problem for valve b (built once per parameters and horizon, so its search compiles once).
 
     Prediction state ``[5]``: ``[x, xdot, P_a, P_b, airborne]`` (see
-    ``hm.model_step``). Input ``u`` ``[1]``: one of ``VALVE_B``.
+    ``hm.model_step``; ``airborne`` 1 from a predicted lift-off on). Input
+    ``u`` ``[1]``: one of ``VALVE_B``. The model applies side a's law itself,
+    so the prediction sees what the plant gets. ``airborne = IN_FLIGHT``
+    (set by ``observe``) marks a decision taken in flight: the valves are
+    sealed, so the state stays put, only the valve term ``10 u^2`` is charged
+    and the terminal constraint holds; the optimum is valve b closed, found in
+    3N nodes. Contact decisions are unaffected (bit for bit).
     """
     p = params
-    gait = hm.desired_energy(T_HOP, T_AIR, p)
-    v_liftoff = (p.M + p.m) / p.M * gait.xdot_t1
-    static = np.array([0.0, 0.0, p.P_a0, p.P_b0])
-    E_target = float(hm.orbit_energy(static, v_liftoff, p))
+    v_liftoff, E_target = liftoff_velocity(p), static_target(p)
 
     def dynamics(z, u):
         cmd = jnp.stack([side_a_law(z[0], z[2], p), jnp.sign(u[0])])
-        return hm.model_step(z, cmd, p, CONTROL_PERIOD, MODEL_SUBSTEPS)
+        return jnp.where(z[4] == IN_FLIGHT, z, hm.model_step(z, cmd, p, CONTROL_PERIOD, MODEL_SUBSTEPS))
 
-    def energy_error(z):
+    def energy_error(z):  # E_d re-evaluated for the air in the chambers of z (deviation 1)
         return hm.model_energy(z, p) - hm.orbit_energy(z, v_liftoff, p)
 
     def stage_cost(z, u):
@@ -114,79 +119,69 @@ def controller(params: hm.HopperParams, horizon: int) -> Controller:
         # Desired velocity from the loss-free energy balance on the static charge's orbit.
         v2 = 2 * (E_target - hm.nominal_potential(x, p)) / p.M
         xd_d = jnp.sign(xd) * jnp.sqrt(jnp.maximum(v2, 0.0))
-        return LAMBDA1 * energy_error(z) ** 2 + LAMBDA2 * (xd - xd_d) ** 2 + BETA * u[0] ** 2
+        gait = LAMBDA1 * energy_error(z) ** 2 + LAMBDA2 * (xd - xd_d) ** 2
+        return jnp.where(z[4] == IN_FLIGHT, 0.0, gait) + BETA * u[0] ** 2
 
     def terminal(z):
-        return jnp.abs(energy_error(z)) <= ENERGY_TOL
+        return (z[4] == IN_FLIGHT) | (jnp.abs(energy_error(z)) <= ENERGY_TOL)
 
-    problem = fj.Problem(dynamics, jnp.asarray(VALVE_B), stage_cost, horizon, terminal)
-    return Controller(p, horizon, gait, v_liftoff, E_target, problem, problem.replace(terminal=None))
-
-
-def decide(ctrl: Controller, solver: str, z):
-    """Valve b command for prediction state ``z`` ``[5]``.
-
-    Returns ``(cmd_b, nodes, feasible, fallback_nodes, solved)``: the command
-    in {-1, 0, 1}, the terminal-constrained search's node count and
-    feasibility, the fallback search's node count (0 when not needed), and
-    whether any sequence was found.
-    """
-    search = SOLVERS[solver]
-    r = search(ctrl.problem, z)
-    used = jax.lax.cond(r.feasible, lambda: r, lambda: search(ctrl.fallback, z))
-    cmd = jnp.where(used.feasible, jnp.sign(used.first_input[0]), 0.0)
-    fallback_nodes = jnp.where(r.feasible, 0, used.nodes)
-    return cmd, r.nodes, r.feasible, fallback_nodes, used.feasible
+    return fj.Problem(dynamics, jnp.asarray(VALVE_B), stage_cost, horizon, terminal)
 
 
-def _model_state(X):
-    """Prediction state ``[5]`` from a plant state ``[6]``: stroke, stroke rate, pressures, on the ground."""
-    return jnp.stack([X[0] - X[2], X[1] - X[3], X[4], X[5], jnp.zeros_like(X[0])])
+def contact(X):
+    """Foot on the ground (plant states ``[..., 6]``)."""
+    return X[..., 2] <= 0
 
 
-class Run(NamedTuple):
-    """A closed-loop run (numpy arrays)."""
-
-    t: np.ndarray  # [S*K + 1] s, plant sample times
-    X: np.ndarray  # [S*K + 1, 6] plant states
-    cmd: np.ndarray  # [S, 2] valve commands (a, b) decided at each control step
-    contact: np.ndarray  # [S] bool foot on the ground at the control step
-    z: np.ndarray  # [S, 5] controller states
-    nodes: np.ndarray  # [S] int nodes of the terminal-constrained search (0 in flight)
-    feasible: np.ndarray  # [S] bool terminal constraint met (True in flight)
-    fallback_nodes: np.ndarray  # [S] int nodes of the fallback search
-    solved: np.ndarray  # [S] bool some sequence found (True in flight)
+def observe(X, u_prev):
+    """Prediction state ``[5]`` from a plant state ``[6]``: stroke, stroke rate, pressures, and ``IN_FLIGHT``
+    when the foot is off the ground (0 on it)."""
+    flag = jnp.where(contact(X), 0.0, IN_FLIGHT)
+    return jnp.stack([X[0] - X[2], X[1] - X[3], X[4], X[5], flag])
 
 
 @functools.lru_cache(maxsize=None)
-def _closed_loop_fn(params: hm.HopperParams, horizon: int, solver: str, steps: int):
-    ctrl = controller(params, horizon)
-    p, sub = params, int(round(CONTROL_PERIOD / PLANT_DT))
+def controller(params: hm.HopperParams, horizon: int, solver: str) -> fj.FIRHC:
+    """FIRHC on valve b; valve a by ``side_a_law``; both sealed in flight.
 
-    def in_contact(z):
-        return decide(ctrl, solver, z)
+    ``actuate`` turns the searched input into the plant's commands ``[2]``
+    (a, b) in {-1, 0, 1}: in flight at the sample both are 0; should no
+    sequence be found at all (NaN input; it has not happened) b stays closed.
+    Cached so that repeated closed loops reuse one compiled executable.
+    """
+    p = params
 
-    def in_flight(z):
-        return 0.0, jnp.int32(0), jnp.array(True), jnp.int32(0), jnp.array(True)
+    def actuate(X, u):
+        b = jnp.where(jnp.isnan(u[0]), 0.0, jnp.sign(u[0]))
+        return jnp.where(contact(X), jnp.stack([side_a_law(X[0] - X[2], X[4], p), b]), 0.0)
 
-    def step(X, k):
-        contact = X[2] <= 0
-        z = _model_state(X)
-        cmd_b, nodes, feasible, fb_nodes, solved = jax.lax.cond(contact, in_contact, in_flight, z)
-        cmd = jnp.stack([jnp.where(contact, side_a_law(z[0], z[2], p), 0.0), jnp.asarray(cmd_b, X.dtype)])
+    return fj.FIRHC(problem(params, horizon), solver, fallback="unconstrained", observe=observe, actuate=actuate)
 
-        def plant(X, _):
-            X = hm.plant_step(X, cmd * (X[2] <= 0), p, PLANT_DT)  # valves sealed in flight
-            return X, X
 
-        X, traj = jax.lax.scan(plant, X, None, length=sub)
-        tick(k)
-        return X, (traj, cmd, contact, z, nodes, feasible, fb_nodes, solved)
+def _period(X, cmd, p: hm.HopperParams):
+    """One control period of the plant: ``(X_end, [SUBSTEPS, 6] states after each plant step)``.
 
-    def run(X0):
-        return jax.lax.scan(step, X0, jnp.arange(steps))
+    The valve drivers are gated by foot contact at every plant step, so the
+    valves close at lift-off, not at the next sample.
+    """
+    def step(X, _):
+        X = hm.plant_step(X, cmd * contact(X), p, PLANT_DT)
+        return X, X
 
-    return jax.jit(run)
+    return jax.lax.scan(step, X, None, length=SUBSTEPS)
+
+
+@functools.lru_cache(maxsize=None)
+def plant(params: hm.HopperParams):
+    """``plant(X, cmd) -> X`` one control period later, for ``FIRHC.simulate`` (jitted, cached)."""
+    return jax.jit(lambda X, cmd: _period(X, cmd, params)[0])
+
+
+@functools.lru_cache(maxsize=None)
+def _fine_trajectory(params: hm.HopperParams):
+    """``fn(X [S, 6], cmd [S, 2]) -> [S, SUBSTEPS, 6]``: every plant step of each recorded period, all periods
+    at once (the loop's samples again, to round-off: vmap may fuse differently)."""
+    return jax.jit(jax.vmap(lambda X, cmd: _period(X, cmd, params)[1]))
 
 
 def _require_x64():
@@ -195,52 +190,38 @@ def _require_x64():
                            "jax.config.update('jax_enable_x64', True) before running it")
 
 
-def simulate(seconds: float = 2.0, horizon: int = 6, solver: str = "sdfs",
-             params: hm.HopperParams | None = None, progress: bool = True) -> Run:
-    """Closed loop from the apex drop for ``seconds`` (rounded to whole control periods)."""
+def simulate(seconds: float = 2.0, horizon: int = 6, solver: str = "sdfs", params: hm.HopperParams | None = None,
+             progress: bool = True, timed: bool = False) -> tuple[fj.ClosedLoop, np.ndarray]:
+    """Closed loop from the apex drop for ``seconds`` (rounded to whole control periods).
+
+    Returns ``(loop, X)``: the controller's record, one entry per control
+    period (plant states at the samples, commands ``[S, 2]``, nodes, ...), and
+    the plant trajectory at every plant step ``[S * SUBSTEPS + 1, 6]``, re-run
+    period by period (in parallel) from the recorded states and commands.
+    ``timed``: run the closed loop from Python so that ``loop.solve_times``
+    holds each decision's wall time, compilation excluded (else one compiled
+    scan, the same trajectory bit for bit).
+    """
     _require_x64()
     params = params or hm.HopperParams()
-    if solver not in SOLVERS:
-        raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
     steps = max(1, int(round(seconds / CONTROL_PERIOD)))
     X0 = jnp.asarray(hm.apex_state(params, params.g * T_AIR**2 / 8))
-    fn = _closed_loop_fn(params, horizon, solver, steps)
-    with Progress(steps, "hopper", enabled=progress):
-        _, out = fn(X0)
-        out = jax.block_until_ready(out)
-    traj, cmd, contact, z, nodes, feasible, fb_nodes, solved = (np.asarray(a) for a in out)
-    X = np.concatenate([np.asarray(X0)[None], traj.reshape(-1, 6)])
-    return Run(np.arange(X.shape[0]) * PLANT_DT, X, cmd, contact, z, nodes, feasible, fb_nodes, solved)
-
-
-@functools.lru_cache(maxsize=None)
-def _decide_fn(params: hm.HopperParams, horizon: int, solver: str):
-    return jax.jit(functools.partial(decide, controller(params, horizon), solver))
-
-
-def solve_times(run: Run, horizon: int, solver: str, params: hm.HopperParams | None = None,
-                progress: bool = True) -> np.ndarray:
-    """Wall time (s) of one compiled control decision for each recorded contact state, solved one by one."""
-    params = params or hm.HopperParams()
-    fn = _decide_fn(params, horizon, solver)
-    states = run.z[run.contact]  # [C, 5]
-    if len(states) == 0:
-        return np.zeros(0)
-    jax.block_until_ready(fn(jnp.asarray(states[0])))  # compile
-    times = np.empty(len(states))
-    with Progress(len(states), "timing", enabled=progress) as bar:
-        for i, z in enumerate(states):
-            z = jnp.asarray(z)
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(z))
-            times[i] = time.perf_counter() - t0
-            bar.update(i + 1)
-    return times
+    ctrl = controller(params, horizon, solver)
+    if timed:  # compile the decision first: FIRHC times it from its first call
+        ctrl.simulate(X0, 1, plant(params), compiled=False)
+    loop = ctrl.simulate(X0, steps, plant(params), progress=progress, compiled=not timed)
+    fine = _fine_trajectory(params)(loop.states[:-1], loop.inputs)  # [S, SUBSTEPS, 6]
+    return loop, np.concatenate([np.asarray(X0)[None], np.asarray(fine).reshape(-1, 6)])
 
 
 # ---------------------------------------------------------------------------
 # Figures of merit
 # ---------------------------------------------------------------------------
+
+def _times(X):
+    """Plant sample times (s) of a fine trajectory ``[T, 6]``."""
+    return np.arange(X.shape[0]) * PLANT_DT
+
 
 def _crossings(t, y, rising: bool):
     """Times where ``y`` crosses 0 upwards (``rising``) or downwards, linearly interpolated."""
@@ -250,65 +231,68 @@ def _crossings(t, y, rising: bool):
     return t[idx] + frac * (t[idx + 1] - t[idx])
 
 
-def gait_events(run: Run):
-    """Lift-off and touch-down times (s) of the foot (``y`` crossing 0)."""
-    y = run.X[:, 2]
-    return _crossings(run.t, y, True), _crossings(run.t, y, False)
+def gait_events(X):
+    """Lift-off and touch-down times (s) of the foot (``y`` crossing 0) in a fine trajectory ``[T, 6]``."""
+    t, y = _times(X), X[:, 2]
+    return _crossings(t, y, True), _crossings(t, y, False)
 
 
-def hop_metrics(run: Run) -> dict:
+def hop_metrics(X) -> dict:
     """Flight times, hop periods (lift-off to lift-off) and compression periods (stroke <= 0) of complete hops."""
-    liftoff, touchdown = gait_events(run)
+    liftoff, touchdown = gait_events(X)
     flights = [(lo, touchdown[touchdown > lo][0]) for lo in liftoff if np.any(touchdown > lo)]
     t_air = np.array([td - lo for lo, td in flights])
     t_hop = np.diff(liftoff)
-    stroke = run.X[:, 0] - run.X[:, 2]
+    t, stroke = _times(X), X[:, 0] - X[:, 2]
     # Compression periods: stroke below mid-position while on the ground, between complete stances.
     t2 = []
     later = liftoff[np.searchsorted(liftoff, touchdown[0]):] if len(touchdown) else []
     for td, lo in zip(touchdown, later, strict=False):  # the last stance may be incomplete
-        sel = (run.t >= td) & (run.t <= lo)
+        sel = (t >= td) & (t <= lo)
         t2.append(np.count_nonzero(stroke[sel] <= 0) * PLANT_DT)
     return dict(liftoff=liftoff, touchdown=touchdown, t_air=t_air, t_hop=t_hop, t2=np.array(t2))
 
 
-def last_compression(run: Run):
+def last_compression(X):
     """Index range ``[i, j)`` of the last complete compression period (stroke <= 0 in contact)."""
-    stroke = run.X[:, 0] - run.X[:, 2]
-    comp = (stroke <= 0) & (run.X[:, 2] <= 0)
+    comp = (X[:, 0] - X[:, 2] <= 0) & contact(X)
     starts = np.nonzero(comp[1:] & ~comp[:-1])[0] + 1
     ends = np.nonzero(~comp[1:] & comp[:-1])[0] + 1
     pairs = [(i, ends[ends > i][0]) for i in starts if np.any(ends > i)]
-    return pairs[-1] if pairs else (0, len(stroke))
+    return pairs[-1] if pairs else (0, len(comp))
 
 
-def summarize(run: Run, metrics: dict, times: np.ndarray, horizon: int, solver: str, seconds: float,
-              params: hm.HopperParams, wall_s: float) -> dict:
-    """The ``summary.json`` contents."""
-    ctrl = controller(params, horizon)
-    c = run.contact
-    nodes = run.nodes[c]
-    stroke = run.X[:, 0] - run.X[:, 2]
+def summarize(loop: fj.ClosedLoop, X, horizon: int, solver: str, seconds: float, params: hm.HopperParams,
+              wall_s: float) -> dict:
+    """The ``summary.json`` contents. Search statistics are over the contact steps (the flight steps' searches
+    are discarded by ``actuate``); solve times are NaN unless the loop was ``timed``."""
+    gait, metrics = hm.desired_energy(T_HOP, T_AIR, params), hop_metrics(X)
+    c = contact(np.asarray(loop.states[:-1]))
+    nodes, feasible = np.asarray(loop.nodes)[c], np.asarray(loop.feasible)[c]
+    cmd, times = np.asarray(loop.inputs), np.asarray(loop.solve_times)[c]
+    times = times[np.isfinite(times)]
+    stroke = X[:, 0] - X[:, 2]
 
     def mean(a):  # None (JSON null) when there is nothing to average
         return float(np.mean(a)) if len(a) else None
 
     return dict(
-        T2=ctrl.gait.T2, E_d=ctrl.gait.E_d, x_t1=ctrl.gait.x_t1, xdot_t1=ctrl.gait.xdot_t1,
-        E_target_static=ctrl.E_target, v_liftoff_target=ctrl.v_liftoff,
+        T2=gait.T2, E_d=gait.E_d, x_t1=gait.x_t1, xdot_t1=gait.xdot_t1,
+        E_target_static=static_target(params), v_liftoff_target=liftoff_velocity(params),
         t_hop_mean=mean(metrics["t_hop"]), t_air_mean=mean(metrics["t_air"]), t2_mean=mean(metrics["t2"]),
         t_hop=metrics["t_hop"].tolist(), t_air=metrics["t_air"].tolist(), t2=metrics["t2"].tolist(),
         hops=int(len(metrics["t_air"])),
-        infeasible_steps=int(np.count_nonzero(~run.feasible[c])), unsolved_steps=int(np.count_nonzero(~run.solved[c])),
+        infeasible_steps=int(np.count_nonzero(~feasible)),
+        unsolved_steps=int(np.count_nonzero(np.asarray(loop.input_indices)[c] < 0)),
         contact_steps=int(np.count_nonzero(c)), control_steps=int(len(c)),
         nodes_min=int(nodes.min()) if len(nodes) else 0, nodes_max=int(nodes.max()) if len(nodes) else 0,
-        nodes_mean=mean(nodes), nodes_max_feasible=int(nodes[run.feasible[c]].max(initial=0)),
-        tree_size=ctrl.problem.tree_size(),
-        fallback_nodes_mean=mean(run.fallback_nodes[c][~run.feasible[c]]),
+        nodes_mean=mean(nodes), nodes_max_feasible=int(nodes[feasible].max(initial=0)),
+        tree_size=problem(params, horizon).tree_size(),
+        fallback_nodes_mean=mean(np.asarray(loop.fallback_nodes)[c][~feasible]),
         solve_time_mean_s=mean(times), solve_time_max_s=float(times.max()) if len(times) else None,
-        valve_a_charges=int(np.count_nonzero(run.cmd[:, 0] > 0)),
-        valve_b_supply=int(np.count_nonzero(run.cmd[:, 1] > 0)),
-        valve_b_exhaust=int(np.count_nonzero(run.cmd[:, 1] < 0)),
+        valve_a_charges=int(np.count_nonzero(cmd[:, 0] > 0)),
+        valve_b_supply=int(np.count_nonzero(cmd[:, 1] > 0)),
+        valve_b_exhaust=int(np.count_nonzero(cmd[:, 1] < 0)),
         stroke_min=float(stroke.min()), stroke_max=float(stroke.max()), stroke_limit=params.stroke / 2,
         horizon=horizon, solver=solver, seconds=seconds, control_period_s=CONTROL_PERIOD, plant_dt_s=PLANT_DT,
         weights=dict(lambda1=LAMBDA1, lambda2=LAMBDA2, beta=BETA), energy_tol=ENERGY_TOL,
@@ -320,14 +304,14 @@ def summarize(run: Run, metrics: dict, times: np.ndarray, horizon: int, solver: 
 # Figures (equivalents of the paper's Figs. 4-8)
 # ---------------------------------------------------------------------------
 
-def figures(run: Run, params: hm.HopperParams, horizon: int, out: str) -> list:
-    """Write the PNG figures; returns their paths."""
+def figures(loop: fj.ClosedLoop, X, params: hm.HopperParams, out: str) -> list:
+    """Write the PNG figures from the loop and its fine trajectory ``X``; returns their paths."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    p, ctrl = params, controller(params, horizon)
-    t, X = run.t, run.X
+    p, gait = params, hm.desired_energy(T_HOP, T_AIR, params)
+    t = _times(X)
     stroke, rate = X[:, 0] - X[:, 2], X[:, 1] - X[:, 3]
     paths = []
 
@@ -346,8 +330,8 @@ def figures(run: Run, params: hm.HopperParams, horizon: int, out: str) -> list:
     save(fig, "fig4_displacements")
 
     fig, ax = plt.subplots(figsize=(5, 4.5))
-    ax.plot(100 * X[:, 0], X[:, 1], lw=0.8)
-    ax.set(xlabel="body x (cm)", ylabel="body velocity (m/s)", title="Fig. 5: position vs velocity")
+    ax.plot(X[:, 0], X[:, 1], lw=0.8)
+    ax.set(xlabel="body position x (m)", ylabel="body velocity (m/s)", title="Fig. 5: velocity against position")
     save(fig, "fig5_phase")
 
     fig, ax = plt.subplots(figsize=(7, 3.5))
@@ -357,25 +341,28 @@ def figures(run: Run, params: hm.HopperParams, horizon: int, out: str) -> list:
     ax.legend(loc="upper right")
     save(fig, "fig6_pressures")
 
-    i, j = last_compression(run)
+    i, j = last_compression(X)
     tc = t[i:j]
     z = np.stack([stroke[i:j], rate[i:j], X[i:j, 4], X[i:j, 5]], axis=-1)  # [T, 4]
     E = np.asarray(hm.model_energy(z, p))
-    E_d = np.asarray(hm.orbit_energy(z, ctrl.v_liftoff, p))
+    E_d = np.asarray(hm.orbit_energy(z, liftoff_velocity(p), p))
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
     a1.plot(tc, E, label="E, eq. (6)")
     a1.plot(tc, E_d, ":", label="desired: eq. (20) for the air in the chambers")
-    a1.axhline(ctrl.gait.E_d, color="gray", lw=0.8, ls="--", label=f"paper's constant E_d = {ctrl.gait.E_d:.3f} J")
+    a1.axhline(gait.E_d, color="gray", lw=0.8, ls="--", label=f"paper's constant E_d = {gait.E_d:.3f} J")
     a1.set(ylabel="energy (J)", title=f"Fig. 7: energy in a compression period ({1e3 * (tc[-1] - tc[0]):.0f} ms)")
     a1.legend(loc="best", fontsize=8)
-    a2.plot(tc, 1e3 * (E - E_d))
-    a2.axhspan(-1e3 * ENERGY_TOL, 1e3 * ENERGY_TOL, color="green", alpha=0.15, label="terminal tolerance")
+    a2.plot(tc, 1e3 * (E - E_d), label="$E - E_d$ now (plant)")
+    a2.axhspan(-1e3 * ENERGY_TOL, 1e3 * ENERGY_TOL, color="green", alpha=0.15,
+               label=f"terminal constraint: |E(k+N) - E_d| <= {1e3 * ENERGY_TOL:g} mJ,\n"
+                     "on the prediction N periods ahead, not on E now")
     a2.set(xlabel="time (s)", ylabel="$E - E_d$ (mJ)")
     a2.legend(loc="best", fontsize=8)
     save(fig, "fig7_energy")
 
-    k = np.minimum(np.arange(i, j) // int(round(CONTROL_PERIOD / PLANT_DT)), len(run.cmd) - 1)
-    cmd_b = np.where(X[i:j, 2] <= 0, run.cmd[k, 1], 0.0)  # the command in force at each sample
+    cmd = np.asarray(loop.inputs)
+    k = np.minimum(np.arange(i, j) // SUBSTEPS, len(cmd) - 1)
+    cmd_b = np.where(contact(X[i:j]), cmd[k, 1], 0.0)  # the command in force at each plant step
     mdot = np.asarray(hm.valve_flow(cmd_b, X[i:j, 5], p))
     fig, ax = plt.subplots(figsize=(7, 3.5))
     ax.plot(tc, 1e3 * mdot)
@@ -388,10 +375,6 @@ def figures(run: Run, params: hm.HopperParams, horizon: int, out: str) -> list:
 # Command line
 # ---------------------------------------------------------------------------
 
-
-
-
-
 def register(subparsers) -> None:
     """Add the ``hopper`` subcommand."""
     parser = subparsers.add_parser(
@@ -399,30 +382,30 @@ def register(subparsers) -> None:
         description="Simulate the pneumatic hopping robot under FIRHC, write Figs. 4-8 and summary.json.")
     parser.add_argument("--horizon", type=number(int, 1, 10), default=6, metavar="N",
                         help="prediction horizon (default 6)")
-    parser.add_argument("--solver", choices=sorted(SOLVERS), default="sdfs", help="search (default sdfs)")
+    parser.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs", help="search (default sdfs)")
     parser.add_argument("--seconds", type=number(float, CONTROL_PERIOD, 60), default=2.0,
                         help="simulated time in s (default 2)")
     parser.add_argument("--out", default=os.path.join("out", "hopper"), metavar="DIR",
                         help="output directory (default out/hopper)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
 
 
 def run(args) -> int:
-    """Simulate, time the solver, write the figures and ``summary.json``."""
+    """Simulate with every decision timed, write the figures and ``summary.json``."""
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         raise SystemExit(f"hopper: --out {args.out!r} exists and is not a directory")
     os.makedirs(args.out, exist_ok=True)
     jax.config.update("jax_enable_x64", True)
     params = hm.HopperParams()
     t0 = time.perf_counter()
-    result = simulate(args.seconds, args.horizon, args.solver, params)
+    loop, X = simulate(args.seconds, args.horizon, args.solver, params, progress=not args.no_progress, timed=True)
     wall = time.perf_counter() - t0
-    times = solve_times(result, args.horizon, args.solver, params)
-    metrics = hop_metrics(result)
-    summary = summarize(result, metrics, times, args.horizon, args.solver, args.seconds, params, wall)
-    figures(result, params, args.horizon, args.out)
+    summary = summarize(loop, X, args.horizon, args.solver, args.seconds, params, wall)
+    figures(loop, X, params, args.out)
     with open(os.path.join(args.out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=2)
+
     def fmt(value, spec, scale=1.0):
         return "n/a" if value is None else format(scale * value, spec)
 

@@ -2,7 +2,8 @@
 
 Runs the FIRHC closed loop on the 17-mode three-tank plant from the paper's
 initial levels {0.2, 0.18, 0.1} m to the set point {0.3, 0.25, 0.15} m for
-200 s (100 samples of 2 s), timing every search, and writes into ``--out``:
+200 s (100 samples of 2 s) with ``FIRHC.simulate``, timing every decision,
+and writes into ``--out``:
 
 * ``summary.json``: final levels, errors, settling time, nodes per step and
   solve times (keys listed in ``summarize``);
@@ -14,9 +15,7 @@ The plant is the prediction model itself (no model error), as in the paper.
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -24,56 +23,34 @@ import numpy as np
 
 import firhc_jax as fj
 from firhc_jax.models import tanks as model
-from firhc_jax.progress import Progress
 
 from ._args import number
 
 MAX_HORIZON = 10  # 17^10 sequences: beyond this even sDFS's worst steps become impractical
 
 
-class TankRun(NamedTuple):
-    """One closed-loop run of T steps (NumPy arrays)."""
-
-    states: np.ndarray  # [T+1, 5] controller states x(0) .. x(T): levels (m), mode, toggles
-    modes: np.ndarray  # [T] int applied mode per step
-    nodes: np.ndarray  # [T] int nodes computed per step (fallback search included)
-    solve_times: np.ndarray  # [T] s wall time of each step's search
-    used_fallback: np.ndarray  # [T] bool the terminal box was out of reach: the unconstrained optimum was applied
-    compile_time: float  # s first search (tracing and compilation included), not in solve_times
-
-
-def closed_loop(problem, solver: str = "sdfs", steps: int = 100, levels=model.INITIAL_LEVELS,
-                progress: bool = False) -> TankRun:
+def simulate(problem: fj.Problem, solver: str = "sdfs", steps: int = 100, levels=model.INITIAL_LEVELS,
+             progress: bool = False, timed: bool = False) -> tuple[fj.ClosedLoop, float | None]:
     """Run the FIRHC law for ``steps`` samples from ``levels`` (hold mode before t = 0).
 
-    A Python loop over the compiled search, so that every search is timed on
-    its own. Needs float64 (``jax_enable_x64``) for mm-accurate levels. With a
-    terminal box, steps where it cannot be reached apply the unconstrained
-    optimum instead (``used_fallback``).
+    The plant is the prediction model itself. Needs float64
+    (``jax_enable_x64``) for mm-accurate levels. With a terminal box, steps
+    where it cannot be reached apply the unconstrained optimum
+    (``loop.used_fallback``). Returns ``(loop, compile_s)``. ``timed``: a
+    Python loop over the compiled decision, so that ``loop.solve_times`` holds
+    each one's wall time; ``compile_s`` is the first decision's (tracing and
+    compilation included), taken in a one-step run beforehand so that it is
+    not in ``solve_times``. Otherwise one compiled scan (the same closed loop)
+    and ``compile_s`` is None.
     """
     fallback = "unconstrained" if problem.terminal is not None else None
     ctrl = fj.FIRHC(problem, solver, fallback=fallback)
-    plant = jax.jit(problem.dynamics)
-    x = jnp.asarray(model.initial_state(levels))  # [5]
-
-    t0 = time.perf_counter()
-    jax.block_until_ready(ctrl.solve(x))  # compile outside the timed loop
-    compile_time = time.perf_counter() - t0
-
-    states, modes, nodes, times, used = [np.asarray(x)], [], [], [], []
-    with Progress(steps, f"tanks N={problem.horizon} {solver}", enabled=progress) as bar:
-        for k in range(steps):
-            t0 = time.perf_counter()
-            result, fell_back = jax.block_until_ready(ctrl.solve(x))
-            times.append(time.perf_counter() - t0)
-            x = plant(x, result.first_input)
-            states.append(np.asarray(x))
-            modes.append(int(result.sequence[0]))
-            nodes.append(int(result.nodes))
-            used.append(bool(fell_back))
-            bar.update(k + 1)
-    return TankRun(np.array(states), np.array(modes), np.array(nodes), np.array(times), np.array(used),
-                   compile_time)
+    x0 = jnp.asarray(model.initial_state(levels))  # [5]
+    if not timed:
+        return ctrl.simulate(x0, steps, progress=progress), None
+    plant = jax.jit(problem.dynamics)  # called from Python once per step
+    compile_s = float(ctrl.simulate(x0, 1, plant, compiled=False).solve_times[0])
+    return ctrl.simulate(x0, steps, plant, progress=progress, compiled=False), compile_s
 
 
 def settling_time(errors: np.ndarray, ts: float, tolerance: float) -> float | None:
@@ -87,26 +64,35 @@ def settling_time(errors: np.ndarray, ts: float, tolerance: float) -> float | No
     return float((outside[-1] + 1) * ts)
 
 
-def summarize(run: TankRun, problem, solver: str, params: model.TankParams, set_point=model.SET_POINT,
-              tolerance: float = 0.005, switch_penalty: float = 0.0, terminal_tol: float | None = None) -> dict:
-    """The ``summary.json`` record of a run (lengths in m, times in s)."""
-    levels = run.states[:, :3]  # [T+1, 3]
+def summarize(loop: fj.ClosedLoop, compile_s: float | None, problem, solver: str, params: model.TankParams,
+              set_point=model.SET_POINT, tolerance: float = 0.005, switch_penalty: float = 0.0,
+              terminal_tol: float | None = None) -> dict:
+    """The ``summary.json`` record of a run (lengths in m, times in s). Nodes per step count the fallback
+    search too; solve times are null for an untimed run."""
+    levels = np.asarray(loop.states)[:, :3]  # [T+1, 3]
     errors = levels - np.asarray(set_point)  # [T+1, 3]
     t = np.arange(levels.shape[0]) * params.ts  # [T+1]
     last = t >= t[-1] - 20.0 - 1e-9
+    nodes = np.asarray(loop.nodes) + np.asarray(loop.fallback_nodes)  # [T]
+    times = np.asarray(loop.solve_times)  # [T], NaN in a compiled scan
+    modes = np.asarray(loop.input_indices)  # [T]
+
+    def stat(fn):
+        return float(fn(times)) if np.all(np.isfinite(times)) else None
+
     return {
         "final_levels": levels[-1].tolist(),
         "max_abs_error_last_20s": float(np.max(np.abs(errors[last]))),
         "settling_time_s": settling_time(errors, params.ts, tolerance),
-        "nodes_min": int(run.nodes.min()),
-        "nodes_max": int(run.nodes.max()),
-        "nodes_mean": float(run.nodes.mean()),
-        "solve_time_mean_s": float(run.solve_times.mean()),
+        "nodes_min": int(nodes.min()),
+        "nodes_max": int(nodes.max()),
+        "nodes_mean": float(nodes.mean()),
+        "solve_time_mean_s": stat(np.mean),
         "horizon": problem.horizon,
         "solver": solver,
-        "solve_time_median_s": float(np.median(run.solve_times)),
-        "solve_time_max_s": float(run.solve_times.max()),
-        "compile_time_s": run.compile_time,
+        "solve_time_median_s": stat(np.median),
+        "solve_time_max_s": stat(np.max),
+        "compile_time_s": compile_s,
         "exhaustive_nodes_per_step": problem.tree_size(),
         "settling_tolerance_m": tolerance,
         "set_point": list(set_point),
@@ -115,13 +101,13 @@ def summarize(run: TankRun, problem, solver: str, params: model.TankParams, set_
         "sample_time_s": params.ts,
         "switch_penalty": switch_penalty,
         "terminal_tol": terminal_tol,
-        "fallback_steps": int(run.used_fallback.sum()),
-        "mode_changes": int(np.count_nonzero(np.diff(run.modes))),
-        "modes": run.modes.tolist(),
+        "fallback_steps": int(np.count_nonzero(loop.used_fallback)),
+        "mode_changes": int(np.count_nonzero(np.diff(modes))),
+        "modes": modes.tolist(),
     }
 
 
-def plot(run: TankRun, path: Path, params: model.TankParams, set_point=model.SET_POINT,
+def plot(loop: fj.ClosedLoop, path: Path, params: model.TankParams, set_point=model.SET_POINT,
          tolerance: float = 0.005, title: str = "") -> None:
     """Levels against set points, errors in mm (with the tolerance band) and the mode sequence beneath."""
     import matplotlib
@@ -129,7 +115,7 @@ def plot(run: TankRun, path: Path, params: model.TankParams, set_point=model.SET
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    levels = run.states[:, :3]  # [T+1, 3]
+    levels = np.asarray(loop.states)[:, :3]  # [T+1, 3]
     t = np.arange(levels.shape[0]) * params.ts  # [T+1]
     colors = ("tab:blue", "tab:orange", "tab:green")
     fig, (ax_h, ax_e, ax_m) = plt.subplots(3, 1, figsize=(9, 9), sharex=True,
@@ -145,7 +131,7 @@ def plot(run: TankRun, path: Path, params: model.TankParams, set_point=model.SET
     ax_e.set_ylim(-20, 20)
     ax_e.set_ylabel("error [mm]")
     ax_e.legend(loc="lower right", ncol=4, fontsize=8)
-    ax_m.step(t[:-1], run.modes, where="post", color="k", lw=1)
+    ax_m.step(t[:-1], np.asarray(loop.input_indices), where="post", color="k", lw=1)
     ax_m.set_yticks(range(model.NUM_MODES))
     ax_m.set_yticklabels([f"{i} {m.name}" for i, m in enumerate(model.MODES)], fontsize=6)
     ax_m.set_ylim(-0.5, model.NUM_MODES - 0.5)
@@ -156,12 +142,6 @@ def plot(run: TankRun, path: Path, params: model.TankParams, set_point=model.SET
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
-
-
-
-
-
-
 
 
 def register(subparsers) -> None:
@@ -197,13 +177,13 @@ def run(args) -> int:
         raise SystemExit(f"tanks: --seconds must be at least one sample ({params.ts:g} s), got {args.seconds:g}")
     problem = model.make_problem(args.horizon, params, switch_penalty=args.switch_penalty,
                                  terminal_tol=args.terminal_tol)
-    result = closed_loop(problem, args.solver, steps, progress=not args.no_progress)
-    summary = summarize(result, problem, args.solver, params, tolerance=args.tolerance,
+    loop, compile_s = simulate(problem, args.solver, steps, progress=not args.no_progress, timed=True)
+    summary = summarize(loop, compile_s, problem, args.solver, params, tolerance=args.tolerance,
                         switch_penalty=args.switch_penalty, terminal_tol=args.terminal_tol)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     figure = args.out / f"tanks_N{args.horizon}_{args.solver}.png"
-    plot(result, figure, params, tolerance=args.tolerance,
+    plot(loop, figure, params, tolerance=args.tolerance,
          title=f"Three-tank FIRHC, N = {args.horizon}, {args.solver}: "
                f"nodes/step min {summary['nodes_min']}, mean {summary['nodes_mean']:.0f}, max {summary['nodes_max']}")
     settled = summary["settling_time_s"]
