@@ -10,7 +10,8 @@ The closed loop separates plant and model (the do-mpc split):
 * ``plant(x, u[, p]) -> x_next``: the simulated system (default: the model's
   ``dynamics``). Its state may differ from the model's.
 * ``observe(x, u_prev[, p]) -> x_model``: what the controller sees, from the
-  plant state and the input it applied last (default: the plant state).
+  plant state and the input it chose last (the searched input, before
+  ``actuate``; default: the plant state).
   ``with_input_memory`` builds one that feeds ``u_prev`` to a switching penalty.
 * ``actuate(x, u[, p]) -> u_plant``: the input the plant receives, from the
   searched input (default: ``u``): combine it with inputs set by a fixed law,
