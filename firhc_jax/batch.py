@@ -54,7 +54,7 @@ from .checks import check_params, check_state, cost_dtype, strong
 from .exhaustive import DEFAULT_CHUNK_NODES
 from .exhaustive import memory as exhaustive_memory
 from .nodes import NEGATIVE, NONFINITE, OVERFLOW, best_leaf, expand, first_min
-from .problem import Problem, positive_int
+from .problem import Problem, positive_int, refuse_differentiation
 from .result import SearchResult, finish, raise_on_errors
 from .sdfs import _search as sdfs_search
 from .sdfs import node_budget, stack_memory
@@ -539,6 +539,7 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
     if max_nodes is not None and solver == "exhaustive":
         raise ValueError("max_nodes applies to the sDFS solvers; exhaustive search always visits the whole tree")
     budget = node_budget(max_nodes)
+    refuse_differentiation(X0, params)
     X = _check_batch(X0)
     B, n = X.shape
     params = check_params(params, leading=B)

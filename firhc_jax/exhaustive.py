@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from .cache import compiled
 from .checks import check_params, check_state, cost_dtype
 from .nodes import best_leaf, expand
-from .problem import Problem, positive_int
+from .problem import Problem, positive_int, refuse_differentiation
 from .result import SearchResult, finish, raise_on_errors
 
 DEFAULT_CHUNK_NODES = 1 << 20
@@ -168,6 +168,7 @@ def exhaustive(problem: Problem, x0, *, params=None, method: str = "levels",
         raise ValueError(f"method must be 'levels' or 'dfs', got {method!r}")
     if not isinstance(problem, Problem):
         raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
+    refuse_differentiation(x0, params)
     params = check_params(params)
     x0 = check_state(problem, x0, params)
     plan(problem, chunk_nodes)  # refuse before tracing

@@ -179,7 +179,7 @@ def _check_controls(controls) -> np.ndarray:
         raise TypeError(f"controls must be a real numeric or boolean array [M, m] or [M], got dtype {given.dtype}")
     if np.issubdtype(given.dtype, np.complexfloating):
         raise TypeError("controls must be real, got a complex dtype")
-    arr = np.asarray(jnp.asarray(given))  # jnp decides the dtype (float32/int32 unless x64 is enabled)
+    arr = given.astype(jax.dtypes.canonicalize_dtype(given.dtype))  # float32/int32 unless x64 is enabled
     if given.size and given.dtype.kind in "iu" and not np.array_equal(arr.astype(given.dtype), given):
         raise ValueError(f"controls of dtype {given.dtype} do not fit JAX's {arr.dtype} (values would wrap); "
                          "enable x64 or use smaller values")
@@ -199,6 +199,17 @@ def _check_controls(controls) -> np.ndarray:
     arr = arr.copy()
     arr.flags.writeable = False
     return arr
+
+
+def refuse_differentiation(*trees) -> None:
+    """A clear ``TypeError`` when a search is differentiated: it is a discrete
+    argmin (JAX's own message would be about while-loops)."""
+    for leaf in jax.tree_util.tree_leaves(trees):
+        if type(leaf).__name__ in ("JVPTracer", "LinearizeTracer"):  # jax.jvp, jax.grad
+            raise TypeError("the searches are not differentiable (a discrete argmin over input sequences); "
+                            "differentiate the cost of the returned sequence instead: "
+                            "firhc_jax.nodes.rollout_cost(problem, x0, jax.lax.stop_gradient(result.sequence), "
+                            "dtype, params)")
 
 
 def input_dtype(problem: Problem):

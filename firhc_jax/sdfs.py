@@ -41,7 +41,7 @@ import jax.numpy as jnp
 from .cache import compiled
 from .checks import check_params, check_state, cost_dtype
 from .nodes import best_leaf, expand, rollout_cost
-from .problem import Problem, is_tracer, positive_int
+from .problem import Problem, is_tracer, positive_int, refuse_differentiation
 from .result import SearchResult, finish, raise_on_errors
 
 INT32_MAX = 2**31 - 1
@@ -219,6 +219,10 @@ def _run(problem: Problem, x0, params, warm_start, max_nodes, pop_width, prune, 
     if not isinstance(problem, Problem):
         raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
     pop_width = positive_int("pop_width", pop_width)
+    refuse_differentiation(x0, params)
+    if not prune and problem.tree_size() > INT32_MAX:
+        raise ValueError(f"exhaustive search of M={problem.num_controls}, N={problem.horizon} has "
+                         f"{problem.tree_size():,} nodes, more than the int32 node counter holds")
     params = check_params(params)
     x0 = check_state(problem, x0, params)
     check_memory(stack_memory(problem, x0.shape[0], max(x0.dtype.itemsize, 4), pop_width), max_memory,
