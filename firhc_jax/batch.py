@@ -384,8 +384,8 @@ def _pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_w
 
 def _per_row(problem: Problem, solver: str, pop_width: int, chunk_nodes: int, budget) -> Callable:
     if solver == "exhaustive":
-        from .exhaustive import _exhaustive
-        return lambda a: _exhaustive(problem, a[0], a[1], chunk_nodes=chunk_nodes)
+        from .exhaustive import exhaustive
+        return lambda a: exhaustive(problem, a[0], params=a[1], chunk_nodes=chunk_nodes)
     return lambda a: sdfs_search(problem, a[0], a[1], None, budget, pop_width=pop_width, prune=True)
 
 

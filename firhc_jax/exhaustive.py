@@ -17,12 +17,13 @@ levels are one ``lax.scan``, so compile time does not grow with N.
 """
 from __future__ import annotations
 
+import warnings
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from .cache import compiled
+from .cache import cached, compiled
 from .checks import check_params, check_state, cost_dtype
 from .nodes import best_leaf, expand
 from .problem import Problem, positive_int, refuse_differentiation
@@ -172,5 +173,36 @@ def exhaustive(problem: Problem, x0, *, params=None, method: str = "levels",
     params = check_params(params)
     x0 = check_state(problem, x0, params)
     plan(problem, chunk_nodes)  # refuse before tracing
-    search = compiled(_exhaustive, problem, chunk_nodes=chunk_nodes)  # the bound is computed, unused, dropped by XLA
+    search = _levels_executable(problem, x0, params, chunk_nodes)
+    if search is None:  # XLA:CPU could not compile it: the same tree, visited depth first
+        from .sdfs import exhaustive_dfs
+        return exhaustive_dfs(problem, x0, params=params)
     return raise_on_errors(search(x0, params))
+
+
+def _levels_executable(problem: Problem, x0, params, chunk_nodes: int):
+    """The level search for these shapes, compiled ahead of time and cached;
+    None where XLA:CPU fails to compile it. Some deep level chains (seen with
+    M = 2, 13 <= N <= 23) stop XLA:CPU with "Unknown MLIR failure"
+    (docs/xla_notes.md); the caller then visits the same tree depth first.
+    Under an outer trace the jitted search is returned, to be inlined."""
+    spec = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), (x0, params))
+    key = ("levels", problem.key, chunk_nodes, str(spec), jax.tree_util.tree_structure(spec))
+
+    def build():
+        search = compiled(_exhaustive, problem, chunk_nodes=chunk_nodes)  # the bound is computed, unused, dropped
+        try:
+            return search, search.lower(*spec).compile()
+        except jax.errors.JaxRuntimeError as e:
+            if "MLIR" not in str(e):
+                raise
+            warnings.warn(f"XLA could not compile the level-by-level search of M={problem.num_controls}, "
+                          f"N={problem.horizon}; visiting the same tree depth first instead (exact, slower)",
+                          RuntimeWarning, stacklevel=4)
+            return None, None
+
+    search, executable = cached(key, build)
+    if search is None:
+        return None
+    traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves((x0, params)))
+    return search if traced else executable
