@@ -73,8 +73,8 @@ def _check_batch(X0):
         X = X0
     else:
         try:
-            X = strong(X0)
-        except TypeError as e:
+            X = strong(np.asarray(X0) if not isinstance(X0, jax.Array) else X0)
+        except (TypeError, ValueError) as e:
             raise TypeError(f"X0 must be a numeric array [B, n]: {e}") from None
     if X.ndim != 2:
         raise ValueError(f"X0 must be a 2-D batch of states [B, n], got shape {tuple(X.shape)}; "

@@ -59,7 +59,7 @@ class ClosedLoop(NamedTuple):
     fallback_nodes: jax.Array  # [T] int32 nodes of the fallback search (0 when not used)
     feasible: jax.Array  # [T] bool the terminal constraint could be met
     used_fallback: jax.Array  # [T] bool the input came from the fallback search
-    complete: jax.Array  # [T] bool the deciding search ran to the end (not stopped by max_nodes)
+    complete: jax.Array  # [T] bool every search behind the decision ran to the end (not stopped by max_nodes)
     solve_times: jax.Array  # [T] seconds per decision (compiled=False only; NaN in a compiled scan)
 
     @property
@@ -182,7 +182,8 @@ class FIRHC:
             return relaxed._replace(iterations=result.iterations + relaxed.iterations,
                                     negative_cost=result.negative_cost | relaxed.negative_cost,
                                     nan_encountered=result.nan_encountered | relaxed.nan_encountered,
-                                    overflow=result.overflow | relaxed.overflow), jnp.array(True)
+                                    overflow=result.overflow | relaxed.overflow,
+                                    complete=result.complete & relaxed.complete), jnp.array(True)
 
         if is_tracer(result.feasible):
             chosen, used = jax.lax.cond(result.feasible, lambda _: (result, jnp.array(False)), fall_back, None)
@@ -194,7 +195,9 @@ class FIRHC:
         """Search at model state ``x``; returns ``(result, used_fallback)``.
 
         When the fallback decided, ``result`` is the fallback search's, with
-        the first search's iterations added and its error flags kept.
+        the first search's iterations added, its error flags kept, and
+        ``complete`` only if both searches ran to the end (a constrained
+        search stopped by ``max_nodes`` has not proven infeasibility).
         ``previous_sequence`` seeds the warm start (ignored unless
         ``warm_start``; an all ``-1`` sequence, i.e. infeasible, is no warm
         start and costs no nodes).

@@ -37,6 +37,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .cache import compiled
 from .checks import check_params, check_state, cost_dtype
@@ -204,7 +205,10 @@ def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int,
 def _check_warm_start(problem: Problem, warm_start):
     if warm_start is None:
         return None
-    ws = warm_start if is_tracer(warm_start) else jnp.asarray(warm_start)
+    try:
+        ws = warm_start if is_tracer(warm_start) else jnp.asarray(np.asarray(warm_start))
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"warm_start must be [N] = [{problem.horizon}] integer indices into controls: {e}") from None
     if ws.shape != (problem.horizon,) or not jnp.issubdtype(ws.dtype, jnp.integer):
         raise ValueError(f"warm_start must be [N] = [{problem.horizon}] integer indices into controls, "
                          f"got shape {tuple(ws.shape)} dtype {ws.dtype}")

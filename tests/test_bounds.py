@@ -1,0 +1,92 @@
+"""Admissible lower bounds keep every search exact and prune more (issue 11)."""
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import firhc_jax as fj
+from firhc_jax.diagnostics import check_lower_bound
+from param_problems import SHAPES, as_jax, cases, cost_to_go, draw_params, dynamics, problem, same_cost, stage_cost, \
+    terminal
+
+SETTINGS = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+@functools.lru_cache(maxsize=None)
+def exact_bound(shape):
+    """``p["scale"]`` times the exact cost-to-go, by brute force in JAX: for
+    ``steps_left = s`` every sequence of length s is rolled out (one branch of a
+    ``lax.switch`` per s). Admissible for scale in [0, 1)."""
+    n, m, M, N = shape
+
+    def ctg(x, p, s):
+        seqs = jnp.asarray(np.array(np.meshgrid(*[np.arange(M)] * s, indexing="ij")).reshape(s, -1).T)
+
+        def roll(seq):
+            def step(carry, i):
+                z, c = carry
+                u = jnp.array([i], jnp.float32)
+                z = dynamics(z, u, p)
+                return (z, c + stage_cost(z, u, p)), None
+            (z, c), _ = jax.lax.scan(step, (x, jnp.zeros((), x.dtype)), seq)
+            return jnp.where(terminal(z, p), c, jnp.inf)
+
+        return jnp.min(jax.vmap(roll)(seqs))
+
+    def bound(x, steps_left, p):
+        branches = [lambda x, p: jnp.zeros((), x.dtype)] + [functools.partial(lambda x, p, s: ctg(x, p, s), s=s)
+                                                            for s in range(1, N)]
+        return p["scale"] * jax.lax.switch(jnp.clip(steps_left, 0, N - 1), branches, x, p)
+
+    return problem(shape, True, bound)
+
+
+@SETTINGS
+@given(cases(tightness=("loose", "tight")), st.floats(0.0, 0.99), st.sampled_from([1, 2, 3]))
+def test_admissible_bounds_keep_every_solver_exact(case, scale, pop_width):
+    shape, params, x0 = case
+    prm = dict(as_jax(params), scale=jnp.asarray(scale))
+    bounded = exact_bound(shape)
+    ref, _ = cost_to_go(shape, params, x0, shape[3])
+    plain = fj.sdfs(problem(shape), x0, params=as_jax(params))
+    results = {"sdfs": fj.sdfs(bounded, x0, params=prm), "sdfs K": fj.sdfs(bounded, x0, params=prm,
+                                                                             pop_width=pop_width),
+               "exhaustive": fj.exhaustive(bounded, x0, params=prm),
+               "pool": jax.tree_util.tree_map(lambda a: a[0], fj.solve_batch(
+                   bounded, jnp.asarray(x0)[None], params=jax.tree_util.tree_map(lambda a: a[None], prm)))}
+    for name, r in results.items():
+        assert same_cost(float(r.cost), ref), (name, float(r.cost), ref)
+    assert int(results["sdfs"].nodes) <= int(plain.nodes)  # a bound never costs nodes at K = 1
+
+
+def test_zero_bound_gives_table_1_node_counts():
+    shape = SHAPES[1]
+    rng = np.random.default_rng(5)
+    zero = problem(shape, True, lambda x, s, p: jnp.zeros((), x.dtype))
+    for _ in range(4):
+        params, x0 = as_jax(draw_params(rng, shape)), rng.uniform(-1, 1, shape[0])
+        a, b = fj.sdfs(problem(shape), x0, params=params), fj.sdfs(zero, x0, params=params)
+        assert int(a.nodes) == int(b.nodes) and int(a.iterations) == int(b.iterations)
+
+
+def test_infinite_bound_reports_infeasible():
+    shape = SHAPES[0]
+    never = problem(shape, True, lambda x, s, p: jnp.where(s > 0, jnp.inf, 0.0).astype(x.dtype))
+    params = as_jax(draw_params(np.random.default_rng(0), shape))
+    r = fj.sdfs(never, np.zeros(shape[0]), params=params)
+    assert not bool(r.feasible) and np.isnan(np.asarray(r.first_input)).all()
+    assert int(r.nodes) == shape[2]  # the root's children only: every one is unreachable
+
+
+def test_check_lower_bound_catches_an_inadmissible_bound():
+    shape = SHAPES[1]
+    rng = np.random.default_rng(2)
+    params = as_jax(draw_params(rng, shape))
+    states = jnp.asarray(rng.uniform(-1, 1, (6, shape[0])))
+    good = exact_bound(shape)
+    assert check_lower_bound(good, states, params=dict(params, scale=jnp.asarray(0.9))) == []
+    bad = check_lower_bound(good, states, params=dict(params, scale=jnp.asarray(1.5)))
+    assert bad and all(v.value > v.limit for v in bad)

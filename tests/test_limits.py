@@ -1,0 +1,167 @@
+"""Every search bounded, every refusal clear (issue 15)."""
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import firhc_jax as fj
+from param_problems import SHAPES, as_jax, cases, cost_to_go, problem
+
+
+def _dyn(x, u):
+    return 0.5 * x + u
+
+
+P = fj.Problem(_dyn, [-1.0, 0.0, 1.0], fj.quadratic_cost(1.0, 0.0), 3)
+
+
+# ---------------------------------------------------------------- node budget
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(cases(tightness=("none", "loose")), st.integers(1, 400), st.sampled_from([1, 2]))
+def test_a_budget_is_honest(case, budget, pop_width):
+    shape, params, x0 = case
+    prm = as_jax(params)
+    full = fj.sdfs(problem(shape), x0, params=prm, pop_width=pop_width)
+    cut = fj.sdfs(problem(shape), x0, params=prm, pop_width=pop_width, max_nodes=budget)
+    less = fj.sdfs(problem(shape), x0, params=prm, pop_width=pop_width, max_nodes=max(1, budget // 2))
+    assert int(cut.nodes) <= budget
+    if bool(cut.complete):
+        assert float(cut.cost) == float(full.cost) and int(cut.nodes) == int(full.nodes)
+    else:
+        assert int(full.nodes) > int(cut.nodes)
+        assert float(cut.cost) >= float(full.cost)  # an incumbent, never better than the optimum
+    assert float(less.cost) >= float(cut.cost)  # a smaller budget never finds more
+    if bool(cut.feasible):
+        ref, _ = cost_to_go(shape, params, x0, shape[3])
+        assert float(cut.cost) >= ref - 1e-9
+
+
+def test_budget_stops_a_search_that_would_never_end():
+    hard = fj.Problem(_dyn, np.linspace(-1, 1, 17), fj.quadratic_cost(1.0, 0.0), 40, terminal=lambda x: x[0] > 100.0)
+    r = fj.sdfs(hard, jnp.ones(1), max_nodes=5_000)
+    assert not bool(r.complete) and not bool(r.feasible) and int(r.nodes) <= 5_000
+    b = fj.solve_batch(hard, jnp.ones((3, 1)), max_nodes=5_000, lanes=2)
+    assert not np.asarray(b.complete).any() and (np.asarray(b.nodes) <= 5_000 + 17).all()
+    run = fj.FIRHC(hard, fallback="unconstrained", max_nodes=2_000).simulate(jnp.ones(1), 2)
+    assert not np.asarray(run.complete).any()
+    assert bool(fj.sdfs(P, jnp.ones(1), max_nodes=10_000).complete)
+
+
+# ---------------------------------------------------------------- memory and horizon limits
+def test_sizes_are_checked_before_allocation():
+    with pytest.raises(ValueError, match="sDFS stack .* needs about"):
+        fj.sdfs(fj.Problem(_dyn, np.linspace(-1, 1, 64), fj.quadratic_cost(1.0, 0.0), 2000), jnp.ones(1))
+    with pytest.raises(ValueError, match="max_memory"):
+        fj.sdfs(P, jnp.ones(1), max_memory=100)
+    with pytest.raises(ValueError, match="horizon"):
+        fj.Problem(_dyn, [0.0, 1.0], fj.quadratic_cost(1.0, 0.0), 2**70)
+    with pytest.raises(ValueError, match="int32 node counter"):
+        fj.exhaustive(fj.Problem(_dyn, np.linspace(-1, 1, 17), fj.quadratic_cost(1.0, 0.0), 40), jnp.ones(1),
+                      method="dfs")
+
+
+def test_int64_controls_outside_int32_are_refused_without_x64():
+    code = ("import numpy as np, firhc_jax as fj\n"
+            "try:\n    fj.Problem(lambda x, u: x, np.array([2**32 + 5, 1], np.int64), lambda x, u: x[0], 2)\n"
+            "except ValueError as e:\n    print('refused', e)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert "refused" in out.stdout and "wrap" in out.stdout, out.stdout + out.stderr
+
+
+# ---------------------------------------------------------------- clear errors
+def _simulate_vmapped():
+    return jax.vmap(lambda x: fj.FIRHC(P).simulate(x, 2).states)(jnp.ones((2, 1)))
+
+
+CLEAR = [
+    ("controls None", lambda: fj.Problem(_dyn, None, fj.quadratic_cost(1.0, 0.0), 3), TypeError, "controls"),
+    ("controls ragged", lambda: fj.Problem(_dyn, [[1.0, 2.0], [1.0]], fj.quadratic_cost(1.0, 0.0), 3), ValueError,
+     "controls"),
+    ("x0 None", lambda: fj.sdfs(P, None), TypeError, "x0"),
+    ("x0 complex", lambda: fj.sdfs(P, jnp.ones(1, complex)), TypeError, "x0"),
+    ("FIRHC(None)", lambda: fj.FIRHC(None), TypeError, "problem"),
+    ("unknown option", lambda: fj.FIRHC(P, chunk_nodes=3), TypeError, "chunk_nodes"),
+    ("NaN weight", lambda: fj.quadratic_cost(np.nan, 0.0), ValueError, "lam"),
+    ("devices 'cpu'", lambda: fj.solve_batch(P, jnp.ones((2, 1)), devices="cpu"), TypeError, "devices"),
+    ("devices [0]", lambda: fj.solve_batch(P, jnp.ones((2, 1)), devices=[0]), TypeError, "devices"),
+    ("params NaN row 1", lambda: fj.solve_batch(P.replace(dynamics=lambda x, u, p: x, stage_cost=lambda x, u, p: x[0]
+                                                          ** 2), jnp.ones((2, 1)), params=jnp.array([1.0, np.nan])),
+     ValueError, "params"),
+    ("params string", lambda: fj.sdfs(P, jnp.ones(1), params={"a": "x"}), TypeError, "params"),
+    ("plant shape", lambda: fj.FIRHC(P).simulate(jnp.ones(1), 2, plant=lambda x, u: jnp.ones(2)), TypeError,
+     "plant"),
+    ("plant tuple", lambda: fj.FIRHC(P).simulate(jnp.ones(1), 2, plant=lambda x, u: (x, x)), TypeError, "plant"),
+    ("plant shape, python loop", lambda: fj.FIRHC(P).simulate(jnp.ones(1), 2, plant=lambda x, u: np.ones(2),
+                                                              compiled=False), TypeError, "plant"),
+    ("grad", lambda: jax.grad(lambda x: fj.sdfs(P, x).cost)(jnp.ones(1)), TypeError, "differentiable"),
+    ("grad batch", lambda: jax.grad(lambda x: fj.solve_batch(P, x).cost.sum())(jnp.ones((2, 1))), TypeError,
+     "differentiable"),
+]
+
+
+@pytest.mark.parametrize("name, call, exc, match", CLEAR, ids=[c[0] for c in CLEAR])
+def test_mistakes_get_clear_errors(name, call, exc, match):
+    with pytest.raises(exc, match=match):
+        call()
+
+
+def test_corners_that_work():
+    assert _simulate_vmapped().shape == (2, 3, 1)  # simulate under vmap without a fallback
+    built = jax.jit(lambda x: fj.sdfs(fj.Problem(_dyn, np.array([-1.0, 0.0, 1.0]), fj.quadratic_cost(1.0, 0.0), 3),
+                                      x).cost)(jnp.ones(1))
+    assert np.isclose(float(built), float(fj.sdfs(P, jnp.ones(1)).cost))  # a Problem built inside jit
+    for value in (np.int64(2), 2):  # one validator: NumPy integers everywhere
+        fj.sdfs(P, jnp.ones(1), pop_width=value)
+        fj.exhaustive(P, jnp.ones(1), chunk_nodes=np.int64(100) * value)
+        fj.solve_batch(P, jnp.ones((2, 1)), lanes=value, max_memory=np.int64(10**8))
+        fj.FIRHC(P).simulate(jnp.ones(1), value)
+
+
+# ---------------------------------------------------------------- fuzzing the entry points
+BAD = st.one_of(st.none(), st.text(max_size=3), st.floats(allow_nan=True), st.integers(-3, 0), st.just([1, [2]]),
+                st.just(np.zeros((2, 2, 2))), st.just(np.array(["a"])), st.just(jnp.full(1, jnp.nan)),
+                st.just(np.ones(5)), st.booleans())
+ENTRY = {
+    "sdfs x0": lambda v: fj.sdfs(P, v), "sdfs pop_width": lambda v: fj.sdfs(P, jnp.ones(1), pop_width=v),
+    "sdfs max_nodes": lambda v: fj.sdfs(P, jnp.ones(1), max_nodes=v),
+    "sdfs warm_start": lambda v: fj.sdfs(P, jnp.ones(1), warm_start=v),
+    "exhaustive x0": lambda v: fj.exhaustive(P, v), "exhaustive chunk_nodes": lambda v: fj.exhaustive(
+        P, jnp.ones(1), chunk_nodes=v),
+    "solve_batch X0": lambda v: fj.solve_batch(P, v), "solve_batch lanes": lambda v: fj.solve_batch(
+        P, jnp.ones((2, 1)), lanes=v),
+    "simulate steps": lambda v: fj.FIRHC(P).simulate(jnp.ones(1), v),
+    "Problem horizon": lambda v: fj.Problem(_dyn, [0.0, 1.0], fj.quadratic_cost(1.0, 0.0), v),
+    "Problem controls": lambda v: fj.Problem(_dyn, v, fj.quadratic_cost(1.0, 0.0), 2),
+}
+NAMES = {"sdfs x0": "x0", "exhaustive x0": "x0", "solve_batch X0": "X0", "Problem controls": "controls"}
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.sampled_from(sorted(ENTRY)), BAD)
+def test_bad_arguments_get_a_value_or_type_error_naming_the_argument(name, value):
+    import threading
+    out = {}
+
+    def target():
+        try:
+            ENTRY[name](value)
+            out["r"] = ("ok", "")
+        except (ValueError, TypeError) as e:
+            out["r"] = ("clear", str(e))
+        except Exception as e:  # noqa: BLE001
+            out["r"] = ("raw", f"{type(e).__name__}: {e}")
+
+    t = threading.Thread(target=target, daemon=True)
+    t.start()
+    t.join(120)
+    assert not t.is_alive(), f"{name}={value!r} hangs"
+    kind, msg = out["r"]
+    assert kind != "raw", (name, value, msg)
+    if kind == "clear":
+        arg = NAMES.get(name, name.split()[-1])
+        assert arg in msg or "params" in msg or "dynamics" in msg, (name, value, msg)
