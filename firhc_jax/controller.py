@@ -159,7 +159,9 @@ class FIRHC:
         self.warm_start = bool(warm_start)
         self.observe, self.actuate = observe, actuate
         self.solver_options = dict(solver_options)
-        self._relaxed = problem.replace(terminal=None) if fallback and problem.terminal is not None else None
+        # Without the terminal set a bound's +inf ("terminal set out of reach") no longer holds: drop it too.
+        self._relaxed = (problem.replace(terminal=None, lower_bound=None)
+                         if fallback and problem.terminal is not None else None)
         # What a compiled closed loop depends on: equal keys share one executable.
         self._key = (problem.key, solver, fallback, self.warm_start, observe, actuate,
                      tuple(sorted(self.solver_options.items())))

@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import firhc_jax as fj
-from param_problems import SHAPES, as_jax, cases, cost_to_go, problem
+from param_problems import as_jax, cases, cost_to_go, problem
 
 
 def _dyn(x, u):
