@@ -162,7 +162,7 @@ def test_cli_writes_summary_and_figures(tmp_path):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--horizon", "0"], "--horizon: must be an integer between 1 and 10"),
+    (["--horizon", "0"], "--horizon: must be an integer between 1 and 12"),
     (["--horizon", "six"], "--horizon: must be an integer"),
     (["--seconds", "-1"], "--seconds: must be a number between"),
     (["--seconds", "nan"], "--seconds: must be a number between"),
@@ -172,3 +172,20 @@ def test_cli_rejects_bad_input(argv, message, capsys):
     with pytest.raises(SystemExit):
         cli.main(["hopper", *argv])
     assert message in capsys.readouterr().err
+
+
+def test_bound_is_admissible_and_keeps_the_closed_loop():
+    """The bound passes the exhaustive check on contact states, an inflated one is caught, and sDFS with it
+    drives the same closed loop with fewer nodes."""
+    from firhc_jax.diagnostics import check_lower_bound
+
+    plain, _ = app.simulate(0.3, 4, "sdfs", P, progress=False)
+    bounded, _ = app.simulate(0.3, 4, "sdfs", P, progress=False, bound=True)
+    np.testing.assert_allclose(np.asarray(bounded.stage_costs), np.asarray(plain.stage_costs), rtol=1e-9)
+    assert np.asarray(bounded.nodes).sum() < np.asarray(plain.nodes).sum()
+    S = np.asarray(plain.states[:-1])
+    Z = np.asarray(jax.vmap(lambda X: app.observe(X, None))(S[app.contact(S)]))[::4]
+    problem = app.problem(P, 4, bound=True)
+    assert check_lower_bound(problem, Z, max_steps=2) == []
+    inflated = problem.replace(lower_bound=lambda z, s: problem.lower_bound(z, s) + 1.0)
+    assert check_lower_bound(inflated, Z, max_steps=1)  # caught wherever the band is reachable in one step

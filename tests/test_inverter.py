@@ -139,3 +139,24 @@ def test_cli_rejects_bad_input(argv, message, capsys):
 def test_cli_rejects_run_shorter_than_two_samples(tmp_path):
     with pytest.raises(SystemExit, match="at least two samples"):
         cli.main(["inverter", "--cycles", "0.001", "--out", str(tmp_path)])
+
+
+def test_bound_is_admissible_and_keeps_the_closed_loop():
+    """The reachable-hexagon bound passes the exhaustive check on closed-loop states away from the reference,
+    10x it is caught, and the bounded closed loop is the unbounded one."""
+    from firhc_jax.diagnostics import check_lower_bound
+
+    plain = app.closed_loop(2, steps=40, lambda_u=1.0)
+    bounded = app.closed_loop(2, steps=40, lambda_u=1.0, bound=True)
+    np.testing.assert_allclose(bounded.predicted_costs, plain.predicted_costs, rtol=1e-9)
+    np.testing.assert_array_equal(bounded.inputs, plain.inputs)
+    mem = model.make_problem(2, bound=True)
+    inflated = mem.problem.replace(lower_bound=lambda z, s, p: 10 * mem.problem.lower_bound(z, s, p))
+    refs = model.horizon_references(P, 40, 2)
+    caught = 0
+    for k in range(0, 40, 8):
+        p = {"ref": jnp.asarray(refs[k]), "lambda_u": jnp.asarray(1.0)}
+        z = mem.observe(jnp.asarray(plain.currents[k]) + 1.5, jnp.zeros(3), p)[None]  # 1.5 A off: bound > 0
+        assert check_lower_bound(mem.problem, z, params=p) == []
+        caught += len(check_lower_bound(inflated, z, params=p))
+    assert caught

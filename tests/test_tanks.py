@@ -171,3 +171,20 @@ def test_cli_rejects_bad_input(argv, message, capsys):
 def test_cli_rejects_run_shorter_than_a_sample(tmp_path):
     with pytest.raises(SystemExit, match="at least one sample"):
         cli.main(["tanks", "--seconds", "1", "--out", str(tmp_path)])
+
+
+def test_bound_is_admissible_and_keeps_the_closed_loop():
+    """The level-rate bound passes the exhaustive check, 10x it is caught, and the bounded closed loop (with and
+    without a terminal box) is the unbounded one."""
+    from firhc_jax.diagnostics import check_lower_bound
+
+    for tol in (None, 0.01):
+        plain, _ = app.simulate(model.make_problem(3, terminal_tol=tol), steps=20)
+        bounded, _ = app.simulate(model.make_problem(3, terminal_tol=tol, bound=True), steps=20)
+        np.testing.assert_allclose(np.asarray(bounded.stage_costs), np.asarray(plain.stage_costs), rtol=1e-9)
+        assert np.asarray(bounded.nodes).sum() < np.asarray(plain.nodes).sum()
+    problem = model.make_problem(2, bound=True)
+    states = np.asarray(plain.states[:-1])[::3]
+    assert check_lower_bound(problem, states) == []
+    inflated = problem.replace(lower_bound=lambda x, s: 10 * problem.lower_bound(x, s))
+    assert check_lower_bound(inflated, states)

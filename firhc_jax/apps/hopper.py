@@ -64,6 +64,7 @@ ENERGY_TOL = 0.02  # J, terminal constraint |E(k+N) - E_d| <= tol
 A_DEADBAND = 0.01  # relative: side a charges below (1 - 1%) of the reference pressure
 SUBSTEPS = int(round(CONTROL_PERIOD / PLANT_DT))  # plant steps per control period
 IN_FLIGHT = 2.0  # model state's airborne flag for a decision taken in flight (see ``problem``)
+ENERGY_STEP_CAP = 0.2  # J, bound on |change of E - E_d| in one control period (docs/bounds.md: 1.27x the largest seen)
 
 
 # ---------------------------------------------------------------------------
@@ -92,7 +93,7 @@ def static_target(p: hm.HopperParams) -> float:
 
 
 @functools.lru_cache(maxsize=None)
-def problem(params: hm.HopperParams, horizon: int) -> fj.Problem:
+def problem(params: hm.HopperParams, horizon: int, bound: bool = False) -> fj.Problem:
     """The FIRHC problem for valve b (built once per parameters and horizon, so its search compiles once).
 
     Prediction state ``[5]``: ``[x, xdot, P_a, P_b, airborne]`` (see
@@ -103,6 +104,9 @@ def problem(params: hm.HopperParams, horizon: int) -> fj.Problem:
     sealed, so the state stays put, only the valve term ``10 u^2`` is charged
     and the terminal constraint holds; the optimum is valve b closed, found in
     3N nodes. Contact decisions are unaffected (bit for bit).
+
+    ``bound``: add the lower bound of ``docs/bounds.md`` (energy-band
+    reachability and energy-error cost), exact results with fewer nodes.
     """
     p = params
     v_liftoff, E_target = liftoff_velocity(p), static_target(p)
@@ -125,7 +129,20 @@ def problem(params: hm.HopperParams, horizon: int) -> fj.Problem:
     def terminal(z):
         return (z[4] == IN_FLIGHT) | (jnp.abs(energy_error(z)) <= ENERGY_TOL)
 
-    return fj.Problem(dynamics, jnp.asarray(VALVE_B), stage_cost, horizon, terminal)
+    def lower_bound(z, steps_left):
+        """In flight 0; after a predicted lift-off (frozen state) the exact cost with valve b closed; in contact
+        ``sum_j LAMBDA1 (|e| - j ENERGY_STEP_CAP)_+^2``. +inf where the band |e| <= ENERGY_TOL is out of reach."""
+        e, s = jnp.abs(energy_error(z)), steps_left.astype(z.dtype)
+        frozen = s * stage_cost(z, jnp.zeros(1, z.dtype))
+        j = jnp.arange(1, horizon + 1, dtype=z.dtype)
+        gap = jnp.where(j <= s, jnp.maximum(e - j * ENERGY_STEP_CAP, 0.0), 0.0)
+        moving = LAMBDA1 * jnp.sum(gap * gap)
+        airborne = z[4] == 1.0
+        reach = jnp.where(airborne, e <= ENERGY_TOL, e - ENERGY_TOL <= s * ENERGY_STEP_CAP)
+        value = (1 - 1e-9) * jnp.where(airborne, frozen, moving)  # margin for the search's own rounding
+        return jnp.where(z[4] == IN_FLIGHT, 0.0, jnp.where(reach, value, jnp.inf))
+
+    return fj.Problem(dynamics, jnp.asarray(VALVE_B), stage_cost, horizon, terminal, lower_bound if bound else None)
 
 
 def contact(X):
@@ -141,13 +158,14 @@ def observe(X, u_prev):
 
 
 @functools.lru_cache(maxsize=None)
-def controller(params: hm.HopperParams, horizon: int, solver: str) -> fj.FIRHC:
+def controller(params: hm.HopperParams, horizon: int, solver: str, bound: bool = False, **options) -> fj.FIRHC:
     """FIRHC on valve b; valve a by ``side_a_law``; both sealed in flight.
 
     ``actuate`` turns the searched input into the plant's commands ``[2]``
     (a, b) in {-1, 0, 1}: in flight at the sample both are 0; should no
     sequence be found at all (NaN input; it has not happened) b stays closed.
     Cached so that repeated closed loops reuse one compiled executable.
+    ``bound`` as in ``problem``; ``options`` go to the solver (e.g. ``max_nodes``).
     """
     p = params
 
@@ -155,7 +173,11 @@ def controller(params: hm.HopperParams, horizon: int, solver: str) -> fj.FIRHC:
         b = jnp.where(jnp.isnan(u[0]), 0.0, jnp.sign(u[0]))
         return jnp.where(contact(X), jnp.stack([side_a_law(X[0] - X[2], X[4], p), b]), 0.0)
 
-    return fj.FIRHC(problem(params, horizon), solver, fallback="unconstrained", observe=observe, actuate=actuate)
+    ctrl = fj.FIRHC(problem(params, horizon, bound), solver, fallback="unconstrained", observe=observe,
+                    actuate=actuate, **options)
+    if bound:  # the fallback drops the terminal set, so the bound's +inf (band out of reach) no longer holds there
+        ctrl._relaxed = ctrl._relaxed.replace(lower_bound=None)
+    return ctrl
 
 
 def _period(X, cmd, p: hm.HopperParams):
@@ -191,7 +213,8 @@ def _require_x64():
 
 
 def simulate(seconds: float = 2.0, horizon: int = 6, solver: str = "sdfs", params: hm.HopperParams | None = None,
-             progress: bool = True, timed: bool = False) -> tuple[fj.ClosedLoop, np.ndarray]:
+             progress: bool = True, timed: bool = False, bound: bool = False,
+             **options) -> tuple[fj.ClosedLoop, np.ndarray]:
     """Closed loop from the apex drop for ``seconds`` (rounded to whole control periods).
 
     Returns ``(loop, X)``: the controller's record, one entry per control
@@ -200,13 +223,13 @@ def simulate(seconds: float = 2.0, horizon: int = 6, solver: str = "sdfs", param
     period by period (in parallel) from the recorded states and commands.
     ``timed``: run the closed loop from Python so that ``loop.solve_times``
     holds each decision's wall time, compilation excluded (else one compiled
-    scan, the same trajectory bit for bit).
+    scan, the same trajectory bit for bit). ``bound`` and ``options`` as in ``controller``.
     """
     _require_x64()
     params = params or hm.HopperParams()
     steps = max(1, int(round(seconds / CONTROL_PERIOD)))
     X0 = jnp.asarray(hm.apex_state(params, params.g * T_AIR**2 / 8))
-    ctrl = controller(params, horizon, solver)
+    ctrl = controller(params, horizon, solver, bound, **options)
     if timed:  # compile the decision first: FIRHC times it from its first call
         ctrl.simulate(X0, 1, plant(params), compiled=False)
     loop = ctrl.simulate(X0, steps, plant(params), progress=progress, compiled=not timed)
@@ -263,7 +286,7 @@ def last_compression(X):
 
 
 def summarize(loop: fj.ClosedLoop, X, horizon: int, solver: str, seconds: float, params: hm.HopperParams,
-              wall_s: float) -> dict:
+              wall_s: float, loop_bound: bool = False) -> dict:
     """The ``summary.json`` contents. Search statistics are over the contact steps (the flight steps' searches
     are discarded by ``actuate``); solve times are NaN unless the loop was ``timed``."""
     gait, metrics = hm.desired_energy(T_HOP, T_AIR, params), hop_metrics(X)
@@ -289,12 +312,14 @@ def summarize(loop: fj.ClosedLoop, X, horizon: int, solver: str, seconds: float,
         nodes_mean=mean(nodes), nodes_max_feasible=int(nodes[feasible].max(initial=0)),
         tree_size=problem(params, horizon).tree_size(),
         fallback_nodes_mean=mean(np.asarray(loop.fallback_nodes)[c][~feasible]),
-        solve_time_mean_s=mean(times), solve_time_max_s=float(times.max()) if len(times) else None,
+        solve_time_mean_s=mean(times), solve_time_median_s=float(np.median(times)) if len(times) else None,
+        solve_time_max_s=float(times.max()) if len(times) else None,
         valve_a_charges=int(np.count_nonzero(cmd[:, 0] > 0)),
         valve_b_supply=int(np.count_nonzero(cmd[:, 1] > 0)),
         valve_b_exhaust=int(np.count_nonzero(cmd[:, 1] < 0)),
         stroke_min=float(stroke.min()), stroke_max=float(stroke.max()), stroke_limit=params.stroke / 2,
-        horizon=horizon, solver=solver, seconds=seconds, control_period_s=CONTROL_PERIOD, plant_dt_s=PLANT_DT,
+        horizon=horizon, solver=solver, bound=loop_bound, seconds=seconds, control_period_s=CONTROL_PERIOD,
+        plant_dt_s=PLANT_DT,
         weights=dict(lambda1=LAMBDA1, lambda2=LAMBDA2, beta=BETA), energy_tol=ENERGY_TOL,
         params=dataclasses.asdict(params), wall_time_s=wall_s,
     )
@@ -380,9 +405,10 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "hopper", help="pneumatic hopping robot under FIRHC (paper Sec. IV.1, Figs. 4-8)",
         description="Simulate the pneumatic hopping robot under FIRHC, write Figs. 4-8 and summary.json.")
-    parser.add_argument("--horizon", type=number(int, 1, 10), default=6, metavar="N",
+    parser.add_argument("--horizon", type=number(int, 1, 12), default=6, metavar="N",
                         help="prediction horizon (default 6)")
     parser.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs", help="search (default sdfs)")
+    parser.add_argument("--bound", action="store_true", help="sDFS with the admissible lower bound (docs/bounds.md)")
     parser.add_argument("--seconds", type=number(float, CONTROL_PERIOD, 60), default=2.0,
                         help="simulated time in s (default 2)")
     parser.add_argument("--out", default=os.path.join("out", "hopper"), metavar="DIR",
@@ -399,9 +425,10 @@ def run(args) -> int:
     jax.config.update("jax_enable_x64", True)
     params = hm.HopperParams()
     t0 = time.perf_counter()
-    loop, X = simulate(args.seconds, args.horizon, args.solver, params, progress=not args.no_progress, timed=True)
+    loop, X = simulate(args.seconds, args.horizon, args.solver, params, progress=not args.no_progress, timed=True,
+                       bound=args.bound)
     wall = time.perf_counter() - t0
-    summary = summarize(loop, X, args.horizon, args.solver, args.seconds, params, wall)
+    summary = summarize(loop, X, args.horizon, args.solver, args.seconds, params, wall, args.bound)
     figures(loop, X, params, args.out)
     with open(os.path.join(args.out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=2)

@@ -46,15 +46,15 @@ class InverterRun(NamedTuple):
 
 def closed_loop(horizon: int, solver: str = "sdfs", steps: int = 1600, lambda_u: float = 0.0,
                 params: model.InverterParams | None = None, method: str = "exact",
-                progress: bool = False) -> InverterRun:
+                progress: bool = False, bound: bool = False) -> InverterRun:
     """Run the FIRHC law for ``steps`` samples from the reference at t = 0 (V0 applied before).
 
     A Python loop over the jitted decision (``compiled=False``) so that every
     decision is timed; one warm-up decision compiles it first. Needs float64.
-    ``params`` defaults to ``model.InverterParams()``.
+    ``params`` defaults to ``model.InverterParams()``; ``bound``: with ``model.current_bound``.
     """
     params = params or model.InverterParams()
-    mem = model.make_problem(horizon, params, method)
+    mem = model.make_problem(horizon, params, method, bound)
     ctrl = fj.FIRHC(mem.problem, solver, observe=mem.observe)
     rl = model.make_plant(params)
     plant = jax.jit(lambda i, u, p: rl(i, u))  # the closed loop passes p to the plant too
@@ -189,6 +189,7 @@ def register(subparsers) -> None:
                    help="simulated fundamental cycles of 20 ms, rounded down to whole samples (default 2)")
     p.add_argument("--lambda-u", type=number(float, 0), default=1.0,
                    help="switching penalty in A^2 per leg change, charged against the previous input (default 1)")
+    p.add_argument("--bound", action="store_true", help="sDFS with the admissible lower bound (docs/bounds.md)")
     p.add_argument("--model", choices=model.DISCRETISATIONS, default="exact",
                    help="prediction model: exact zero-order hold (default) or forward Euler; the plant is exact")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -203,7 +204,7 @@ def run(args) -> int:
     if steps < 2:
         raise SystemExit(f"inverter: --cycles must cover at least two samples, got {args.cycles:g}")
     result = closed_loop(args.horizon, args.solver, steps, args.lambda_u, params, args.model,
-                         progress=not args.no_progress)
+                         progress=not args.no_progress, bound=args.bound)
     summary = summarize(result, args.horizon, args.solver, args.lambda_u, params, args.model)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

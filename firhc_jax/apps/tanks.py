@@ -45,6 +45,8 @@ def simulate(problem: fj.Problem, solver: str = "sdfs", steps: int = 100, levels
     """
     fallback = "unconstrained" if problem.terminal is not None else None
     ctrl = fj.FIRHC(problem, solver, fallback=fallback)
+    if fallback and problem.lower_bound is not None:  # the bound's +inf (box out of reach) needs the terminal set
+        ctrl._relaxed = ctrl._relaxed.replace(lower_bound=None)
     x0 = jnp.asarray(model.initial_state(levels))  # [5]
     if not timed:
         return ctrl.simulate(x0, steps, progress=progress), None
@@ -162,6 +164,7 @@ def register(subparsers) -> None:
     p.add_argument("--terminal-tol", type=number(float, 0, low_open=True), default=None,
                    help="terminal box half-width in m around the set point (default: none); steps where "
                         "it cannot be reached apply the unconstrained optimum")
+    p.add_argument("--bound", action="store_true", help="sDFS with the admissible lower bound (docs/bounds.md)")
     p.add_argument("--tolerance", type=number(float, 0, low_open=True), default=0.005,
                    help="settling band half-width in m (default 0.005)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -176,7 +179,7 @@ def run(args) -> int:
     if steps < 1:
         raise SystemExit(f"tanks: --seconds must be at least one sample ({params.ts:g} s), got {args.seconds:g}")
     problem = model.make_problem(args.horizon, params, switch_penalty=args.switch_penalty,
-                                 terminal_tol=args.terminal_tol)
+                                 terminal_tol=args.terminal_tol, bound=args.bound)
     loop, compile_s = simulate(problem, args.solver, steps, progress=not args.no_progress, timed=True)
     summary = summarize(loop, compile_s, problem, args.solver, params, tolerance=args.tolerance,
                         switch_penalty=args.switch_penalty, terminal_tol=args.terminal_tol)

@@ -115,7 +115,37 @@ def switching_cost(u, u_prev, p):
     return p["lambda_u"] * jnp.sum(jnp.abs(u - u_prev))
 
 
-def make_problem(horizon: int, params: InverterParams = InverterParams(), method: str = "exact") -> fj.InputMemory:
+def current_bound(horizon: int, params: InverterParams = InverterParams(), method: str = "exact"):
+    """Admissible ``lower_bound(x, steps_left, p)`` of the tracking cost (``docs/bounds.md``).
+
+    After l more steps from i, ``i(l) = a^l i + b sum_m a^(l-1-m) v_m`` with
+    every v in the hexagon of the switch states (circumradius 2 Vdc / 3), so
+    ``i(l)`` lies in ``a^l i`` plus that hexagon scaled by ``b (1 - a^l) / (1 - a)``:
+    the current moves at most about ``Vdc / L`` per sample towards its
+    reference. Each step's error is at least the distance from its
+    reference to that set (bounded below by the circle and the three slabs
+    of the hexagon); switching costs are left out (>= 0).
+    """
+    a, b = discretise(params, method)
+    radius = 2.0 * params.vdc / 3.0
+    normals = np.array([[math.cos(t), math.sin(t)] for t in (math.pi / 6, math.pi / 2, 5 * math.pi / 6)])  # [3, 2]
+
+    def lower_bound(x, steps_left, p):
+        l = jnp.arange(1, horizon + 1, dtype=x.dtype)  # noqa: E741  [N] steps ahead
+        decay = a ** l
+        scale = b * radius * (1.0 - decay) / (1.0 - a)  # [N] circumradius of the reachable hexagon
+        rows = jnp.clip(x[2].astype(jnp.int32) + jnp.arange(horizon), 0, horizon - 1)
+        d = p["ref"][rows] - decay[:, None] * x[None, :2]  # [N, 2] reference minus the free response
+        circle = jnp.sqrt(jnp.sum(d * d, axis=1)) - scale
+        slabs = jnp.max(jnp.abs(d @ jnp.asarray(normals.T, x.dtype)), axis=1) - scale * math.cos(math.pi / 6)
+        gap = jnp.where(l <= steps_left, jnp.maximum(jnp.maximum(circle, slabs), 0.0), 0.0)
+        return (1 - 1e-9) * jnp.sum(gap * gap)  # margin for the search's own rounding
+
+    return lower_bound
+
+
+def make_problem(horizon: int, params: InverterParams = InverterParams(), method: str = "exact",
+                 bound: bool = False) -> fj.InputMemory:
     """The FIRHC problem with its switching penalty, as ``(problem, observe)``.
 
     ``problem`` tracks ``p["ref"]`` ``[N, 2]`` over the horizon and charges
@@ -124,7 +154,8 @@ def make_problem(horizon: int, params: InverterParams = InverterParams(), method
     currents ``[2]`` (step counter 0). Use them as
     ``FIRHC(problem, observe=observe)`` with per-step parameters
     ``{"ref": [T, N, 2], "lambda_u": [T]}``. Each call makes new callables
-    (a new compilation): build the problem once per run.
+    (a new compilation): build the problem once per run. ``bound``: with
+    ``current_bound``.
     """
     plant = make_plant(params, method)
 
@@ -136,7 +167,9 @@ def make_problem(horizon: int, params: InverterParams = InverterParams(), method
         e_alpha, e_beta = ref[0] - x_next[0], ref[1] - x_next[1]
         return e_alpha * e_alpha + e_beta * e_beta
 
-    mem = fj.with_input_memory(fj.Problem(dynamics, SWITCH_STATES, stage_cost, horizon), switching_cost)
+    lower_bound = current_bound(horizon, params, method) if bound else None
+    mem = fj.with_input_memory(fj.Problem(dynamics, SWITCH_STATES, stage_cost, horizon, lower_bound=lower_bound),
+                               switching_cost)
 
     def observe(i, u_prev, p):
         return mem.observe(jnp.concatenate([i, jnp.zeros((1,), i.dtype)]), u_prev, p)

@@ -174,6 +174,23 @@ def make_plant(params: TankParams = TankParams()):
     return plant
 
 
+def level_steps(params: TankParams = TankParams()) -> np.ndarray:
+    """Largest rise and fall (m) of each level in one sample, ``[2, 3]`` (rows rise, fall; columns T1, T2, T3).
+
+    Each rate is a pump inflow plus Torricelli flows ``k sqrt(dh)``, the
+    largest coefficients of any mode, with ``dh`` at most the tank height plus
+    the drift ``2 dt R`` of an RK4 stage point (``R``: the largest rate), so
+    every stage rate, and their weighted mean, is bounded; clipping to
+    ``[0, height]`` only shortens a move.
+    """
+    q1, q2, k13, k32, k30 = mode_coefficients(params).max(axis=0)
+    dt = params.ts / params.substeps
+    R = max(q1, q2) + 2 * (k13 + k32 + k30) * np.sqrt(params.height)
+    root = np.sqrt(params.height + 4 * dt * R)  # twice the drift: covers R's own growth with the root
+    return params.ts * root * np.array([[q1 / root + k13, q2 / root + k32, k13 + k32],
+                                        [k13, k32, k32 + k30]])
+
+
 def pump_volume(mode: int, params: TankParams = TankParams()) -> float:
     """Volume (m^3) the pump delivers during one sample in ``mode``."""
     return float(mode_coefficients(params)[mode, :2].sum() * params.area * params.ts)
@@ -185,7 +202,7 @@ def initial_state(levels=INITIAL_LEVELS, mode: int = 0) -> np.ndarray:
 
 
 def make_problem(horizon: int, params: TankParams = TankParams(), set_point=SET_POINT,
-                 switch_penalty: float = 0.0, terminal_tol: float | None = None) -> fj.Problem:
+                 switch_penalty: float = 0.0, terminal_tol: float | None = None, bound: bool = False) -> fj.Problem:
     """The FIRHC problem: ``sum_i sum_tanks ((h - h_s) / 1 mm)^2 + switch_penalty * toggles``.
 
     Args:
@@ -195,6 +212,8 @@ def make_problem(horizon: int, params: TankParams = TankParams(), set_point=SET_
         0 disables it.
       terminal_tol: if given, the terminal set ``|h_i(k+N) - h_s,i| <= tol``
         (m) for all tanks, the paper's eq. (3) relaxed to a box.
+      bound: add the admissible lower bound of ``docs/bounds.md``: no level
+        moves faster than ``level_steps`` towards its set point.
 
     Levels are scored in mm so that costs are O(1)-O(1e4) numbers. Each call
     makes new callables (a new compilation): build the problem once per run.
@@ -221,5 +240,20 @@ def make_problem(horizon: int, params: TankParams = TankParams(), set_point=SET_
         def terminal(x):
             return jnp.all(jnp.abs(x[:3] - jnp.asarray(hs, x.dtype)) <= terminal_tol)
 
+    steps = level_steps(params)  # [2, 3] rise, fall per sample
+
+    def lower_bound(x, steps_left):
+        """Level errors of the coming steps can shrink by at most ``level_steps`` a step: their squares summed;
+        +inf where a level cannot enter the terminal box in time."""
+        gap = jnp.asarray(hs, x.dtype) - x[:3]  # [3] m, > 0: the level must rise
+        speed = jnp.where(gap > 0, jnp.asarray(steps[0], x.dtype), jnp.asarray(steps[1], x.dtype))
+        j = jnp.arange(1, horizon + 1, dtype=x.dtype)[:, None]  # [N, 1]
+        left = jnp.where(j <= steps_left, jnp.maximum(jnp.abs(gap) - j * speed, 0.0) * 1e3, 0.0)  # [N, 3] mm
+        value = (1 - 1e-9) * jnp.sum(left * left)  # margin for the search's own rounding
+        if terminal_tol is None:
+            return value
+        reach = jnp.all(jnp.abs(gap) - steps_left * speed <= terminal_tol)
+        return jnp.where(reach, value, jnp.inf)
+
     controls = np.arange(NUM_MODES, dtype=float)[:, None]  # [17, 1] mode indices
-    return fj.Problem(dynamics, controls, stage_cost, horizon, terminal)
+    return fj.Problem(dynamics, controls, stage_cost, horizon, terminal, lower_bound if bound else None)
