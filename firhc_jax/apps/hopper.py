@@ -175,8 +175,6 @@ def controller(params: hm.HopperParams, horizon: int, solver: str, bound: bool =
 
     ctrl = fj.FIRHC(problem(params, horizon, bound), solver, fallback="unconstrained", observe=observe,
                     actuate=actuate, **options)
-    if bound:  # the fallback drops the terminal set, so the bound's +inf (band out of reach) no longer holds there
-        ctrl._relaxed = ctrl._relaxed.replace(lower_bound=None)
     return ctrl
 
 

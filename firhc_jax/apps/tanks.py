@@ -45,8 +45,6 @@ def simulate(problem: fj.Problem, solver: str = "sdfs", steps: int = 100, levels
     """
     fallback = "unconstrained" if problem.terminal is not None else None
     ctrl = fj.FIRHC(problem, solver, fallback=fallback)
-    if fallback and problem.lower_bound is not None:  # the bound's +inf (box out of reach) needs the terminal set
-        ctrl._relaxed = ctrl._relaxed.replace(lower_bound=None)
     x0 = jnp.asarray(model.initial_state(levels))  # [5]
     if not timed:
         return ctrl.simulate(x0, steps, progress=progress), None
