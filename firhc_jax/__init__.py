@@ -10,10 +10,14 @@ Public API (see each object's docstring; notation in ``firhc_jax.problem``):
 * ``solve_batch``: many states (and parameter sets) at once, over all devices.
 * ``clear_cache``, ``set_cache_size``, ``cache_info``: the bounded cache of
   compiled searches.
+* ``check_problem``, ``check_lower_bound``: sampled checks of the promises
+  exactness rests on (non-negative costs, admissible bounds).
 """
 from .batch import solve_batch
+from . import diagnostics
 from .cache import cache_info, clear_cache, set_cache_size
 from .controller import FIRHC, ClosedLoop, InfeasibleError, InputMemory, with_input_memory
+from .diagnostics import check_lower_bound, check_problem
 from .exhaustive import exhaustive
 from .problem import Problem, quadratic_cost
 from .result import SearchResult
@@ -21,5 +25,5 @@ from .sdfs import sdfs
 
 __all__ = ["Problem", "quadratic_cost", "sdfs", "exhaustive", "SearchResult", "FIRHC", "ClosedLoop",
            "InfeasibleError", "InputMemory", "with_input_memory", "solve_batch", "clear_cache", "set_cache_size",
-           "cache_info"]
+           "cache_info", "check_problem", "check_lower_bound", "diagnostics"]
 __version__ = "0.2.0"
