@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 # Subcommand modules, in the order shown by --help.
@@ -15,8 +16,9 @@ _APPS = ("firhc_jax.apps.example", "firhc_jax.apps.hopper", "firhc_jax.apps.tank
 
 
 def build_parser() -> argparse.ArgumentParser:
+    invoked = os.path.basename(sys.argv[0])
     parser = argparse.ArgumentParser(
-        prog="python -m firhc_jax",
+        prog="python -m firhc_jax" if invoked in ("__main__.py", "-c", "") else invoked,
         description="Finite-input receding horizon control with exact sorted depth-first search (JAX).")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _APPS:

@@ -93,15 +93,15 @@ def run(args) -> int:
 
 
 def _plot(run, path):
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ._plot import subplots
 
     t = DT * np.arange(run.states.shape[0])
-    fig, (ax1, ax2, ax3) = plt.subplots(3, 1, sharex=True, figsize=(7, 6))
+    fig, (ax1, ax2, ax3) = subplots(3, 1, sharex=True, figsize=(7, 6))
     ax1.plot(t, run.states[:, 0], label="theta [rad]")
     ax1.plot(t, run.states[:, 1], label="omega [rad/s]")
+    ax1.set_ylabel("state")
+    ax1.set_title("Pendulum under FIRHC (sDFS): state, applied torque, nodes per decision")
     ax1.legend()
     ax2.step(t[:-1], run.inputs[:, 0], where="post")
     ax2.set_ylabel("torque [N m]")
@@ -110,4 +110,3 @@ def _plot(run, path):
     ax3.set_xlabel("time [s]")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)

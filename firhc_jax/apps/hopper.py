@@ -329,9 +329,7 @@ def summarize(loop: fj.ClosedLoop, X, horizon: int, solver: str, seconds: float,
 
 def figures(loop: fj.ClosedLoop, X, params: hm.HopperParams, out: str) -> list:
     """Write the PNG figures from the loop and its fine trajectory ``X``; returns their paths."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ._plot import subplots
 
     p, gait = params, hm.desired_energy(T_HOP, T_AIR, params)
     t = _times(X)
@@ -342,22 +340,21 @@ def figures(loop: fj.ClosedLoop, X, params: hm.HopperParams, out: str) -> list:
         path = os.path.join(out, f"hopper_{name}.png")
         fig.tight_layout()
         fig.savefig(path, dpi=110)
-        plt.close(fig)
         paths.append(path)
 
-    fig, ax = plt.subplots(figsize=(7, 3.5))
+    fig, ax = subplots(figsize=(7, 3.5))
     ax.plot(t, 100 * X[:, 0], label="body x")
     ax.plot(t, 100 * X[:, 2], ":", label="foot y")
     ax.set(xlabel="time (s)", ylabel="displacement (cm)", title="Fig. 4: displacements")
     ax.legend(loc="upper right")
     save(fig, "fig4_displacements")
 
-    fig, ax = plt.subplots(figsize=(5, 4.5))
+    fig, ax = subplots(figsize=(5, 4.5))
     ax.plot(X[:, 0], X[:, 1], lw=0.8)
     ax.set(xlabel="body position x (m)", ylabel="body velocity (m/s)", title="Fig. 5: velocity against position")
     save(fig, "fig5_phase")
 
-    fig, ax = plt.subplots(figsize=(7, 3.5))
+    fig, ax = subplots(figsize=(7, 3.5))
     ax.plot(t, X[:, 4] / 1e3, label="$P_a$")
     ax.plot(t, X[:, 5] / 1e3, ":", label="$P_b$")
     ax.set(xlabel="time (s)", ylabel="pressure (kPa abs.)", title="Fig. 6: chamber pressures")
@@ -369,7 +366,7 @@ def figures(loop: fj.ClosedLoop, X, params: hm.HopperParams, out: str) -> list:
     z = np.stack([stroke[i:j], rate[i:j], X[i:j, 4], X[i:j, 5]], axis=-1)  # [T, 4]
     E = np.asarray(hm.model_energy(z, p))
     E_d = np.asarray(hm.orbit_energy(z, liftoff_velocity(p), p))
-    fig, (a1, a2) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
+    fig, (a1, a2) = subplots(2, 1, figsize=(7, 5), sharex=True)
     a1.plot(tc, E, label="E, eq. (6)")
     a1.plot(tc, E_d, ":", label="desired: eq. (20) for the air in the chambers")
     a1.axhline(gait.E_d, color="gray", lw=0.8, ls="--", label=f"paper's constant E_d = {gait.E_d:.3f} J")
@@ -387,7 +384,7 @@ def figures(loop: fj.ClosedLoop, X, params: hm.HopperParams, out: str) -> list:
     k = np.minimum(np.arange(i, j) // SUBSTEPS, len(cmd) - 1)
     cmd_b = np.where(contact(X[i:j]), cmd[k, 1], 0.0)  # the command in force at each plant step
     mdot = np.asarray(hm.valve_flow(cmd_b, X[i:j, 5], p))
-    fig, ax = plt.subplots(figsize=(7, 3.5))
+    fig, ax = subplots(figsize=(7, 3.5))
     ax.plot(tc, 1e3 * mdot)
     ax.set(xlabel="time (s)", ylabel="mass flow into b (g/s)", title="Fig. 8: mass flow into chamber b")
     save(fig, "fig8_massflow")

@@ -140,15 +140,13 @@ def summarize(run: InverterRun, horizon: int, solver: str, lambda_u: float, para
 
 def plot(run: InverterRun, path: Path, params: model.InverterParams, title: str = "") -> None:
     """Phase currents against references (at most three cycles) and the spectrum of phase a with its THD."""
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ._plot import subplots
 
     shown = min(run.currents.shape[0], 3 * params.steps_per_cycle + 1)
     t = np.arange(shown) * params.ts * 1e3  # ms
     currents, refs = model.to_phases(run.currents[:shown]), model.to_phases(run.references[:shown])
-    fig, (ax_i, ax_s) = plt.subplots(2, 1, figsize=(9, 7), gridspec_kw={"height_ratios": [3, 2]})
+    fig, (ax_i, ax_s) = subplots(2, 1, figsize=(9, 7), gridspec_kw={"height_ratios": [3, 2]})
     for x, (name, c) in enumerate(zip("abc", ("tab:blue", "tab:orange", "tab:green"), strict=True)):
         ax_i.plot(t, currents[:, x], color=c, lw=0.8, label=f"$i_{name}$")
         ax_i.plot(t, refs[:, x], color="k", ls="--", lw=0.6)
@@ -171,7 +169,6 @@ def plot(run: InverterRun, path: Path, params: model.InverterParams, title: str 
         ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def register(subparsers) -> None:

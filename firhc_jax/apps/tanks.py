@@ -110,15 +110,13 @@ def summarize(loop: fj.ClosedLoop, compile_s: float | None, problem, solver: str
 def plot(loop: fj.ClosedLoop, path: Path, params: model.TankParams, set_point=model.SET_POINT,
          tolerance: float = 0.005, title: str = "") -> None:
     """Levels against set points, errors in mm (with the tolerance band) and the mode sequence beneath."""
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ._plot import subplots
 
     levels = np.asarray(loop.states)[:, :3]  # [T+1, 3]
     t = np.arange(levels.shape[0]) * params.ts  # [T+1]
     colors = ("tab:blue", "tab:orange", "tab:green")
-    fig, (ax_h, ax_e, ax_m) = plt.subplots(3, 1, figsize=(9, 9), sharex=True,
+    fig, (ax_h, ax_e, ax_m) = subplots(3, 1, figsize=(9, 9), sharex=True,
                                            gridspec_kw={"height_ratios": [3, 2, 3]})
     for i, c in enumerate(colors):
         ax_h.plot(t, levels[:, i], color=c, label=f"$h_{i + 1}$")
@@ -141,7 +139,6 @@ def plot(loop: fj.ClosedLoop, path: Path, params: model.TankParams, set_point=mo
         ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def register(subparsers) -> None:
