@@ -12,7 +12,7 @@ from firhc_jax.diagnostics import check_lower_bound
 from param_problems import SHAPES, as_jax, cases, cost_to_go, draw_params, dynamics, problem, same_cost, stage_cost, \
     terminal
 
-SETTINGS = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+SETTINGS = settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 @functools.lru_cache(maxsize=None)

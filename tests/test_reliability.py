@@ -19,7 +19,7 @@ def _shift(x, u):
 
 
 # 1. Infeasible never yields a real input, whatever the controls' dtype.
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.sampled_from([np.float32, np.float64, np.int32, np.bool_]), st.booleans(),
        st.lists(st.integers(0, 3), min_size=2, max_size=4, unique=True), st.floats(-2, 2))
 def test_every_control_dtype_gives_nan_when_infeasible_and_the_optimum_otherwise(dtype, reachable, values, x0):
