@@ -95,7 +95,7 @@ class Timing(NamedTuple):
     iterations: np.ndarray  # [S] loop iterations per state
 
 
-def variants(case: Case) -> dict[str, Callable]:
+def variants(case: Case, pop_widths=POP_WIDTHS) -> dict[str, Callable]:
     """name -> jitted ``fn(x, warm) -> SearchResult`` for every search compared."""
     import firhc_jax as fj
 
@@ -106,7 +106,7 @@ def variants(case: Case) -> dict[str, Callable]:
         "exhaustive dfs": lambda x, w: fj.exhaustive(p, x, method="dfs"),
         "exhaustive levels": lambda x, w: fj.exhaustive(p, x),
     }
-    for k in POP_WIDTHS[1:]:
+    for k in pop_widths[1:]:
         out[f"sdfs K={k}"] = lambda x, w, k=k: fj.sdfs(p, x, pop_width=k)
     return {name: jax.jit(fn) for name, fn in out.items()}
 
@@ -143,8 +143,8 @@ def subset(case: Case, max_nodes: float) -> np.ndarray:
 # Tables 2 and 3
 # ---------------------------------------------------------------------------
 
-def table_row(case: Case, repeats: int, max_es_nodes: float) -> dict:
-    fns = variants(case)
+def table_row(case: Case, repeats: int, max_es_nodes: float, pop_widths=POP_WIDTHS) -> dict:
+    fns = variants(case, pop_widths)
     every = np.arange(len(case.states))
     some = subset(case, max_es_nodes)
     full = {name: time_search(fn, case, every, repeats)
@@ -154,7 +154,7 @@ def table_row(case: Case, repeats: int, max_es_nodes: float) -> dict:
     tree = case.problem.tree_size()
     assert np.all(part["exhaustive levels"].nodes == tree) and np.all(part["exhaustive dfs"].nodes == tree)
     sd = full["sdfs"]
-    widths = {k: full["sdfs" if k == 1 else f"sdfs K={k}"].seconds for k in POP_WIDTHS}
+    widths = {k: full["sdfs" if k == 1 else f"sdfs K={k}"].seconds for k in pop_widths}
     best_k = min(widths, key=widths.get)
     S, s = len(every), len(some)
     return {
@@ -217,13 +217,14 @@ def run_tables(args) -> int:
     from ..progress import Progress
 
     plants = [p for p in ("hopper", "tanks") if p in args.plants]
-    todo = [(p, n) for p in plants for n in (HORIZONS[p][:2] if args.quick else HORIZONS[p])]
+    todo = [(p, n) for p in plants for n in (HORIZONS[p][:1] if args.quick else HORIZONS[p])]
     rows = []
     with Progress(len(todo), "tables") as bar:
         for i, (plant, n) in enumerate(todo):
             case = (hopper_case(n, 0.5 if args.quick else 2.0, args.bound) if plant == "hopper"
                     else tanks_case(n, 20.0 if args.quick else 200.0, args.bound))
-            rows.append(table_row(case, 1 if args.quick else args.repeats, args.max_es_nodes))
+            rows.append(table_row(case, 1 if args.quick else args.repeats, args.max_es_nodes,
+                                  POP_WIDTHS[:2] if args.quick else POP_WIDTHS))
             bar.update(i + 1)
     text = f"Measured on {machine()}, float64, {time.strftime('%Y-%m-%d')}.\n\n" + tables_markdown(rows, args.bound)
     _write(args.out, "tables-bound" if args.bound else "tables", text, rows)
