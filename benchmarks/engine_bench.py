@@ -44,9 +44,9 @@ def check(name, ref_cost, ref_seq, cost, seq, ref_nodes=None, nodes=None):
 
 def tank_states(problem, steps):
     """Controller states along the sDFS closed loop from the paper's initial levels."""
-    from firhc_jax.apps.tanks import closed_loop
+    from firhc_jax.apps.tanks import simulate
 
-    return closed_loop(problem, "sdfs", steps).states[:-1]
+    return np.array(simulate(problem, "sdfs", steps)[0].states[:-1])  # a writable NumPy copy for Numba
 
 
 def main(argv=None):
