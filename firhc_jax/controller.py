@@ -244,6 +244,7 @@ class FIRHC:
         u0 = jnp.zeros((m,), input_dtype(self.problem)) if u0 is None else jnp.asarray(u0, input_dtype(self.problem))
         if u0.shape != (m,):
             raise ValueError(f"u0 must be one input of shape ({m},), got {tuple(u0.shape)}")
+        default_plant = plant is None
         plant = plant or self.problem.dynamics
         if not callable(plant):
             raise TypeError(f"plant must be callable, got {type(plant).__name__}")
@@ -251,7 +252,8 @@ class FIRHC:
         pkey, _ = params_spec(p0)
         cached(("closed-loop check", self._key, plant if compiled else None, x0.shape, jnp.dtype(x0.dtype),
                 jnp.dtype(u0.dtype), pkey),
-               lambda: self._check_loop(plant if compiled else None, x0, u0, p0, params is not None) or True)
+               lambda: self._check_loop(plant if compiled else None, x0, u0, p0, params is not None,
+                                        default_plant) or True)
         with Progress(steps, f"FIRHC[{self.solver}]", enabled=progress):
             if compiled:
                 key = ("closed loop", self._key, plant, steps, progress)
@@ -265,13 +267,17 @@ class FIRHC:
                           RuntimeWarning, stacklevel=2)
         return out
 
-    def _check_loop(self, plant, x0, u0, p0, with_params):
+    def _check_loop(self, plant, x0, u0, p0, with_params, default_plant=False):
         """Check observe, actuate and (when traced) plant abstractly, each blamed by name."""
         def shape(fn, name, *args):
             try:
                 return jax.eval_shape(lambda p, *a: call(fn, p, *a), p0 if with_params else None, *args)
-            except (TypeError, ValueError) as e:
-                raise type(e)(f"{name} failed on the closed loop's shapes: {e}") from e
+            except (TypeError, ValueError, KeyError, IndexError, AttributeError) as e:
+                hint = ("; the default plant is the model's dynamics, which with observe set runs on model "
+                        "states: pass plant= with the plant's own dynamics") if default_plant and "plant" in name \
+                    else ""
+                cls = ValueError if isinstance(e, ValueError) else TypeError
+                raise cls(f"{name} failed on the closed loop's shapes: {type(e).__name__}: {e}{hint}") from e
 
         x = jax.ShapeDtypeStruct(x0.shape, x0.dtype)
         u = jax.ShapeDtypeStruct(u0.shape, u0.dtype)
@@ -289,7 +295,9 @@ class FIRHC:
             desc = f"shape {tuple(out.shape)} dtype {out.dtype}" if isinstance(out, jax.ShapeDtypeStruct) \
                 else type(out).__name__
             raise TypeError(f"plant(x, u[, p]) must return the next plant state, shape {tuple(x.shape)} dtype "
-                            f"{x.dtype} like x0; got {desc}")
+                            f"{x.dtype} like x0; got {desc}"
+                            + ("; the default plant is the model's dynamics: with observe set, pass plant="
+                               if default_plant and self.observe is not None else ""))
 
     def _decide(self, x, u_prev, previous, p):
         """One decision from plant state ``x``: ``(u, u_plant, sequence, record)``

@@ -2,13 +2,30 @@
 import re
 from pathlib import Path
 
+import jax.numpy as jnp
+
+
+def _blocks():
+    text = (Path(__file__).parent.parent / "README.md").read_text()
+    return re.findall(r"```python\n(.*?)```", text, re.S)
+
 
 def test_readme_api_tour_runs():
-    text = (Path(__file__).parent.parent / "README.md").read_text()
-    block = re.search(r"```python\n(.*?)```", text, re.S).group(1)
     namespace = {}
-    exec(compile(block, "README.md", "exec"), namespace)
+    exec(compile(_blocks()[0], "README.md", "exec"), namespace)
     best, ref, run = namespace["best"], namespace["ref"], namespace["run"]
     assert float(best.cost) == float(ref.cost)
     assert int(ref.nodes) == namespace["problem"].tree_size()
     assert run.states.shape == (81, 2)
+    rt = namespace["rt"]  # the budgeted search: complete exactly when the full search fits the budget
+    assert int(rt.nodes) <= 500 and bool(rt.complete) == (int(best.nodes) <= 500)
+
+
+def test_readme_parameter_and_switching_snippets_run():
+    """The tour's names, then the parameter and switching-penalty snippets, as written."""
+    namespace = {}
+    for i, block in enumerate(_blocks()[:3]):
+        exec(compile(block, f"README.md block {i}", "exec"), namespace)
+    run = namespace["run"]  # the switching-penalty closed loop
+    assert run.states.shape == (81, 2) and run.inputs.shape == (80, 1)
+    assert not bool(jnp.any(jnp.isnan(run.inputs)))
