@@ -21,7 +21,8 @@ def strong(a) -> jax.Array:
     """``a`` as a JAX array without weak type: a weakly typed array (from a
     Python scalar, ``jnp.full(n, 0.2)``) would compile a second search for the
     same shapes and dtypes."""
-    a = jnp.asarray(a)
+    if not isinstance(a, jax.Array):
+        a = jnp.asarray(a)
     return jnp.asarray(a, a.dtype) if a.weak_type else a
 
 

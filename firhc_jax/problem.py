@@ -104,6 +104,8 @@ class Problem:
                              "stack grow with N and N^2")
         object.__setattr__(self, "horizon", horizon)
         object.__setattr__(self, "controls", _check_controls(self.controls))
+        object.__setattr__(self, "_key", (self.dynamics, self.stage_cost, self.horizon, self.terminal,
+                                          self.lower_bound, _ControlsKey(self.controls)))
 
     # -- sizes -------------------------------------------------------------
     @property
@@ -127,9 +129,9 @@ class Problem:
 
     @property
     def key(self) -> tuple:
-        """Hashable identity of what a compiled search depends on."""
-        return (self.dynamics, self.stage_cost, self.horizon, self.terminal, self.lower_bound,
-                _ControlsKey(self.controls))
+        """Hashable identity of what a compiled search depends on (fixed at
+        construction, like every field; also the pytree's static data)."""
+        return self._key
 
     # -- pytree (static: everything is auxiliary data) -------------------------
     def tree_flatten(self):
@@ -140,7 +142,8 @@ class Problem:
         obj = object.__new__(cls)  # already validated
         dynamics, stage_cost, horizon, terminal, lower_bound, key = aux
         for name, value in (("dynamics", dynamics), ("controls", key.array), ("stage_cost", stage_cost),
-                            ("horizon", horizon), ("terminal", terminal), ("lower_bound", lower_bound)):
+                            ("horizon", horizon), ("terminal", terminal), ("lower_bound", lower_bound),
+                            ("_key", aux)):
             object.__setattr__(obj, name, value)
         return obj
 

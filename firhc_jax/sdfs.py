@@ -107,13 +107,15 @@ def check_memory(need: int, max_memory, what: str) -> int:
     return max_memory
 
 
-def node_budget(max_nodes) -> jax.Array:
-    """``max_nodes`` (None: unlimited) as a traced int32, so budgets never recompile."""
+def node_budget(max_nodes):
+    """``max_nodes`` (None: unlimited) as an int32 argument of the compiled
+    search (traced, so budgets never recompile; a NumPy scalar costs no device
+    array per call)."""
     if max_nodes is None:
-        return jnp.array(INT32_MAX, jnp.int32)
+        return np.int32(INT32_MAX)
     if is_tracer(max_nodes):
         return jnp.asarray(max_nodes, jnp.int32)
-    return jnp.array(min(positive_int("max_nodes", max_nodes), INT32_MAX), jnp.int32)
+    return np.int32(min(positive_int("max_nodes", max_nodes), INT32_MAX))
 
 
 def _descending_order(key, keep):
