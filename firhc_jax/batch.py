@@ -334,8 +334,7 @@ def _pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_w
         ok = parent_alive & ~ch.bad.reshape(S, L)
 
         # Leaves: each slot's cheapest feasible leaf may improve its row's incumbent.
-        cand, leaf, improve = best_leaf(ch._replace(terminal_ok=ch.terminal_ok.reshape(S, L), cost=cost), ok,
-                                        (child_depth == N)[:, None], best)
+        cand, leaf, improve = best_leaf(cost, ch.terminal_ok.reshape(S, L), ok, (child_depth == N)[:, None], best)
         new_cost = rows.cost.at[jnp.where(improve, row, B)].min(cand, mode="drop")
         winner = improve & (cand == incumbent(rows._replace(cost=new_cost), row))
         path = rows.path.at[jnp.where(winner, row, B)].set(

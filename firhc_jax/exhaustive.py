@@ -122,8 +122,7 @@ def _exhaustive(problem: Problem, x0, params, *, chunk_nodes: int) -> SearchResu
         best_cost, best_leaf_index, nodes, flags = carry
         k, x, c, ok = inp
         lx, lc, lok, n_, f_ = _descend(problem, x, c, ok, params, split, N - split, leaf_level=split < N)
-        ch = _Leaves(cost=lc, terminal_ok=jnp.ones_like(lok))
-        cost, i, improve = best_leaf(ch, lok, True, best_cost)
+        cost, i, improve = best_leaf(lc, True, lok, True, best_cost)  # lok already holds the terminal test
         return (jnp.where(improve, cost, best_cost),
                 jnp.where(improve, k * chunk * sub + i, best_leaf_index),
                 nodes + n_, flags | f_), None
@@ -137,13 +136,6 @@ def _exhaustive(problem: Problem, x0, params, *, chunk_nodes: int) -> SearchResu
     digits = (best_index // weights) % M
     levels_called = split + chunks * (N - split)
     return finish(problem, best_cost, digits, nodes, jnp.array(levels_called, jnp.int32), flags, True)
-
-
-class _Leaves(NamedTuple):
-    """A flat leaf level seen through ``best_leaf``'s interface."""
-
-    cost: jax.Array  # [L]
-    terminal_ok: jax.Array  # [L]
 
 
 def exhaustive(problem: Problem, x0, *, params=None, method: str = "levels",

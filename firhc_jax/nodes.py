@@ -78,15 +78,14 @@ def first_min(a):
     return low, jnp.minimum(first, a.shape[-1] - 1)
 
 
-def best_leaf(ch: Children, usable, is_leaf, incumbent):
+def best_leaf(cost, terminal_ok, usable, is_leaf, incumbent):
     """The one rule for leaves: the cheapest usable feasible leaf (first in
     order among equal costs) improves the incumbent when strictly cheaper.
-    ``usable``, ``is_leaf``: ``[..., L]`` over flattened children. Returns
-    ``(cost, index, improves)``."""
-    shape = usable.shape
-    leaf_cost = jnp.where(usable & ch.terminal_ok.reshape(shape) & is_leaf, ch.cost.reshape(shape), jnp.inf)
-    cost, i = first_min(leaf_cost)
-    return cost, i, cost < incumbent
+    ``cost``, ``terminal_ok``, ``usable``: ``[..., L]`` over flattened
+    children; ``is_leaf`` broadcasts to them. Returns ``(cost, index, improves)``."""
+    leaf_cost = jnp.where(usable & terminal_ok & is_leaf, cost, jnp.inf)
+    low, i = first_min(leaf_cost)
+    return low, i, low < incumbent
 
 
 def rollout_cost(problem: Problem, x0, sequence, cost_dtype, params=None):

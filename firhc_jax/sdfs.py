@@ -181,7 +181,7 @@ def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int,
         ok = (alive[:, None] & ~ch.bad).reshape(L)
         cost, key = ch.cost.reshape(L), ch.key.reshape(L)
 
-        leaf_cost, i, improve = best_leaf(ch, ok, child_depth == N, c.best_cost)
+        leaf_cost, i, improve = best_leaf(cost, ch.terminal_ok.reshape(L), ok, child_depth == N, c.best_cost)
         best_cost = jnp.where(improve, leaf_cost, c.best_cost)
         best_path = jnp.where(improve, ppath[parent[i]].at[N - 1].set(modes[i]), best_path)
 
