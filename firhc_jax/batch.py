@@ -12,20 +12,25 @@ the pool gathers each node's row of ``params`` before expanding it.
 The work pool (``solver="sdfs"``, the default). A plain ``jax.vmap`` of
 ``fj.sdfs`` runs every row's loop until the slowest row finishes, so with node
 counts that differ 10x or more between rows most lanes idle. Instead each
-device keeps a pool of ``lanes`` slots. A slot holds one sDFS stack: at most
-one live peer batch per depth, as in ``fj.sdfs``, so it stores at most
-``(N - 1) K M`` nodes. Every iteration each slot pops the K next nodes of its
-deepest live batch (cheapest first) and the children of all slots come from
-one call of ``expand``: ``lanes * K * M`` children per iteration. A slot whose
+device keeps a pool of ``lanes`` slots. A slot holds one sDFS stack
+(``firhc_jax.stack``, the store of ``fj.sdfs``, vmapped over the slots).
+Every iteration each slot pops the K next nodes of its deepest live batch
+(cheapest first) and the children of all slots come from one call of
+``expand``: ``lanes * K * M`` children per iteration. A slot whose
 row is done takes the next row's root; once every row has started, an idle
 slot steals the next node of the shallowest live batch below a busy slot's
 top batch, so the last and largest searches are spread over all lanes. Each node carries its row
 and is pruned against that row's incumbent, shared by every slot working on
 the row: exact per row by the argument of ``fj.sdfs`` (non-negative stage
 costs), applied to each subtree. A row that is never stolen from is searched
-in ``fj.sdfs``'s order, node for node.
+in ``fj.sdfs``'s order, node for node (``lanes=1`` never steals).
 
-Memory. The pool stores ``lanes * (N - 1) * K * M`` nodes whatever B is, plus
+One iteration is ``expand_and_store`` then ``plan`` and ``take``: the nodes
+of the next iteration are taken out right after the stores, so that the
+stacks are written, then read (XLA then updates them in place).
+``iterations`` of a row counts the slot-iterations spent on it.
+
+Memory. The pool stores ``lanes * (N + 1) * K * M`` nodes whatever B is, plus
 ``n + N + 5`` numbers per row (``pool_memory``, ``pool_row_memory``); the
 vmapped solvers need ``row_memory`` per row. A batch that would exceed
 ``max_memory`` bytes is solved in chunks of rows (``lax.map``), and a pool or
@@ -42,7 +47,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Any, Callable, NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -53,11 +58,13 @@ from .cache import compiled
 from .checks import check_params, check_state, cost_dtype, strong
 from .exhaustive import DEFAULT_CHUNK_NODES
 from .exhaustive import memory as exhaustive_memory
-from .nodes import NEGATIVE, NONFINITE, OVERFLOW, best_leaf, expand, first_min
+from . import stack as stacks
+from .nodes import NEGATIVE, NONFINITE, OVERFLOW, SearchStats, best_leaf, expand, no_stats, tally
 from .problem import Problem, positive_int, refuse_differentiation
 from .result import SearchResult, finish, raise_on_errors
 from .sdfs import _search as sdfs_search
 from .sdfs import node_budget, stack_memory
+from .stack import Popped, Stack
 
 SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
 DEFAULT_MAX_MEMORY = 1 << 30  # bytes
@@ -111,64 +118,52 @@ def _rows_per_chunk(need: int, batch: int, max_memory: int, what: str) -> int:
 # The shared work pool.
 # ---------------------------------------------------------------------------
 
-class _Pool(NamedTuple):
-    """S slots, each holding one sDFS stack stored by depth: at most one live
-    peer batch per depth (as in ``fj.sdfs``), so the batch of depth t has a
-    fixed place, level t - 1. A batch is stored as expanded (unsorted) and
-    never rewritten: nodes leave it in pop order, cheapest first (ties: lowest
-    index, the order of ``fj.sdfs``), and each level only keeps the cost and
-    index of its next node. A batch is live while that cost is below the row's
-    incumbent, so pruning the rest of a batch costs nothing. Node i of the
-    batch of depth d + 1 is input ``i % M`` applied to the ``i // M``-th node
-    popped at depth d, whose path is kept in ``paths``."""
-
-    x: jax.Array  # [S, N-1, L, n] level t: the batch of depth t + 1
-    cost: jax.Array  # [S, N-1, L] keys as expanded: cost (+ lower bound, if any); +inf: discarded
-    g: Any  # [S, N-1, L] accumulated costs, only with a lower bound (else ``cost`` is the cost); None
-    next_cost: jax.Array  # [S, N-1] key of each batch's next node in pop order (+inf: none)
-    next_idx: jax.Array  # [S, N-1] int32 its index in the batch
-    paths: jax.Array  # [S, N, K, N] int32 [:, d, j]: inputs leading to the j-th node popped at depth d
-    row: jax.Array  # [S] int32 row the slot works on (B: none)
-
-
-class _Rows(NamedTuple):
+class Rows(NamedTuple):
     """Per-row incumbents and counters, shared by every slot working on a row."""
 
     cost: jax.Array  # [B] incumbent cost (+inf: none yet)
     path: jax.Array  # [B, N] int32 incumbent sequence
-    counts: jax.Array  # [B, 6] int32 nodes, slot-iterations, negative stage costs, non-finite, overflow, cut
-    #                    (cut: live nodes dropped because the row's node budget ran out)
+    stats: SearchStats  # [B] fields: nodes, slot-iterations and error flags of each row
+    cut: jax.Array  # [B] int32 times a slot dropped live nodes because the row's node budget ran out
 
 
-class _Plan(NamedTuple):
-    """What each slot expands next, decided from per-slot and per-level
-    scalars only. Deciding and expanding are pipelined through the loop carry
-    (the plan for iteration i + 1 is made at the end of iteration i): the big
-    node arrays are then read at the start of an iteration, before they are
-    updated in place, and the plan reaches the per-node work as materialised
-    buffers. Otherwise XLA:CPU copies the node arrays every iteration and
-    recomputes the plan's derivation (~100 ops) inside every per-node fusion
-    (measured: 2.1e7 -> 2.6e7 nodes/s on the synthetic plant, 256 lanes)."""
+class Pool(NamedTuple):
+    """S slots, each an sDFS stack (``firhc_jax.stack``, rows 1 .. N - 1 used;
+    row N takes leaf batches) working on one row of the batch."""
 
-    depth: jax.Array  # [S] int32 depth of the nodes to expand (-1: nothing to do)
-    level: jax.Array  # [S] int32 pop the next K nodes of this level's batch (-1: no)
-    root: jax.Array  # [S] int32 expand this row's root (-1: no)
-    victim: jax.Array  # [S] int32 expand the next node of this slot's robbed batch (-1: no)
-    robbed: jax.Array  # [S] int32 level whose next node a thief takes (-1: none)
+    stack: Stack  # [S, ...] fields
+    row: jax.Array  # [S] int32 row of the batch each slot works on (B: none)
+
+
+class Work(NamedTuple):
+    """What each slot expands in the next iteration (taken out of the stacks
+    at the end of the previous one, so that the stacks are written, then read,
+    within an iteration: XLA updates them in place)."""
+
+    popped: Popped  # [S, K] fields: the nodes, cheapest first
+    alive: jax.Array  # [S, K] bool to expand (below the row's incumbent)
+    depth: jax.Array  # [S] int32 depth of the nodes (-1: the slot is idle)
+
+
+class Plan(NamedTuple):
+    """Where each slot's next nodes come from."""
+
+    own: jax.Array  # [S] int32 pop K nodes of this row of the slot's own stack (-1: no)
+    root: jax.Array  # [S] int32 start this row of the batch: expand its root (-1: no)
+    victim: jax.Array  # [S] int32 steal one node from this slot (-1: no)
+    robbed: jax.Array  # [S] int32 row of this slot's stack that a thief takes a node from (-1: none)
+    depth: jax.Array  # [S] int32 depth of the nodes the slot expands (-1: none)
 
 
 def pool_capacity(problem: Problem, lanes: int, pop_width: int = 1) -> int:
-    """Nodes the pool stores: ``lanes * (N - 1) * K * M``, whatever B is."""
-    return lanes * (problem.horizon - 1) * pop_width * problem.num_controls
+    """Nodes the pool stores: ``lanes`` stacks of ``(N + 1) K M`` nodes, whatever B is."""
+    return lanes * (problem.horizon + 1) * pop_width * problem.num_controls
 
 
 def pool_memory(problem: Problem, n: int, itemsize: int, lanes: int, pop_width: int = 1) -> int:
-    """Estimated peak bytes of the pool: its stored nodes (n + 1 numbers each)
-    and one iteration's ``lanes * K * M`` children (n + 4), twice for the
-    loop's buffers."""
-    children = lanes * pop_width * problem.num_controls
-    per_node = n + (2 if problem.lower_bound is not None else 1)
-    return itemsize * 2 * (pool_capacity(problem, lanes, pop_width) * per_node + children * (n + 4))
+    """Estimated peak bytes of the pool: ``lanes`` sDFS stacks (``fj.sdfs``'s
+    ``stack_memory`` each)."""
+    return lanes * stack_memory(problem, n, itemsize, pop_width)
 
 
 def pool_row_memory(problem: Problem, n: int, itemsize: int, param_bytes: int = 0) -> int:
@@ -177,204 +172,151 @@ def pool_row_memory(problem: Problem, n: int, itemsize: int, param_bytes: int = 
     return itemsize * (n + problem.horizon + 7) + param_bytes
 
 
-def _next_after(batch, cost, idx):
-    """The node of ``batch`` ``[S, L]`` that follows ``(cost, idx)`` in pop
-    order (cost, then index): its ``(cost, index)``, cost +inf if none."""
-    i = jnp.arange(batch.shape[-1], dtype=jnp.int32)
-    after = (batch > cost[:, None]) | ((batch == cost[:, None]) & (i > idx[:, None]))
-    return first_min(jnp.where(after, batch, jnp.inf))
+def incumbent(rows: Rows, row):
+    """Incumbent cost of each slot's row (+inf for no row)."""
+    return rows.cost.at[row].get(mode="fill", fill_value=jnp.inf)
 
 
-def _take(a, i):
-    """``a[s, i[s], ...]`` for every slot s: ``a`` ``[S, D, ...]``, ``i`` ``[S]``."""
-    return jnp.take_along_axis(a, i.reshape(i.shape + (1,) * (a.ndim - 1)), axis=1)[:, 0]
+def plan(pool: Pool, rows: Rows, head, n_valid, limit) -> tuple[Pool, Rows, jax.Array, Plan]:
+    """Each slot's next nodes: the K next nodes of its deepest live batch. A
+    slot with none takes the next row's root (``head``: the first row not yet
+    started) or, once every row has started, steals the next node of the
+    shallowest live batch below another slot's deepest one (exact: the row's
+    incumbent is shared). A row whose node count passed ``limit`` is not
+    expanded further. Returns the pool with re-assigned slots emptied."""
+    S, D = pool.row.shape[0], pool.stack.low.shape[1]
+    B = rows.cost.shape[0]
+    depths = jnp.arange(D, dtype=jnp.int32)
+    live = pool.stack.low < incumbent(rows, pool.row)[:, None]  # [S, D]
+    spent = rows.stats.nodes.at[pool.row].get(mode="fill", fill_value=0) > limit  # [S] the row's budget is out
+    rows = rows._replace(cut=rows.cut.at[jnp.where(spent & jnp.any(live, axis=1), pool.row, B)].add(1, mode="drop"))
+    live = live & ~spent[:, None]
+    top = jnp.max(jnp.where(live, depths, -1), axis=1)  # [S] deepest live batch
+    free = top < 0
+    stealable = live & (depths < top[:, None])
+    can = jnp.any(stealable, axis=1)
+    ranks = jnp.cumsum(jnp.stack([free, can]), axis=1, dtype=jnp.int32) - 1  # one scan for both
+    free_rank, can_rank = ranks[0], ranks[1]
+    root = jnp.where(free & (head + free_rank < n_valid), head + free_rank, -1)
+    # Free slots left without a row are thieves; the i-th thief robs the i-th slot that can be robbed.
+    t_rank = free_rank - (n_valid - head)
+    steals = free & (t_rank >= 0) & (t_rank < jnp.sum(can, dtype=jnp.int32))
+    by_rank = jnp.zeros((S,), jnp.int32).at[jnp.where(can, can_rank, S)].set(jnp.arange(S, dtype=jnp.int32),
+                                                                              mode="drop")
+    victim = jnp.where(steals, by_rank[jnp.clip(t_rank, 0, S - 1)], -1)
+    shallowest = jnp.argmax(stealable, axis=1).astype(jnp.int32)
+    robbed = jnp.where(can & (can_rank < jnp.sum(free, dtype=jnp.int32) - (n_valid - head)), shallowest, -1)
+    v = jnp.maximum(victim, 0)
+    row = jnp.where(steals, pool.row[v], jnp.where(root >= 0, root, pool.row))
+    depth = jnp.where(top >= 0, top, jnp.where(root >= 0, 0, jnp.where(steals, shallowest[v], -1)))
+    # A slot that changes row starts empty: its batches were pruned against the old row.
+    low = jnp.where((row != pool.row)[:, None], jnp.inf, pool.stack.low)
+    pool = Pool(stack=pool.stack._replace(low=low), row=row)
+    head = jnp.minimum(head + jnp.sum(free, dtype=jnp.int32), n_valid)
+    return pool, rows, head, Plan(own=top, root=root, victim=victim, robbed=robbed, depth=depth)
 
 
-def _put(a, i, v):
-    """``a`` with ``a[s, i[s]] = v[s]``: ``a`` ``[S, D, ...]``; ``i[s]`` outside
-    ``[0, D)`` leaves slot s unchanged."""
-    at = jnp.arange(a.shape[1]) == i[:, None]
-    return jnp.where(at.reshape(at.shape + (1,) * (a.ndim - 2)), jnp.expand_dims(v, 1), a)
+def take(pool: Pool, rows: Rows, todo: Plan, X, K: int) -> tuple[Pool, Work]:
+    """Take the planned nodes out of the stacks: each slot's own K, the
+    roots of new rows, and the nodes thieves take from their victims."""
+    pop = jax.vmap(stacks.pop, in_axes=(0, 0, None))
+    stack, popped = pop(pool.stack, todo.own, K)  # [S, K]
+    stack, given = pop(stack, todo.robbed, 1)  # [S, 1]: the node each robbed slot hands over
+    first = (jnp.arange(K) == 0)[None, :]  # [1, K]
+    inf = jnp.full_like(popped.key, jnp.inf)
+    is_root, thief = (todo.root >= 0)[:, None], (todo.victim >= 0)[:, None]
+    v = jnp.maximum(todo.victim, 0)
+
+    def pick(mine, root, stolen):  # [S, K, ...]: the slot's own nodes, or first a root or a stolen node
+        shape = mine.shape[:2] + (1,) * (mine.ndim - 2)
+        out = jnp.where((is_root & first).reshape(shape), root[:, None], mine)
+        return jnp.where((thief & first).reshape(shape), stolen[:, None], out)
+
+    root_x = X[jnp.maximum(todo.root, 0)].astype(popped.x.dtype)
+    no_path = jnp.full(popped.path.shape[::2], -1, jnp.int32)  # [S, N]
+    popped = Popped(x=pick(popped.x, root_x, given.x[v, 0]),
+                    cost=pick(popped.cost, jnp.zeros_like(popped.cost[:, 0]), given.cost[v, 0]),
+                    key=pick(jnp.where(is_root | thief, inf, popped.key), jnp.zeros_like(popped.key[:, 0]),
+                             given.key[v, 0]),
+                    path=pick(popped.path, no_path, given.path[v, 0]))
+    alive = popped.key < incumbent(rows, pool.row)[:, None]
+    return pool._replace(stack=stack), Work(popped=popped, alive=alive, depth=todo.depth)
 
 
-def _materialised(pred, fn, *args):
-    """``fn(*args)`` with its outputs materialised before any use. XLA:CPU fuses
-    cheap producers into each consumer, recomputing them per element (here a
-    ~100-op per-slot derivation inside every per-node fusion: 2.6e7 -> 2.9e7
-    nodes/s on the synthetic plant, 256 lanes), and drops
-    ``lax.optimization_barrier`` before fusing; the outputs of a conditional
-    are always materialised. Both branches are ``fn``: ``pred`` only has to be
-    a traced (not constant) boolean."""
-    return jax.lax.cond(pred, fn, lambda *a: fn(*a), *args)
+def expand_and_store(problem: Problem, pool: Pool, rows: Rows, work: Work, params) -> tuple[Pool, Rows]:
+    """Expand every slot's nodes in one call of ``expand``; each slot's
+    cheapest feasible leaf may improve its row's incumbent; the other children
+    are pushed as the slot's batch one depth below (pruned lazily, when
+    popped)."""
+    N, M = problem.horizon, problem.num_controls
+    (S, K, n), B = work.popped.x.shape, rows.cost.shape[0]
+    L, row, depth = K * M, pool.row, work.depth + 1  # depth of the children
+    p_nodes = jax.tree_util.tree_map(lambda a: jnp.repeat(a[jnp.minimum(row, B - 1)], K, axis=0), params)
+    ch = expand(problem, work.popped.x.reshape(S * K, n), work.popped.cost.reshape(S * K), p_nodes,
+                steps_left=jnp.repeat(N - depth, K), check_terminal=problem.terminal is not None,
+                params_batched=True)
+    ch = jax.tree_util.tree_map(lambda a: a.reshape((S, K) + a.shape[1:]), ch)  # [S, K, M, ...]
+    ok = (work.alive[..., None] & ~ch.bad).reshape(S, L)
+    cost, key = ch.cost.reshape(S, L), ch.key.reshape(S, L)
+
+    best = incumbent(rows, row)
+    cand, leaf, improve = best_leaf(cost, ch.terminal_ok.reshape(S, L), ok, (depth == N)[:, None], best)
+    new_cost = rows.cost.at[jnp.where(improve, row, B)].min(cand, mode="drop")
+    winner = improve & (cand == new_cost.at[row].get(mode="fill", fill_value=jnp.inf))
+    paths = jax.vmap(stacks.child_paths, in_axes=(0, 0, None))(work.popped.path, work.depth, M)  # [S, L, N]
+    path = rows.path.at[jnp.where(winner, row, B)].set(jnp.take_along_axis(paths, leaf[:, None, None], 1)[:, 0],
+                                                      mode="drop")
+
+    keep = ok & (depth < N)[:, None]
+    put = jnp.where(work.depth >= 0, depth, N)  # idle slots write nothing live into the leaf row
+    stack = jax.vmap(stacks.push)(pool.stack, put, ch.x.reshape(S, L, n).astype(work.popped.x.dtype), cost,
+                                  jnp.where(keep, key, jnp.inf), work.popped.path)
+    slot_stats = jax.vmap(lambda c, a: tally(no_stats(), c, a))(ch, work.alive)
+    at = jnp.where(work.depth >= 0, row, B)
+    stats = SearchStats(nodes=rows.stats.nodes.at[at].add(slot_stats.nodes, mode="drop"),
+                        iterations=rows.stats.iterations.at[at].add(slot_stats.iterations, mode="drop"),
+                        flags=rows.stats.flags | _scatter_or(B, at, slot_stats.flags))
+    return pool._replace(stack=stack), rows._replace(cost=new_cost, path=path, stats=stats)
 
 
-def _node_paths(paths, depth, idx, M: int):
-    """Paths ``[S, ..., N]`` of nodes ``idx`` ``[S, ...]`` of each slot's batch of
-    depth ``depth`` ``[S]`` (1..N; N: the children expanded this iteration)."""
-    parent = jnp.take_along_axis(_take(paths, depth - 1), (idx // M).reshape(idx.shape[0], -1)[..., None], axis=1)
-    parent = parent.reshape(idx.shape + (paths.shape[-1],))
-    at = jnp.arange(paths.shape[-1]) == (depth - 1).reshape((-1,) + (1,) * idx.ndim)
-    return jnp.where(at, (idx % M)[..., None], parent)
+def _scatter_or(size: int, at, bits):
+    """``out[i]`` = the bitwise or of ``bits[j]`` over ``at[j] == i`` (flags of NEGATIVE | NONFINITE | OVERFLOW)."""
+    out = jnp.zeros((size,), jnp.int32)
+    for bit in (NEGATIVE, NONFINITE, OVERFLOW):
+        out = out | jnp.zeros((size,), jnp.int32).at[at].max(bits & bit, mode="drop")
+    return out
 
 
-def _pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_width: int,
-                 steal: bool) -> SearchResult:
+def _pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_width: int) -> SearchResult:
     """Exact sDFS of rows ``X[:n_valid]`` of ``[B, n]`` (with ``params[b]``
     for row b) on a pool of ``lanes`` slots (see ``solve_batch``). A row whose
     node count exceeds ``budget - K M`` is not expanded further. Returns a
     batched result."""
     N, M, K, S = problem.horizon, problem.num_controls, pop_width, lanes
-    (B, n), L = X.shape, K * M
+    B = X.shape[0]
     dtype = cost_dtype(problem, X[0], params, batched_params=True)
-    bounded = problem.lower_bound is not None
-    limit = budget - L
-    inf = jnp.array(jnp.inf, dtype)
-    levels = jnp.arange(N - 1, dtype=jnp.int32)
-    first = jnp.arange(K) == 0  # [K]
+    limit = budget - K * M
+    one = stacks.init(N + 1, K, M, N, X[0], dtype)
+    pool = Pool(stack=jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (S,) + a.shape), one)._replace(
+        low=jnp.full((S, N + 1), jnp.inf, dtype)), row=jnp.full((S,), B, jnp.int32))
+    zeros = jnp.zeros((B,), jnp.int32)
+    rows = Rows(cost=jnp.full((B,), jnp.inf, dtype), path=jnp.full((B, N), -1, jnp.int32),
+                stats=SearchStats(nodes=zeros, iterations=zeros, flags=zeros), cut=zeros)
 
-    def incumbent(rows, row):
-        return rows.cost.at[row].get(mode="fill", fill_value=jnp.inf)
-
-    def plan(pool: _Pool, rows: _Rows, head):
-        """Each slot's next nodes: the K next nodes of its deepest live batch;
-        a free slot takes the next row's root or, once every row has started,
-        the next node of the shallowest live batch below another slot's top
-        batch (exact: the row's incumbent is shared)."""
-        live = pool.next_cost < incumbent(rows, pool.row)[:, None]  # [S, N-1]
-        spent = rows.counts.at[pool.row, 0].get(mode="fill", fill_value=0) > limit  # [S] row's budget is out
-        cut = spent & jnp.any(live, axis=1)
-        rows = rows._replace(counts=rows.counts.at[jnp.where(cut, pool.row, B), 5].add(1, mode="drop"))
-        live = live & ~spent[:, None]
-        top = jnp.max(jnp.where(live, levels, -1), axis=1, initial=-1)  # [S] deepest live batch
-        free = top < 0
-        if steal and N > 2:
-            stealable = live & (levels < top[:, None])
-            can = jnp.any(stealable, axis=1)
-            ranks = jnp.cumsum(jnp.stack([free, can]), axis=1, dtype=jnp.int32) - 1  # one scan for both
-            free_rank, can_rank = ranks[0], ranks[1]
-        else:
-            free_rank = jnp.cumsum(free, dtype=jnp.int32) - 1
-        root = jnp.where(free & (head + free_rank < n_valid), head + free_rank, -1)
-        row = jnp.where(root >= 0, root, pool.row)
-        depth = jnp.where(top >= 0, top + 1, jnp.where(root >= 0, 0, -1))
-        victim = robbed = jnp.full((S,), -1, jnp.int32)
-        if steal and N > 2:
-            t_rank = free_rank - (n_valid - head)  # rank among the free slots left without a row
-            steals = free & (t_rank >= 0) & (t_rank < jnp.sum(can, dtype=jnp.int32))
-            by_rank = jnp.zeros((S,), jnp.int32).at[jnp.where(can, can_rank, S)].set(
-                jnp.arange(S, dtype=jnp.int32), mode="drop")
-            victim = jnp.where(steals, by_rank[jnp.clip(t_rank, 0, S - 1)], -1)
-            shallowest = jnp.argmax(stealable, axis=1).astype(jnp.int32)
-            robbed = jnp.where(can & (can_rank < jnp.sum(free, dtype=jnp.int32) - (n_valid - head)), shallowest, -1)
-            row = jnp.where(steals, pool.row[jnp.maximum(victim, 0)], row)
-            depth = jnp.where(steals, shallowest[jnp.maximum(victim, 0)] + 1, depth)
-        # A slot that changes row starts empty: its batches were pruned against the old row.
-        pool = pool._replace(next_cost=jnp.where((row != pool.row)[:, None], inf, pool.next_cost), row=row)
-        head = jnp.minimum(head + jnp.sum(free, dtype=jnp.int32), n_valid)
-        return pool, rows, head, _Plan(depth=depth, level=top, root=root, victim=victim, robbed=robbed)
-
-    def take_out(pool: _Pool, rows: _Rows, todo: _Plan):
-        """The planned nodes of every slot ``(x [S, K, n], cost [S, K], alive
-        [S, K])``, and the pool without them."""
-        best = incumbent(rows, pool.row)  # [S]
-        own, level = todo.level >= 0, jnp.maximum(todo.level, 0)
-        batch, c, i = _take(pool.cost, level), _take(pool.next_cost, level), _take(pool.next_idx, level)
-        idx, pc = [], []
-        for _ in range(K):
-            idx.append(i)
-            pc.append(c)
-            c, i = _next_after(batch, c, i)
-        idx, pc = jnp.stack(idx, 1), jnp.stack(pc, 1)  # [S, K] keys
-        alive = own[:, None] & (pc < best[:, None])  # a prefix: keys ascend
-        if bounded:
-            pc = jnp.take_along_axis(_take(pool.g, level), idx, axis=1)  # [S, K] costs
-        px = jnp.take_along_axis(_take(pool.x, level), idx[..., None], axis=1)  # [S, K, n]
-        path = _node_paths(pool.paths, level + 1, idx, M)  # [S, K, N]
-        at = own[:, None] & (levels == level[:, None])
-        next_cost = jnp.where(at, c[:, None], pool.next_cost)  # the rest of a pruned batch stays pruned
-        next_idx = jnp.where(at, i[:, None], pool.next_idx)
-
-        is_root = (todo.root >= 0)[:, None] & first
-        px = jnp.where(is_root[..., None], X[jnp.maximum(todo.root, 0)][:, None], px)
-        pc = jnp.where(is_root, 0, pc)
-        alive = jnp.where((todo.root >= 0)[:, None], is_root, alive)
-        depth = todo.depth  # planned from the same incumbents: a planned slot expands >= 1 node
-        if steal and N > 2:
-            # Every robbed slot hands over the next node of its robbed batch and moves past it.
-            r_level = jnp.maximum(todo.robbed, 0)
-            r_cost, r_idx = _take(pool.next_cost, r_level), _take(pool.next_idx, r_level)
-            r_g = jnp.take_along_axis(_take(pool.g, r_level), r_idx[:, None], axis=1)[:, 0] if bounded else r_cost
-            r_x = jnp.take_along_axis(_take(pool.x, r_level), r_idx[:, None, None], axis=1)[:, 0]  # [S, n]
-            r_path = _node_paths(pool.paths, r_level + 1, r_idx, M)  # [S, N]
-            after_cost, after_idx = _next_after(_take(pool.cost, r_level), r_cost, r_idx)
-            at = (todo.robbed >= 0)[:, None] & (levels == r_level[:, None])
-            next_cost = jnp.where(at, after_cost[:, None], next_cost)
-            next_idx = jnp.where(at, after_idx[:, None], next_idx)
-            thief, v = (todo.victim >= 0)[:, None] & first, jnp.maximum(todo.victim, 0)
-            px = jnp.where(thief[..., None], r_x[v][:, None], px)
-            pc = jnp.where(thief, r_g[v][:, None], pc)
-            alive = jnp.where((todo.victim >= 0)[:, None], thief, alive)
-            path = jnp.where(thief[..., None], r_path[v][:, None], path)
-        pool = pool._replace(next_cost=next_cost, next_idx=next_idx, paths=_put(pool.paths, depth, path))
-        return pool, px, pc, alive
-
-    def work(pool: _Pool, rows: _Rows, todo: _Plan):
-        """Take the planned nodes out of the pool, expand those of every slot in
-        one call, let leaves improve their rows' incumbents, push each slot's
-        children as its new top batch (pruned lazily, when popped)."""
-        best, depth = incumbent(rows, pool.row), todo.depth  # [S]
-        pool, px, pc, alive = _materialised(jnp.any(depth >= 0), take_out, pool, rows, todo)
-        child_depth, row = depth + 1, pool.row
-        p_nodes = jax.tree_util.tree_map(lambda a: jnp.repeat(a[jnp.minimum(row, B - 1)], K, axis=0), params)
-        ch = expand(problem, px.reshape(S * K, n), pc.reshape(S * K), p_nodes,
-                    steps_left=jnp.repeat(N - child_depth, K), check_terminal=problem.terminal is not None,
-                    params_batched=True)
-        cx, cost, key = ch.x.reshape(S, L, n), ch.cost.reshape(S, L), ch.key.reshape(S, L)
-        parent_alive = jnp.repeat(alive, M, axis=1)  # [S, L]
-        ok = parent_alive & ~ch.bad.reshape(S, L)
-
-        # Leaves: each slot's cheapest feasible leaf may improve its row's incumbent.
-        cand, leaf, improve = best_leaf(cost, ch.terminal_ok.reshape(S, L), ok, (child_depth == N)[:, None], best)
-        new_cost = rows.cost.at[jnp.where(improve, row, B)].min(cand, mode="drop")
-        winner = improve & (cand == incumbent(rows._replace(cost=new_cost), row))
-        path = rows.path.at[jnp.where(winner, row, B)].set(
-            _node_paths(pool.paths, jnp.full((S,), N), leaf, M), mode="drop")
-
-        # Non-leaves: the slot's new top batch, at level `depth`.
-        batch = jnp.where(ok, key, inf)
-        put = jnp.where((depth >= 0) & (child_depth < N), depth, N)  # N: nothing stored
-        nc, ni = first_min(batch)
-        pool = pool._replace(x=_put(pool.x, put, cx), cost=_put(pool.cost, put, batch),
-                             g=_put(pool.g, put, cost) if bounded else None,
-                             next_cost=_put(pool.next_cost, put, nc), next_idx=_put(pool.next_idx, put, ni))
-        flags = jnp.where(parent_alive, ch.flags.reshape(S, L), 0)
-        counts = jnp.stack([M * jnp.sum(alive, axis=1, dtype=jnp.int32), jnp.ones((S,), jnp.int32)]
-                           + [jnp.sum((flags & bit) > 0, axis=1, dtype=jnp.int32) for bit in (NEGATIVE, NONFINITE,
-                                                                                                 OVERFLOW)]
-                           + [jnp.zeros((S,), jnp.int32)], 1)
-        rows = _Rows(cost=new_cost, path=path,
-                     counts=rows.counts.at[jnp.where(depth >= 0, row, B)].add(counts, mode="drop"))
-        return pool, rows
+    def next_work(pool, rows, head):
+        pool, rows, head, todo = plan(pool, rows, head, n_valid, limit)
+        pool, work = take(pool, rows, todo, X, K)
+        return pool, rows, head, work
 
     def body(carry):
-        pool, rows, head, todo = carry
-        pool, rows = work(pool, rows, todo)
-        pool, rows, head, todo = plan(pool, rows, head)
-        return pool, rows, head, todo
+        pool, rows, head, work = carry
+        pool, rows = expand_and_store(problem, pool, rows, work, params)
+        return next_work(pool, rows, head)
 
-    def pending(carry):
-        return jnp.any(carry[3].depth >= 0)
-
-    pool = _Pool(x=jnp.zeros((S, N - 1, L, n), X.dtype), cost=jnp.full((S, N - 1, L), inf),
-                 g=jnp.full((S, N - 1, L), inf) if bounded else None,
-                 next_cost=jnp.full((S, N - 1), inf), next_idx=jnp.zeros((S, N - 1), jnp.int32),
-                 paths=jnp.full((S, N, K, N), -1, jnp.int32), row=jnp.full((S,), B, jnp.int32))
-    rows = _Rows(cost=jnp.full((B,), inf), path=jnp.full((B, N), -1, jnp.int32), counts=jnp.zeros((B, 6), jnp.int32))
-    pool, rows, head, todo = plan(pool, rows, jnp.array(0, jnp.int32))
-    _, rows, _, _ = jax.lax.while_loop(pending, body, (pool, rows, head, todo))
-    c = rows.counts
-    flags = (c[:, 2] > 0) * NEGATIVE | (c[:, 3] > 0) * NONFINITE | (c[:, 4] > 0) * OVERFLOW
-    return jax.vmap(lambda *a: finish(problem, *a))(rows.cost, rows.path, c[:, 0], c[:, 1], flags, c[:, 5] == 0)
+    carry = next_work(pool, rows, jnp.array(0, jnp.int32))
+    _, rows, _, _ = jax.lax.while_loop(lambda c: jnp.any(c[3].depth >= 0), body, carry)
+    return jax.vmap(lambda c, p, st, cut: finish(problem, c, p, st, cut == 0))(rows.cost, rows.path, rows.stats,
+                                                                              rows.cut)
 
 
 # ---------------------------------------------------------------------------
@@ -404,7 +346,7 @@ def _device_solve(problem: Problem, X, params, budget, solver: str, pop_width: i
         return a.reshape((chunks, R) + a.shape[1:])
 
     out = jax.lax.map(lambda a: _pool_search(problem, a[1], a[2], jnp.minimum(R, B - a[0] * R), budget, lanes,
-                                             pop_width, True),
+                                             pop_width),
                       (jnp.arange(chunks, dtype=jnp.int32), split(X), jax.tree_util.tree_map(split, params)))
     return jax.tree_util.tree_map(lambda a: a.reshape((chunks * R,) + a.shape[2:])[:B], out)
 

@@ -13,7 +13,7 @@ first optimal sequence.
 Levels are unrolled in Python only while they widen (at most
 ``log_M(chunk_nodes)`` of them on each side of the split); with ``M = 1`` the
 levels are one ``lax.scan``, so compile time does not grow with N.
-``iterations`` counts batched calls of ``dynamics``.
+``iterations`` counts batched calls of ``dynamics`` (one per level per chunk).
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ import jax.numpy as jnp
 
 from .cache import cached, compiled
 from .checks import check_params, check_state, cost_dtype
-from .nodes import best_leaf, expand
+from .nodes import best_leaf, expand, no_stats, tally
 from .problem import Problem, positive_int, refuse_differentiation
 from .result import SearchResult, finish, raise_on_errors
 
@@ -74,39 +74,30 @@ def memory(problem: Problem, n: int, itemsize: int, chunk_nodes: int = DEFAULT_C
     return itemsize * (3 * leaves * (n + 4) + problem.num_controls ** p.split * (n + 2))
 
 
-def _descend(problem, x, cost, valid, params, first_depth, levels, leaf_level):
+def _descend(problem, x, cost, valid, params, stats, first_depth, levels, leaf_level):
     """Expand ``levels`` levels below ``[B]`` nodes of depth ``first_depth``,
     each level in one batched call, children flattened in lexicographic order.
     Returns the deepest level ``x [B*M^levels, n]``, ``cost``, ``valid`` (at
-    the leaf level: feasible), the node count and the error flags. Non-finite
-    nodes are never expanded."""
-    M, N = problem.num_controls, problem.horizon
+    the leaf level: feasible) and ``stats`` with the levels counted.
+    Non-finite nodes are never expanded."""
+    N = problem.horizon
 
-    def level(x, cost, valid, depth, last):
+    def level(x, cost, valid, stats, depth, last):
         ch = expand(problem, x, cost, params, steps_left=N - depth - 1, check_terminal=last)
-        parent = valid[:, None]
-        nodes = M * jnp.sum(valid, dtype=jnp.int32)
-        flags = jax.lax.reduce_or(jnp.where(parent, ch.flags, 0), axes=(0, 1))
-        ok = parent & ~ch.bad & ch.terminal_ok if last else parent & ~ch.bad
-        return ch.x.reshape(-1, x.shape[-1]), ch.cost.reshape(-1), ok.reshape(-1), nodes, flags
+        ok = valid[:, None] & ~ch.bad & ch.terminal_ok if last else valid[:, None] & ~ch.bad
+        return ch.x.reshape(-1, x.shape[-1]), ch.cost.reshape(-1), ok.reshape(-1), tally(stats, ch, valid)
 
-    nodes, flags = jnp.array(0, jnp.int32), jnp.array(0, jnp.int32)
     inner = levels - 1 if leaf_level else levels
-    if M == 1 and inner > 1:  # levels that do not widen: one scan, whatever N
+    done = 0
+    if problem.num_controls == 1 and inner > 1:  # levels that do not widen: one scan, whatever N
         def step(carry, depth):
-            x, cost, valid, nodes, flags = carry
-            x, cost, valid, n_, f_ = level(x, cost, valid, depth, False)
-            return (x, cost, valid, nodes + n_, flags | f_), None
+            return level(*carry, depth, False), None
 
-        (x, cost, valid, nodes, flags), _ = jax.lax.scan(
-            step, (x, cost, valid, nodes, flags), first_depth + jnp.arange(inner))
+        (x, cost, valid, stats), _ = jax.lax.scan(step, (x, cost, valid, stats), first_depth + jnp.arange(inner))
         done = inner
-    else:
-        done = 0
     for k in range(done, levels):
-        x, cost, valid, n_, f_ = level(x, cost, valid, first_depth + k, leaf_level and k == levels - 1)
-        nodes, flags = nodes + n_, flags | f_
-    return x, cost, valid, nodes, flags
+        x, cost, valid, stats = level(x, cost, valid, stats, first_depth + k, leaf_level and k == levels - 1)
+    return x, cost, valid, stats
 
 
 def _exhaustive(problem: Problem, x0, params, *, chunk_nodes: int) -> SearchResult:
@@ -114,28 +105,23 @@ def _exhaustive(problem: Problem, x0, params, *, chunk_nodes: int) -> SearchResu
     split, chunk, chunks = plan(problem, chunk_nodes)
     dtype = cost_dtype(problem, x0, params)
     inf = jnp.array(jnp.inf, dtype)
-    px, pc, pok, nodes, flags = _descend(problem, x0[None], jnp.zeros((1,), dtype), jnp.ones((1,), bool), params,
-                                         0, split, leaf_level=split == N)
+    px, pc, pok, stats = _descend(problem, x0[None], jnp.zeros((1,), dtype), jnp.ones((1,), bool), params,
+                                  no_stats(), 0, split, leaf_level=split == N)
     sub = M ** (N - split)  # leaves per prefix
 
     def scan_chunk(carry, inp):
-        best_cost, best_leaf_index, nodes, flags = carry
+        best_cost, best_index, stats = carry
         k, x, c, ok = inp
-        lx, lc, lok, n_, f_ = _descend(problem, x, c, ok, params, split, N - split, leaf_level=split < N)
+        _, lc, lok, stats = _descend(problem, x, c, ok, params, stats, split, N - split, leaf_level=split < N)
         cost, i, improve = best_leaf(lc, True, lok, True, best_cost)  # lok already holds the terminal test
-        return (jnp.where(improve, cost, best_cost),
-                jnp.where(improve, k * chunk * sub + i, best_leaf_index),
-                nodes + n_, flags | f_), None
+        return (jnp.where(improve, cost, best_cost), jnp.where(improve, k * chunk * sub + i, best_index), stats), None
 
-    init = (inf, jnp.array(0, jnp.int32), nodes, flags)
     xs = (jnp.arange(chunks, dtype=jnp.int32), px.reshape(chunks, chunk, -1),
           pc.reshape(chunks, chunk), pok.reshape(chunks, chunk))
-    (best_cost, best_index, nodes, flags), _ = jax.lax.scan(scan_chunk, init, xs)
+    (best_cost, best_index, stats), _ = jax.lax.scan(scan_chunk, (inf, jnp.array(0, jnp.int32), stats), xs)
 
     weights = jnp.array([M**k for k in range(N - 1, -1, -1)], jnp.int32) if M > 1 else jnp.ones((N,), jnp.int32)
-    digits = (best_index // weights) % M
-    levels_called = split + chunks * (N - split)
-    return finish(problem, best_cost, digits, nodes, jnp.array(levels_called, jnp.int32), flags, True)
+    return finish(problem, best_cost, (best_index // weights) % M, stats, True)
 
 
 def exhaustive(problem: Problem, x0, *, params=None, method: str = "levels",

@@ -67,6 +67,31 @@ def expand(problem: Problem, x, cost, params, *, steps_left, check_terminal: boo
     return Children(x=xs, cost=child_cost, key=key, bad=bad, flags=flags, terminal_ok=ok)
 
 
+class SearchStats(NamedTuple):
+    """What a search counts: the same fields in every solver (batched searches
+    add a leading axis)."""
+
+    nodes: jax.Array  # [] int32 child nodes computed (the paper's count)
+    iterations: jax.Array  # [] int32 loop iterations: batched calls of ``dynamics``
+    flags: jax.Array  # [] int32 error bits met (NEGATIVE | NONFINITE | OVERFLOW)
+
+
+def no_stats(nodes=0) -> SearchStats:
+    """Counters of a search that has not started (``nodes`` already computed)."""
+    zero = jnp.zeros((), jnp.int32)
+    return SearchStats(nodes=zero + nodes, iterations=zero, flags=zero)
+
+
+def tally(stats: SearchStats, children: Children, expanded) -> SearchStats:
+    """The one rule for counting: ``stats`` plus one iteration that expanded
+    the nodes marked in ``expanded`` ``[B]`` into ``children`` (``[B, M]``
+    fields): M nodes each, and the error flags of their children."""
+    M = children.cost.shape[-1]
+    met = jax.lax.reduce_or(jnp.where(expanded[:, None], children.flags, 0), axes=(0, 1))
+    return SearchStats(nodes=stats.nodes + M * jnp.sum(expanded, dtype=jnp.int32), iterations=stats.iterations + 1,
+                       flags=stats.flags | met)
+
+
 def first_min(a):
     """Smallest entry along the last axis and its first index (int32). Two plain
     reductions: XLA:CPU runs a (value, index) argmin reduction as a scalar

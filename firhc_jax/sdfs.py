@@ -1,24 +1,20 @@
 """Sorted depth-first search (the paper's Table 1) as one compiled while-loop.
 
-The stack holds *peer batches*: the children pushed by one expansion, sorted so
-the cheapest is on top. Each iteration pops the top ``K = pop_width`` nodes of
-the top batch (the K cheapest remaining peers; ``K = 1`` is Table 1 exactly),
-expands all their ``K * M`` children in one vmapped call, lets feasible leaves
-improve the incumbent, and pushes the cheaper-than-incumbent non-leaf children
-as a new sorted batch. Because a batch is sorted, once its top node is no
-cheaper than the incumbent the whole rest of the batch is dropped in the same
-iteration (Table 1 would pop and skip them one by one; the node count, which
-counts computed children only, is the same).
+Each iteration takes the ``K = pop_width`` cheapest remaining nodes of the
+deepest live peer batch (``K = 1`` is Table 1 exactly), expands all their
+``K * M`` children in one vmapped call, lets feasible leaves improve the
+incumbent, and pushes the other children, as one batch, one depth lower
+(``firhc_jax.stack``). Peers are never sorted: popping takes the cheapest
+remaining node (ties: the lowest input index, the order of a stable sort), so
+the nodes come out in Table 1's order. Once a batch's cheapest remaining node
+is no cheaper than the incumbent, the rest of the batch is dropped at once
+(Table 1 would pop and skip them one by one; the node count, which counts
+computed children only, is the same).
 
 "Cheaper" compares a node's *key*: its accumulated cost, plus, when the
 problem has a ``lower_bound``, the bound on the cost still to come. Peers are
-sorted by the same key. Without a bound this is the paper's algorithm node for
-node; with an admissible bound it prunes more and stays exact.
-
-Batches only ever sit on the batch they were expanded from, so depths grow
-strictly from bottom to top and the stack never holds more than
-``(N - 1) * K * (M - 1) + K`` live nodes: that is the fixed capacity
-(``stack_memory`` gives the bytes; larger stacks are refused up front).
+ordered by the same key. Without a bound this is the paper's algorithm node
+for node; with an admissible bound it prunes more and stays exact.
 
 Pruning is exact because stage costs are non-negative: a node whose key is not
 below the incumbent cannot lead to a cheaper leaf (floating-point addition of
@@ -26,10 +22,11 @@ non-negative numbers never decreases a sum). With ``prune=False`` the same
 machinery visits the whole tree (exhaustive depth-first search), so a time
 ratio between the two measures pruning alone.
 
-``iterations`` counts loop iterations, one batched call of ``dynamics`` each,
-in every solver. ``max_nodes`` stops the loop before an iteration could take
-the node count above it; the result then holds the incumbent found so far and
-``complete=False``.
+Memory: one batch per depth, ``(N + 1) K M`` nodes (``stack_memory``; larger
+stacks are refused up front). ``iterations`` counts loop iterations, one
+batched call of ``dynamics`` each, in every solver. ``max_nodes`` stops the
+loop before an iteration could take the node count above it; the result then
+holds the incumbent found so far and ``complete=False``.
 """
 from __future__ import annotations
 
@@ -41,61 +38,37 @@ import numpy as np
 
 from .cache import compiled
 from .checks import check_params, check_state, cost_dtype
-from .nodes import best_leaf, expand, rollout_cost
+from . import stack as stacks
+from .nodes import SearchStats, best_leaf, expand, no_stats, rollout_cost, tally
 from .problem import Problem, is_tracer, positive_int, refuse_differentiation
 from .result import SearchResult, finish, raise_on_errors
+from .stack import Popped, Stack
 
 INT32_MAX = 2**31 - 1
 DEFAULT_MAX_MEMORY = 1 << 30  # bytes
 
 
-class Stack(NamedTuple):
-    """Fixed-capacity node stack. Rows ``[0, K)`` are sentinels (depth -1);
-    live nodes occupy rows ``[K, K + size)``, top last.
-
-    A node is one row of one floating buffer: state, accumulated cost, key,
-    depth and path (small integers, exact in any float of at least 32 bits).
-    One buffer means one dynamic slice to pop and one in-place update to push;
-    with separate buffers XLA copies them every iteration to order the reads
-    (docs/xla_notes.md)."""
-
-    rows: jax.Array  # [R, n + 3 + N] x (n), cost, key, depth (root 0, sentinel -1), path from the root (N)
-    top: jax.Array  # [K, n + 3 + N] copy of the top K rows, read right after each push so that the
-    #                 buffer is only ever updated and then read (XLA then updates it in place, no copies)
-
-
 class _Carry(NamedTuple):
-    """Loop state. Every integer lives in one ``book`` vector, updated by one
-    fused op per iteration (on CPU each separate small op costs a kernel launch)."""
+    """Loop state. The nodes to expand are popped at the end of the previous
+    iteration, right after the push: the stack's buffers are then only ever
+    written and then read within an iteration, which XLA updates in place
+    (read first, and it copies every buffer each iteration)."""
 
     stack: Stack
+    popped: Popped  # the K nodes to expand next
+    row: jax.Array  # [] int32 the row they came from (-1: none; the search is over)
     best_cost: jax.Array  # [] incumbent cost (+inf: none yet)
-    book: jax.Array  # [4 + (N + 1) + N] int32: size, nodes, iterations, flags, level_base, best_path
-
-    # flags: the error bits of firhc_jax.nodes. level_base[d]: stack size below the
-    # live peer batch of depth d (at most one per depth is live). best_path: the incumbent.
-    @property
-    def size(self):
-        return self.book[0]
-
-
-def _book(size, nodes, iterations, flags, level_base, best_path):
-    return jnp.concatenate([jnp.stack([size, nodes, iterations, flags]).astype(jnp.int32),
-                            level_base.astype(jnp.int32), best_path.astype(jnp.int32)])
-
-
-def stack_capacity(horizon: int, num_controls: int, pop_width: int) -> int:
-    """Largest number of live nodes the stack can hold (see module docstring)."""
-    return max(1, (horizon - 1) * pop_width * (num_controls - 1) + pop_width)
+    best_path: jax.Array  # [N] int32 incumbent sequence
+    stats: SearchStats
 
 
 def stack_memory(problem: Problem, n: int, itemsize: int, pop_width: int = 1) -> int:
-    """Estimated peak bytes of one sDFS: its stack (sentinels, live nodes and a
-    push block, ``n + 3 + N`` numbers a row, twice for the loop's buffers) and
-    one iteration's ``K M`` children."""
+    """Estimated peak bytes of one sDFS: its stack (``N + 1`` rows of ``K M``
+    nodes, ``n + 2`` numbers each, twice for the loop's buffers, plus the
+    parents' paths) and one iteration's ``K M`` children."""
     N, M, K = problem.horizon, problem.num_controls, pop_width
-    L, width = K * M, n + 3 + N
-    return itemsize * (2 * (K + stack_capacity(N, M, K) + L) * width + 4 * L * width)
+    L = K * M
+    return itemsize * (2 * (N + 1) * L * (n + 2) + 4 * L * (n + 2)) + 4 * 2 * (N + 1) * K * N
 
 
 def check_memory(need: int, max_memory, what: str) -> int:
@@ -118,90 +91,50 @@ def node_budget(max_nodes):
     return np.int32(min(positive_int("max_nodes", max_nodes), INT32_MAX))
 
 
-def _descending_order(key, keep):
-    """Order of ``L`` children in a sorted push block.
-
-    Kept children take slots ``0 .. count-1`` by descending key (the cheapest,
-    and among equal keys the lowest index, in the top slot, popped first); the
-    others fill the slots above. Returns ``(order, count)``: ``order[s]`` is the
-    child in slot ``s``. One stable ``lax.sort`` (a pairwise ranking let XLA
-    recompute child costs per comparison and gave wrong orders under fusion,
-    docs/xla_notes.md).
-    """
-    idx = jnp.arange(key.shape[0] - 1, -1, -1, dtype=jnp.int32)  # reversed: a stable sort then puts
-    k = jnp.where(keep, -key, jnp.inf)[idx]  # the higher index first (lower slot) among equal keys
-    _, order = jax.lax.sort((k, idx), num_keys=1, is_stable=True)  # kept first, most expensive first
-    return order, jnp.sum(keep, dtype=jnp.int32)
-
-
 def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int, prune: bool) -> SearchResult:
     N, M, K = problem.horizon, problem.num_controls, pop_width
     n, L = x0.shape[0], K * M
     dtype = cost_dtype(problem, x0, params)
-    wide = jnp.promote_types(jnp.promote_types(dtype, x0.dtype), jnp.float32)  # lossless for every column
     inf = jnp.array(jnp.inf, dtype)
-    capacity = K + stack_capacity(N, M, K) + L  # sentinels + live nodes + slack for the push block
-    C, D, P = n, n + 1, n + 2  # columns: cost, key, depth; path from n + 3
-    root = jnp.concatenate([x0.astype(wide), jnp.zeros((3 + N,), wide)])
-    rows = jnp.zeros((capacity, n + 3 + N), wide).at[:, P].set(-1).at[K].set(root)
-    stack = Stack(rows, jax.lax.dynamic_slice_in_dim(rows, 1, K))
-    zero = jnp.array(0, jnp.int32)
-    no_path = jnp.full((N,), -1, jnp.int32)
-    best_cost, nodes, flags, path = inf, zero, zero, no_path
+    # Rows 0 .. N - 1 hold the batches of depth 0 (the root) to N - 1; row N
+    # takes each leaf batch, all discarded, so every iteration pushes.
+    stack = stacks.init(N + 1, K, M, N, x0, dtype)
+    best_cost, best_path, stats = inf, jnp.full((N,), -1, jnp.int32), no_stats()
     if warm_start is not None:
         best_cost, flags = rollout_cost(problem, x0, warm_start, dtype, params)
         used = jnp.all((warm_start >= 0) & (warm_start < M))  # an all -1 warm start is no warm start
-        nodes = jnp.where(used, N, 0).astype(jnp.int32)
-        path = jnp.where(best_cost < inf, warm_start, no_path)
-    carry = _Carry(stack, best_cost, _book(1, nodes, zero, flags, jnp.zeros((N + 1,), jnp.int32), path))
+        stats = no_stats(jnp.where(used, N, 0))._replace(flags=flags)
+        best_path = jnp.where(best_cost < inf, warm_start, best_path)
     limit = budget - L  # an iteration computes at most L children
-    levels = jnp.arange(N + 1)
-    modes = jnp.tile(jnp.arange(M, dtype=jnp.int32), K)  # [L] input of each child
-    parent = jnp.repeat(jnp.arange(K, dtype=jnp.int32), M)  # [L] popped node of each child
+
+    def incumbent(best_cost):
+        return best_cost if prune else inf  # without pruning, only taken nodes leave the stack
+
+    def next_nodes(stack, best_cost):
+        row = stacks.top(stack, incumbent(best_cost))
+        stack, popped = stacks.pop(stack, row, K)
+        return stack, popped, row
 
     def body(c: _Carry) -> _Carry:
-        s = c.stack
-        old_size, nodes, iterations, flags = c.book[0], c.book[1], c.book[2], c.book[3]
-        level_base, best_path = c.book[4:5 + N], c.book[5 + N:]
-        popped = s.top  # [K, n + 3 + N]
-        px, pc, pk = popped[:, :n].astype(x0.dtype), popped[:, C].astype(dtype), popped[:, D].astype(dtype)
-        pd, ppath = popped[:, P].astype(jnp.int32), popped[:, P + 1:].astype(jnp.int32)
-        depth = pd[K - 1]
-        peer = pd == depth  # popped rows from the top batch (sentinels have depth -1)
-        if prune:
-            alive = peer & (pk < c.best_cost)
-            # The batch is sorted: if its top is pruned, so is all the rest of it.
-            size = jnp.where(alive[K - 1], old_size - jnp.sum(peer, dtype=jnp.int32), level_base[depth])
-        else:
-            alive = peer
-            size = old_size - jnp.sum(peer, dtype=jnp.int32)
-
-        child_depth = depth + 1
-        ch = expand(problem, px, pc, params, steps_left=N - child_depth, check_terminal=problem.terminal is not None)
+        alive = c.popped.key < incumbent(c.best_cost)  # [K]
+        depth = c.row + 1  # of the children
+        ch = expand(problem, c.popped.x, c.popped.cost, params, steps_left=N - depth,
+                    check_terminal=problem.terminal is not None)
         ok = (alive[:, None] & ~ch.bad).reshape(L)
         cost, key = ch.cost.reshape(L), ch.key.reshape(L)
 
-        leaf_cost, i, improve = best_leaf(cost, ch.terminal_ok.reshape(L), ok, child_depth == N, c.best_cost)
+        leaf_cost, i, improve = best_leaf(cost, ch.terminal_ok.reshape(L), ok, depth == N, c.best_cost)
         best_cost = jnp.where(improve, leaf_cost, c.best_cost)
-        best_path = jnp.where(improve, ppath[parent[i]].at[N - 1].set(modes[i]), best_path)
+        best_path = jnp.where(improve, stacks.child_paths(c.popped.path, c.row, M)[i], c.best_path)
 
-        # Non-leaves below the incumbent: one sorted batch on top of the stack.
-        keep = ok & (child_depth < N) & ((key < best_cost) if prune else True)
-        order, count = _descending_order(key, keep)
-        child_path = jnp.where(jnp.arange(N)[None, :] == depth, modes[order][:, None], ppath[parent[order]])
-        block = jnp.concatenate([ch.x.reshape(L, n)[order].astype(wide), cost[order, None].astype(wide),
-                                 key[order, None].astype(wide), jnp.full((L, 1), child_depth, wide),
-                                 child_path.astype(wide)], axis=1)
-        rows = jax.lax.dynamic_update_slice_in_dim(s.rows, block, K + size, 0)
-        top = jax.lax.dynamic_slice_in_dim(rows, size + count, K)
-        met = jax.lax.reduce_or(jnp.where(alive[:, None], ch.flags, 0), axes=(0, 1))
-        book = _book(size + count, nodes + M * jnp.sum(alive, dtype=jnp.int32), iterations + 1, flags | met,
-                     jnp.where(levels == child_depth, size, level_base), best_path)
-        return _Carry(Stack(rows, top), best_cost, book)
+        keep = ok & (depth < N) & (key < incumbent(best_cost))
+        stack = stacks.push(c.stack, depth, ch.x.reshape(L, n).astype(x0.dtype), cost, jnp.where(keep, key, inf),
+                            c.popped.path)
+        return _Carry(*next_nodes(stack, best_cost), best_cost, best_path, tally(c.stats, ch, alive))
 
-    out = jax.lax.while_loop(lambda c: (c.size > 0) & (c.book[1] <= limit), body, carry)
-    nodes, iterations, flags, best_path = out.book[1], out.book[2], out.book[3], out.book[5 + N:]
-    return finish(problem, out.best_cost, best_path, nodes, iterations, flags, out.size == 0)
+    carry = _Carry(*next_nodes(stack, best_cost), best_cost, best_path, stats)
+    out = jax.lax.while_loop(lambda c: (c.row >= 0) & (c.stats.nodes <= limit), body, carry)
+    return finish(problem, out.best_cost, out.best_path, out.stats, out.row < 0)
 
 
 def _check_warm_start(problem: Problem, warm_start):

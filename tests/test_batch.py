@@ -6,14 +6,12 @@ import subprocess
 import sys
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import firhc_jax as fj
-from firhc_jax.batch import _pool_search, pool_memory, pool_row_memory, row_memory, solve_batch
-from firhc_jax.sdfs import node_budget
+from firhc_jax.batch import pool_memory, pool_row_memory, row_memory, solve_batch
 from random_problems import make
 
 SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
@@ -76,16 +74,16 @@ def test_pool_exact_with_more_or_fewer_lanes_than_rows(lanes, pop_width):
     assert_exact(rp, np.asarray(X0), batch)
 
 
-def test_pool_without_stealing_is_fj_sdfs_row_by_row():
-    """With stealing off, each row is searched by one slot in fj.sdfs's order:
-    the same nodes and sequence as the plain vmap of fj.sdfs, row by row."""
+def test_one_lane_is_fj_sdfs_row_by_row():
+    """One slot searches the rows one after another (nobody to steal from), in
+    fj.sdfs's order: the same nodes, iterations and sequence as the plain vmap
+    of fj.sdfs, row by row."""
     p = make(9, 3, 2, 4, 4, "loose").problem()
     X0 = states(9, 7, 3)
     for pop_width in (1, 2):
-        pool = jax.jit(_pool_search, static_argnums=(0, 5, 6, 7))(p, X0, None, 7, node_budget(None), 3, pop_width,
-                                                                  False)
+        pool = solve_batch(p, X0, lanes=1, pop_width=pop_width)
         plain = solve_batch(p, X0, solver="sdfs-vmap", pop_width=pop_width)
-        for field in ("nodes", "sequence", "feasible"):
+        for field in ("nodes", "iterations", "sequence", "feasible"):
             np.testing.assert_array_equal(getattr(pool, field), getattr(plain, field), err_msg=field)
         np.testing.assert_allclose(pool.cost, plain.cost, rtol=1e-14)
 
@@ -277,3 +275,29 @@ def test_docs_example_runs(monkeypatch):
     np.testing.assert_allclose(res.cost[:4], ref.cost, rtol=1e-12)
     assert namespace["costs"].shape == (10, 256) and namespace["tracked"].cost.shape == (256,)
     np.testing.assert_allclose(namespace["costs"][0], res.cost, rtol=1e-12)
+
+
+# ---------------------------------------------------------------- property test of the pool
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+import param_problems as pp  # noqa: E402
+
+
+@settings(max_examples=16, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.sampled_from(pp.SHAPES), st.integers(0, 2**32 - 1), st.sampled_from([(2, 1), (16, 2)]),
+       st.sampled_from(["none", "loose", "tight"]))
+def test_pool_matches_brute_force_per_row(shape, seed, lanes_k, tightness):
+    """Random problems, one random parameter set and state per row, 7 rows: with 2 lanes rows queue and the
+    last rows' searches are shared by stealing; with 16 lanes idle slots steal from the start. Every row's
+    cost is the brute-force optimum (one compile per shape and lane setting: everything is a parameter)."""
+    lanes, K = lanes_k
+    rng = np.random.default_rng(seed)
+    rows = [pp.draw_params(rng, shape, tightness) for _ in range(7)]
+    params = {k: jnp.asarray(np.stack([r[k] for r in rows])) for k in rows[0]}
+    X0 = rng.uniform(-1, 1, (7, shape[0]))
+    res = solve_batch(pp.problem(shape), X0, params=params, lanes=lanes, pop_width=K)
+    for b in range(7):
+        ref, _ = pp.cost_to_go(shape, rows[b], X0[b], shape[3])
+        assert pp.same_cost(float(res.cost[b]), ref), (b, float(res.cost[b]), ref)
+        assert bool(res.feasible[b]) == np.isfinite(ref)

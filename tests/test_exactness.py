@@ -173,24 +173,6 @@ def test_edge_sizes_m1_n1():
     assert int(r.nodes) == 5 and list(np.asarray(r.sequence)) == [0] * 5
 
 
-@pytest.mark.parametrize("L", [1, 5, 17, 24, 25, 68])
-def test_push_order_matches_a_reference_sort(L):
-    """The push order is Table 1's: most expensive at the bottom, ties popped in mode order."""
-    from firhc_jax.sdfs import _descending_order
-
-    rng = np.random.default_rng(L)
-    for _ in range(5):
-        cost = rng.integers(0, 4, L).astype(float)  # many ties
-        keep = rng.random(L) < 0.6
-        order, count = _descending_order(jnp.asarray(cost), jnp.asarray(keep))
-        kept = [i for i in range(L) if keep[i]]
-        # bottom to top: most expensive first; among equal costs the higher index lower (popped later)
-        expected = sorted(kept, key=lambda i: (-cost[i], -i))
-        assert int(count) == len(kept)
-        assert list(np.asarray(order)[:len(kept)]) == expected
-        assert sorted(np.asarray(order).tolist()) == list(range(L))
-
-
 @pytest.mark.parametrize("seed", [0, 7, 16, 29, 31, 3])
 def test_pop_width_regression(seed):
     """Cases where an earlier sort-free ranking broke pop_width 2 (found by fuzzing; kept as regressions)."""

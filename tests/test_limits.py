@@ -55,7 +55,7 @@ def test_budget_stops_a_search_that_would_never_end():
 # ---------------------------------------------------------------- memory and horizon limits
 def test_sizes_are_checked_before_allocation():
     with pytest.raises(ValueError, match="sDFS stack .* needs about"):
-        fj.sdfs(fj.Problem(_dyn, np.linspace(-1, 1, 64), fj.quadratic_cost(1.0, 0.0), 2000), jnp.ones(1))
+        fj.sdfs(fj.Problem(_dyn, np.linspace(-1, 1, 64), fj.quadratic_cost(1.0, 0.0), 20_000), jnp.ones(1))
     with pytest.raises(ValueError, match="max_memory"):
         fj.sdfs(P, jnp.ones(1), max_memory=100)
     with pytest.raises(ValueError, match="horizon"):
