@@ -31,7 +31,7 @@ stacks are written, then read (XLA then updates them in place).
 ``iterations`` of a row counts the slot-iterations spent on it.
 
 Memory. The pool stores ``lanes * (N + 1) * K * M`` nodes whatever B is, plus
-``n + N + 5`` numbers per row (``pool_memory``, ``pool_row_memory``); the
+``n + N + 7`` numbers per row (``pool_memory``, ``pool_row_memory``); the
 vmapped solvers need ``row_memory`` per row. A batch that would exceed
 ``max_memory`` bytes is solved in chunks of rows (``lax.map``), and a pool or
 row that does not fit on its own is refused before anything is compiled.
@@ -59,7 +59,7 @@ from .checks import check_params, check_state, cost_dtype, strong
 from .exhaustive import DEFAULT_CHUNK_NODES
 from .exhaustive import memory as exhaustive_memory
 from . import stack as stacks
-from .nodes import NEGATIVE, NONFINITE, OVERFLOW, SearchStats, best_leaf, expand, no_stats, tally
+from .nodes import SearchStats, best_leaf, expand, no_stats, tally
 from .problem import Problem, positive_int, refuse_differentiation
 from .result import SearchResult, finish, raise_on_errors
 from .sdfs import _search as sdfs_search
@@ -271,20 +271,18 @@ def expand_and_store(problem: Problem, pool: Pool, rows: Rows, work: Work, param
     put = jnp.where(work.depth >= 0, depth, N)  # idle slots write nothing live into the leaf row
     stack = jax.vmap(stacks.push)(pool.stack, put, ch.x.reshape(S, L, n).astype(work.popped.x.dtype), cost,
                                   jnp.where(keep, key, jnp.inf), work.popped.path)
-    slot_stats = jax.vmap(lambda c, a: tally(no_stats(), c, a))(ch, work.alive)
+    slot = jax.vmap(lambda c, a: tally(no_stats(), c, a))(ch, work.alive)  # [S] fields
     at = jnp.where(work.depth >= 0, row, B)
-    stats = SearchStats(nodes=rows.stats.nodes.at[at].add(slot_stats.nodes, mode="drop"),
-                        iterations=rows.stats.iterations.at[at].add(slot_stats.iterations, mode="drop"),
-                        flags=rows.stats.flags | _scatter_or(B, at, slot_stats.flags))
+
+    def flag(old, met):  # or over the slots of each row (all of them set True: duplicates agree)
+        return old.at[jnp.where(met, at, B)].set(True, mode="drop")
+
+    stats = SearchStats(nodes=rows.stats.nodes.at[at].add(slot.nodes, mode="drop"),
+                        iterations=rows.stats.iterations.at[at].add(slot.iterations, mode="drop"),
+                        negative=flag(rows.stats.negative, slot.negative),
+                        nonfinite=flag(rows.stats.nonfinite, slot.nonfinite),
+                        overflow=flag(rows.stats.overflow, slot.overflow))
     return pool._replace(stack=stack), rows._replace(cost=new_cost, path=path, stats=stats)
-
-
-def _scatter_or(size: int, at, bits):
-    """``out[i]`` = the bitwise or of ``bits[j]`` over ``at[j] == i`` (flags of NEGATIVE | NONFINITE | OVERFLOW)."""
-    out = jnp.zeros((size,), jnp.int32)
-    for bit in (NEGATIVE, NONFINITE, OVERFLOW):
-        out = out | jnp.zeros((size,), jnp.int32).at[at].max(bits & bit, mode="drop")
-    return out
 
 
 def _pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_width: int) -> SearchResult:
@@ -301,7 +299,7 @@ def _pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_w
         low=jnp.full((S, N + 1), jnp.inf, dtype)), row=jnp.full((S,), B, jnp.int32))
     zeros = jnp.zeros((B,), jnp.int32)
     rows = Rows(cost=jnp.full((B,), jnp.inf, dtype), path=jnp.full((B, N), -1, jnp.int32),
-                stats=SearchStats(nodes=zeros, iterations=zeros, flags=zeros), cut=zeros)
+                stats=jax.vmap(lambda _: no_stats())(zeros), cut=zeros)
 
     def next_work(pool, rows, head):
         pool, rows, head, todo = plan(pool, rows, head, n_valid, limit)

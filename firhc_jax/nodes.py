@@ -73,13 +73,21 @@ class SearchStats(NamedTuple):
 
     nodes: jax.Array  # [] int32 child nodes computed (the paper's count)
     iterations: jax.Array  # [] int32 loop iterations: batched calls of ``dynamics``
-    flags: jax.Array  # [] int32 error bits met (NEGATIVE | NONFINITE | OVERFLOW)
+    negative: jax.Array  # [] bool a negative stage cost was computed
+    nonfinite: jax.Array  # [] bool a non-finite state or a NaN cost was computed
+    overflow: jax.Array  # [] bool a finite cost plus a finite stage cost overflowed
 
 
-def no_stats(nodes=0) -> SearchStats:
-    """Counters of a search that has not started (``nodes`` already computed)."""
+def no_stats(nodes=0, flags=0) -> SearchStats:
+    """Counters of a search that has not started: ``nodes`` already computed
+    and error ``flags`` (bits) already met."""
     zero = jnp.zeros((), jnp.int32)
-    return SearchStats(nodes=zero + nodes, iterations=zero, flags=zero)
+    return SearchStats(nodes=zero + nodes, iterations=zero, **_bits(jnp.asarray(flags)))
+
+
+def _bits(flags):
+    return {"negative": (flags & NEGATIVE) > 0, "nonfinite": (flags & NONFINITE) > 0,
+            "overflow": (flags & OVERFLOW) > 0}
 
 
 def tally(stats: SearchStats, children: Children, expanded) -> SearchStats:
@@ -87,9 +95,9 @@ def tally(stats: SearchStats, children: Children, expanded) -> SearchStats:
     the nodes marked in ``expanded`` ``[B]`` into ``children`` (``[B, M]``
     fields): M nodes each, and the error flags of their children."""
     M = children.cost.shape[-1]
-    met = jax.lax.reduce_or(jnp.where(expanded[:, None], children.flags, 0), axes=(0, 1))
+    met = _bits(jax.lax.reduce_or(jnp.where(expanded[:, None], children.flags, 0), axes=(0, 1)))
     return SearchStats(nodes=stats.nodes + M * jnp.sum(expanded, dtype=jnp.int32), iterations=stats.iterations + 1,
-                       flags=stats.flags | met)
+                       **{k: getattr(stats, k) | v for k, v in met.items()})
 
 
 def first_min(a):

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .nodes import NEGATIVE, NONFINITE, OVERFLOW, SearchStats
+from .nodes import SearchStats
 from .problem import Problem, input_dtype
 
 
@@ -36,14 +36,13 @@ class SearchResult(NamedTuple):
 
 def finish(problem: Problem, cost, sequence, stats: SearchStats, complete) -> SearchResult:
     """Assemble a ``SearchResult`` from a search's final state."""
-    flags = stats.flags
     feasible = jnp.isfinite(cost)
     sequence = jnp.where(feasible, sequence, -1).astype(jnp.int32)
     controls = jnp.asarray(problem.controls, input_dtype(problem))
     first = jnp.where(feasible, controls[jnp.maximum(sequence[0], 0)], jnp.nan)
     return SearchResult(cost=cost, sequence=sequence, first_input=first, nodes=stats.nodes, feasible=feasible,
-                        iterations=stats.iterations, negative_cost=(flags & NEGATIVE) > 0,
-                        nan_encountered=(flags & NONFINITE) > 0, overflow=(flags & OVERFLOW) > 0,
+                        iterations=stats.iterations, negative_cost=stats.negative,
+                        nan_encountered=stats.nonfinite, overflow=stats.overflow,
                         complete=jnp.asarray(complete, bool))
 
 

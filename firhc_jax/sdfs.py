@@ -103,7 +103,7 @@ def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int,
     if warm_start is not None:
         best_cost, flags = rollout_cost(problem, x0, warm_start, dtype, params)
         used = jnp.all((warm_start >= 0) & (warm_start < M))  # an all -1 warm start is no warm start
-        stats = no_stats(jnp.where(used, N, 0))._replace(flags=flags)
+        stats = no_stats(jnp.where(used, N, 0), flags)
         best_path = jnp.where(best_cost < inf, warm_start, best_path)
     limit = budget - L  # an iteration computes at most L children
 
