@@ -136,6 +136,23 @@ def main(argv=None):
     check("tanks exhaustive", ref.cost, ref.sequence, cost, seq, ref.nodes, nodes)
     add(f"exhaustive tanks N={N} (fj.exhaustive, levels)", t_nb, t_jax, nodes, note="hardest state")
 
+    # The issue's other peer for exhaustive search: a hand-written level-by-level vmap of the same callables.
+    hand = jax.jit(lambda x: handwritten_levels(tank, x))
+    t_hand, (h_cost, h_idx) = median_time(lambda: hand(hard), max(1, reps // 3))
+    if not np.isclose(float(h_cost), float(ref.cost), rtol=1e-12):
+        raise AssertionError("hand-written levels: cost differs from fj.exhaustive")
+    add(f"exhaustive tanks N={N}: fj.exhaustive / hand-written vmap levels", t_hand, t_jax, nodes,
+        note="ratio to the hand-written vmap, not to Numba (the Numba column holds the vmap)")
+
+    # The pool over lanes: more lanes must never be slower (linear plant, largest batch).
+    X_lin = rng.uniform(-2, 2, (batches[-1], 3))
+    base = None
+    for lanes in (16, 64, 256, 1024):
+        t, r = median_time(lambda lanes=lanes: fj.solve_batch(lin, X_lin, lanes=lanes), max(1, reps // 2))
+        base = base or t
+        add(f"lanes sweep: linear N={N}, B={len(X_lin)}, lanes={lanes}", base, t, int(np.asarray(r.nodes).sum()),
+            note="ratio to lanes=16 (the Numba column holds lanes=16's time)")
+
     print(f"# JAX engine vs Numba peer, float64, {'quick' if args.quick else 'full'} run; jax {jax.__version__}, "
           f"numba {numba.__version__}; {platform.machine()}, {jax.local_device_count()} JAX device(s); "
           f"medians of {reps} after a warm-up")
@@ -145,6 +162,24 @@ def main(argv=None):
         nodes_txt = f"{nodes:,}" if nodes == jax_nodes else f"{nodes:,} / {jax_nodes:,}"
         print(f"| {name} | {_ms(t_nb)} | {_ms(t_jax)} | {nodes_txt} | {1e9 * t_nb / nodes:.1f} | "
               f"{1e9 * t_jax / jax_nodes:.1f} | {t_jax / t_nb:.1f}x | {note} |")
+
+
+def handwritten_levels(problem, x0):
+    """Exhaustive search as a user would write it without the library: every level of the tree in one
+    vmapped call of the problem's callables, then the cheapest leaf (unconstrained problems only)."""
+    import jax.numpy as jnp
+
+    U = jnp.asarray(problem.controls)
+    x, cost = x0[None], jnp.zeros((1,), x0.dtype)
+
+    def children(x):
+        xs = jax.vmap(lambda u: problem.dynamics(x, u))(U)
+        return xs, jax.vmap(problem.stage_cost)(xs, U)
+
+    for _ in range(problem.horizon):
+        xs, stage = jax.vmap(children)(x)
+        x, cost = xs.reshape(-1, x.shape[-1]), (cost[:, None] + stage).reshape(-1)
+    return jnp.min(cost), jnp.argmin(cost)
 
 
 def _ms(t):
