@@ -88,6 +88,15 @@ def main(argv=None):
     single("fixed cost: N=1, M=1 (linear)", peer.linear_problem(1, 1), peer.linear_children, peer.linear_plant(1),
            np.ones(3))
 
+    # The floor under it: a jitted call that returns a SearchResult (10 output buffers) without searching.
+    one = peer.linear_problem(1, 1)
+    empty = jax.jit(lambda x: fj.SearchResult(*(x[:1].sum() + i for i in range(10))))
+    t_floor, _ = median_time(lambda: empty(np.ones(3)), reps)
+    js = jax.jit(fj.sdfs)
+    t_fixed = median_time(lambda: js(one, np.ones(3)), reps)[0]
+    add("fixed cost: N=1, M=1 / a jitted call returning 10 outputs without searching", t_floor, t_fixed, 1,
+        note="ratio to the floor (the Numba column holds the floor's time)")
+
     lin, lin_p = peer.linear_problem(N), peer.linear_plant()
     single(f"linear N={N}", lin, peer.linear_children, lin_p, np.array([1.5, -1.0, 0.8]))
     syn = synthetic_problem(M, N, dtype=np.float64)
