@@ -128,17 +128,24 @@ class FIRHC:
         ``None`` (default): report it; ``__call__`` raises ``InfeasibleError``
         when un-jitted and the applied input is NaN in ``simulate``.
         ``"unconstrained"``: apply the optimum of the same problem without the
-        terminal constraint, flagged in ``used_fallback``.
-      warm_start: (sdfs only) seed each search with the previous solution
-        shifted by one step (the last input repeated); exactness unchanged.
+        terminal constraint (and without its lower bound, whose ``+inf`` no
+        longer holds), flagged in ``used_fallback``. A ``Problem`` (same
+        horizon and inputs): apply its optimum instead, e.g. the relaxed
+        problem with a bound of its own.
+      warm_start: (sdfs only) ``True``: seed each search with the previous
+        solution shifted by one step (the last input repeated). A callable
+        ``warm_start(problem, x, previous, params) -> [N]`` int sequence (all
+        -1: none) picks the seed itself (``previous``: the last decision's
+        sequence; ``problem``: the one being searched, main or fallback).
+        Exactness unchanged: a seed only sets the first incumbent.
       observe, actuate: plant/model maps of the closed loop (module docstring).
       **solver_options: passed to the solver: ``pop_width``, ``max_nodes``,
         ``max_memory`` for sdfs; ``method``, ``chunk_nodes``, ``pop_width``
         for exhaustive. Unknown options are refused here.
     """
 
-    def __init__(self, problem: Problem, solver: str = "sdfs", *, fallback: Optional[str] = None,
-                 warm_start: bool = False, observe: Optional[Callable] = None, actuate: Optional[Callable] = None,
+    def __init__(self, problem: Problem, solver: str = "sdfs", *, fallback=None,
+                 warm_start=False, observe: Optional[Callable] = None, actuate: Optional[Callable] = None,
                  **solver_options):
         if not isinstance(problem, Problem):
             raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
@@ -148,27 +155,40 @@ class FIRHC:
         if unknown:
             raise TypeError(f"unknown option(s) {sorted(unknown)} for solver={solver!r}; "
                             f"it accepts {sorted(_OPTIONS[solver])}")
-        if fallback not in (None, "unconstrained"):
-            raise ValueError(f"fallback must be None or 'unconstrained', got {fallback!r}")
-        if warm_start and solver != "sdfs":
+        if isinstance(fallback, Problem):
+            if (fallback.horizon, fallback.num_controls) != (problem.horizon, problem.num_controls):
+                raise ValueError(f"a fallback Problem needs the problem's horizon and inputs (N={problem.horizon}, "
+                                 f"M={problem.num_controls}), got N={fallback.horizon}, M={fallback.num_controls}")
+        elif fallback not in (None, "unconstrained"):
+            raise ValueError(f"fallback must be None, 'unconstrained' or a Problem, got {fallback!r}")
+        if not isinstance(warm_start, bool) and not callable(warm_start):
+            raise TypeError(f"warm_start must be a bool or a callable (problem, x, previous, params) -> [N], "
+                            f"got {type(warm_start).__name__}")
+        if warm_start is not False and solver != "sdfs":
             raise ValueError("warm_start applies to solver='sdfs' only")
         for name, fn in (("observe", observe), ("actuate", actuate)):
             if fn is not None and not callable(fn):
                 raise TypeError(f"{name} must be callable or None, got {type(fn).__name__}")
         self.problem, self.solver, self.fallback = problem, solver, fallback
-        self.warm_start = bool(warm_start)
+        self.warm_start = warm_start
         self.observe, self.actuate = observe, actuate
         self.solver_options = dict(solver_options)
         # Without the terminal set a bound's +inf ("terminal set out of reach") no longer holds: drop it too.
-        self._relaxed = (problem.replace(terminal=None, lower_bound=None)
-                         if fallback and problem.terminal is not None else None)
+        if isinstance(fallback, Problem):
+            self._relaxed = fallback
+        else:
+            self._relaxed = (problem.replace(terminal=None, lower_bound=None)
+                             if fallback and problem.terminal is not None else None)
         # What a compiled closed loop depends on: equal keys share one executable.
-        self._key = (problem.key, solver, fallback, self.warm_start, observe, actuate,
+        self._key = (problem.key, solver, fallback.key if isinstance(fallback, Problem) else fallback,
+                     self.warm_start, observe, actuate,
                      tuple(sorted(self.solver_options.items())))
 
     def _search(self, problem, x, params, previous):
         opts = dict(self.solver_options)
-        if self.warm_start and previous is not None:
+        if callable(self.warm_start) and previous is not None:
+            opts["warm_start"] = jnp.asarray(self.warm_start(problem, x, previous, params), jnp.int32)
+        elif self.warm_start and previous is not None:
             shifted = jnp.concatenate([previous[1:], previous[-1:]])
             opts["warm_start"] = jnp.where(previous[0] >= 0, shifted, -1)  # -1: none
         return _SOLVERS[self.solver](problem, x, params=params, **opts)

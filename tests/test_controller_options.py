@@ -1,0 +1,52 @@
+"""FIRHC's fallback problem and warm-start callable."""
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import firhc_jax as fj
+
+
+def dyn(x, u):
+    return jnp.stack([0.9 * x[0] + 0.3 * u[0], x[1] + 0.1 * x[0]])
+
+
+CONTROLS = jnp.array([[-1.0], [0.0], [1.0]])
+COST = fj.quadratic_cost(jnp.array([1.0, 0.5]), jnp.zeros(2), 0.1)
+
+
+def test_warm_start_callable_seeds_each_search():
+    p = fj.Problem(dyn, CONTROLS, COST, 4)
+    calls = []
+
+    def seed(problem, x, previous, params):
+        calls.append(problem.horizon)
+        return jnp.full((4,), 1, jnp.int32)  # "hold the input at 0": a valid, poor candidate
+
+    x = jnp.array([1.0, -0.5])
+    plain = fj.FIRHC(p).simulate(x, 3, compiled=False)
+    seeded = fj.FIRHC(p, warm_start=seed).simulate(x, 3, compiled=False)
+    assert calls  # the callable was used
+    np.testing.assert_allclose(seeded.predicted_costs, plain.predicted_costs, rtol=1e-12)
+    assert np.any(np.asarray(seeded.nodes) != np.asarray(plain.nodes))  # the seed's rollout counts N nodes
+
+
+def test_fallback_problem_decides_when_infeasible():
+    tight = fj.Problem(dyn, CONTROLS, COST, 3, terminal=lambda x: x[1] > 50.0)  # out of reach
+    relaxed = fj.Problem(dyn, CONTROLS, fj.quadratic_cost(jnp.array([0.0, 1.0]), jnp.zeros(2), 0.0), 3)
+    x = jnp.array([1.0, -0.5])
+    result, used = fj.FIRHC(tight, fallback=relaxed).solve(x)
+    assert bool(used)
+    ref = fj.sdfs(relaxed, x)
+    assert float(result.cost) == float(ref.cost) and list(result.sequence) == list(ref.sequence)
+    with pytest.raises(ValueError, match="horizon and inputs"):
+        fj.FIRHC(tight, fallback=fj.Problem(dyn, CONTROLS, COST, 4))
+
+
+def test_bad_options_are_refused():
+    p = fj.Problem(dyn, CONTROLS, COST, 3)
+    with pytest.raises(TypeError, match="warm_start"):
+        fj.FIRHC(p, warm_start="shift")
+    with pytest.raises(ValueError, match="fallback"):
+        fj.FIRHC(p, fallback="relaxed")
+    with pytest.raises(ValueError, match="solver='sdfs' only"):
+        fj.FIRHC(p, "exhaustive", warm_start=lambda *a: None)
