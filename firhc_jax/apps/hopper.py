@@ -164,26 +164,31 @@ def observe(X, u_prev):
     return jnp.stack([X[0] - X[2], X[1] - X[3], X[4], X[5], flag])
 
 
-class _TwoCandidateFIRHC(fj.FIRHC):
-    """FIRHC whose warm start is the better of the previous solution shifted by one step (FIRHC's own) and the
-    previous solution as it was (one period later than planned).
+def warm_candidate(problem: fj.Problem, x, previous, params=None):
+    """The warm start for a search from ``x``: the cheaper of ``previous`` (the last decision's sequence ``[N]``)
+    shifted by one step and ``previous`` unshifted, all -1 (none) when neither meets the terminal test or there
+    is no previous sequence.
 
-    Why: the plant loses energy to friction that the model does not have, so the shifted plan often just misses
-    the terminal band (no incumbent at all), while the same plan one period later meets it; at N = 10 the two
-    together give the search the incumbent it would find last. Exact either way (a warm start only sets the first
-    incumbent). Overrides ``FIRHC._search``, a private hook: see docs/bounds.md for the core change that would
-    make this a public option.
+    Why two: the plant loses energy to friction that the model does not have, so the shifted plan often just
+    misses the terminal band (no incumbent at all), while the same plan one period later meets it. Exact either
+    way: a warm start only sets the search's first incumbent.
     """
+    shifted = jnp.concatenate([previous[1:], previous[-1:]])
+    candidates = jnp.stack([shifted, previous])  # [2, N]
+    dtype = jnp.promote_types(x.dtype, jnp.float32)
+    costs = jax.vmap(lambda w: rollout_cost(problem, x, w, dtype, params)[0])(jnp.maximum(candidates, 0))
+    i = jnp.argmin(costs)
+    return jnp.where((previous[0] >= 0) & jnp.isfinite(costs[i]), candidates[i], -1)
+
+
+class _TwoCandidateFIRHC(fj.FIRHC):
+    """FIRHC warm-started by ``warm_candidate`` instead of the shifted sequence alone. Overrides
+    ``FIRHC._search``, a private hook: docs/bounds.md describes the core option that would replace it."""
 
     def _search(self, problem, x, params, previous):
         if previous is None:
             return super()._search(problem, x, params, previous)
-        shifted = jnp.concatenate([previous[1:], previous[-1:]])
-        candidates = jnp.stack([shifted, previous])  # [2, N]; all -1 when there is no previous solution
-        dtype = jnp.promote_types(x.dtype, jnp.float32)
-        costs = jax.vmap(lambda w: rollout_cost(problem, x, w, dtype, params)[0])(jnp.maximum(candidates, 0))
-        i = jnp.argmin(costs)
-        warm = jnp.where((previous[0] >= 0) & jnp.isfinite(costs[i]), candidates[i], -1)
+        warm = warm_candidate(problem, x, previous, params)
         return fj.sdfs(problem, x, params=params, warm_start=warm, **self.solver_options)
 
 
@@ -196,8 +201,8 @@ def controller(params: hm.HopperParams, horizon: int, solver: str, bound: bool =
     (a, b) in {-1, 0, 1}: in flight at the sample both are 0; should no
     sequence be found at all (NaN input; it has not happened) b stays closed.
     Cached so that repeated closed loops reuse one compiled executable.
-    ``bound`` as in ``problem``; ``warm`` (sdfs only): seed each search with the better of the previous
-    solution shifted and unshifted (``_TwoCandidateFIRHC``); ``options`` go to the solver (e.g. ``max_nodes``).
+    ``bound`` as in ``problem``; ``warm`` (sdfs only): seed each search with ``warm_candidate`` (the better of
+    the previous solution shifted and unshifted); ``options`` go to the solver (e.g. ``max_nodes``).
     """
     p = params
 
@@ -349,8 +354,8 @@ def summarize(loop: fj.ClosedLoop, X, horizon: int, solver: str, seconds: float,
         valve_b_supply=int(np.count_nonzero(cmd[:, 1] > 0)),
         valve_b_exhaust=int(np.count_nonzero(cmd[:, 1] < 0)),
         stroke_min=float(stroke.min()), stroke_max=float(stroke.max()), stroke_limit=params.stroke / 2,
-        horizon=horizon, solver=solver, bound=loop_bound, warm=loop_warm, seconds=seconds, control_period_s=CONTROL_PERIOD,
-        plant_dt_s=PLANT_DT,
+        horizon=horizon, solver=solver, bound=loop_bound, warm=loop_warm, seconds=seconds,
+        control_period_s=CONTROL_PERIOD, plant_dt_s=PLANT_DT,
         weights=dict(lambda1=LAMBDA1, lambda2=LAMBDA2, beta=BETA), energy_tol=ENERGY_TOL,
         params=dataclasses.asdict(params), wall_time_s=wall_s,
     )
