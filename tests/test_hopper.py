@@ -207,6 +207,15 @@ def test_bound_is_admissible_and_keeps_the_closed_loop():
     low_a = Zall.at[:, 2].multiply(0.98)  # side a's law would charge: the bound must not rely on conservation
     assert np.all(np.asarray(jax.vmap(lambda z: problem.lower_bound(z, jnp.int32(3)))(low_a)) == 0)
 
+    # The fallback's bound (no terminal set) claims no +inf: admissible on contact states and on frozen (lifted-off)
+    # ones outside the band, where the constrained bound's +inf would be wrong.
+    fallback = app.fallback_problem(P, 4)
+    assert fallback.terminal is None
+    frozen = Z.at[:, 4].set(1.0)
+    e = np.abs(np.asarray(jax.vmap(err)(frozen)))
+    assert np.any(e > app.ENERGY_TOL)
+    assert check_lower_bound(fallback, jnp.concatenate([Z, frozen]), max_steps=2) == []
+
 
 def test_warm_candidate_takes_the_unshifted_plan_when_the_shifted_one_misses_the_band():
     import firhc_jax as fj

@@ -111,6 +111,17 @@ def problem(params: hm.HopperParams, horizon: int, bound: bool = False) -> fj.Pr
     ``bound``: add the lower bound of ``docs/bounds.md`` (energy-band
     reachability and energy-error cost), exact results with fewer nodes.
     """
+    return _problems(params, horizon)["bounded" if bound else "plain"]
+
+
+def fallback_problem(params: hm.HopperParams, horizon: int) -> fj.Problem:
+    """The bounded problem without its terminal set, for the fallback search: its bound is the same one without
+    the ``+inf`` that only the terminal set justifies (the core drops a bound with the terminal set)."""
+    return _problems(params, horizon)["relaxed"]
+
+
+@functools.lru_cache(maxsize=None)
+def _problems(params: hm.HopperParams, horizon: int) -> dict:
     p = params
     v_liftoff, E_target = liftoff_velocity(p), static_target(p)
 
@@ -132,24 +143,35 @@ def problem(params: hm.HopperParams, horizon: int, bound: bool = False) -> fj.Pr
     def terminal(z):
         return (z[4] == IN_FLIGHT) | (jnp.abs(energy_error(z)) <= ENERGY_TOL)
 
-    def lower_bound(z, steps_left):
+    def bound(z, steps_left, band: bool):
         """docs/bounds.md. In flight 0. After a predicted lift-off (frozen state) the exact cost with valve b
-        closed, +inf outside the band. In contact, with side a's law provably idle, e stays put while valve b is
-        closed: either b stays closed (every stage costs at least LAMBDA1 e^2, and e must already be in the band)
-        or it opens at least once (BETA u^2 = OPEN_COST); with side a possibly charging, 0."""
+        closed. In contact, with side a's law provably idle, e stays put while valve b is closed: either b stays
+        closed (every stage costs at least LAMBDA1 e^2) or it opens at least once (BETA u^2 = OPEN_COST); with side
+        a possibly charging, 0. ``band``: the terminal set applies, so a frozen or closed-valve future with e
+        outside the band is infeasible (+inf)."""
         e, s = jnp.abs(energy_error(z)), steps_left.astype(z.dtype)
         frozen = s * stage_cost(z, jnp.zeros(1, z.dtype))
         j = jnp.arange(1, horizon + 1, dtype=z.dtype)
         drift = jnp.where(j <= s, jnp.maximum(e - j * PASSIVE_DRIFT, 0.0), 0.0)  # e after j closed periods
-        closed = jnp.where(e - s * PASSIVE_DRIFT <= ENERGY_TOL, LAMBDA1 * jnp.sum(drift * drift), jnp.inf)
+        closed = LAMBDA1 * jnp.sum(drift * drift)
+        airborne = z[4] == 1.0
+        if band:
+            closed = jnp.where(e - s * PASSIVE_DRIFT <= ENERGY_TOL, closed, jnp.inf)
+            frozen = jnp.where(e <= ENERGY_TOL, frozen, jnp.inf)
         Pa_ref = hm.nominal_pressures(z[0], p)[0]
         a_idle = z[2] >= (1 - A_DEADBAND) * (1 + A_IDLE_MARGIN) * Pa_ref  # side_a_law with a margin: never fires
-        contact_value = jnp.where(a_idle, jnp.minimum(closed, OPEN_COST), 0.0)
-        airborne = z[4] == 1.0
-        value = jnp.where(airborne, jnp.where(e <= ENERGY_TOL, frozen, jnp.inf), contact_value)
+        value = jnp.where(airborne, frozen, jnp.where(a_idle, jnp.minimum(closed, OPEN_COST), 0.0))
         return jnp.where(z[4] == IN_FLIGHT, 0.0, (1 - 1e-9) * value)  # margin for the search's own rounding
 
-    return fj.Problem(dynamics, jnp.asarray(VALVE_B), stage_cost, horizon, terminal, lower_bound if bound else None)
+    def lower_bound(z, steps_left):
+        return bound(z, steps_left, True)
+
+    def relaxed_bound(z, steps_left):
+        return bound(z, steps_left, False)
+
+    plain = fj.Problem(dynamics, jnp.asarray(VALVE_B), stage_cost, horizon, terminal)
+    return dict(plain=plain, bounded=plain.replace(lower_bound=lower_bound),
+                relaxed=plain.replace(terminal=None, lower_bound=relaxed_bound))
 
 
 def contact(X):
@@ -181,11 +203,19 @@ def warm_candidate(problem: fj.Problem, x, previous, params=None):
     return jnp.where((previous[0] >= 0) & jnp.isfinite(costs[i]), candidates[i], -1)
 
 
-class _TwoCandidateFIRHC(fj.FIRHC):
-    """FIRHC warm-started by ``warm_candidate`` instead of the shifted sequence alone. Overrides
-    ``FIRHC._search``, a private hook: docs/bounds.md describes the core option that would replace it."""
+class _HopperFIRHC(fj.FIRHC):
+    """FIRHC with the two search changes the hopper needs, through ``FIRHC._search``, a private hook
+    (docs/bounds.md describes the core options that would replace it): warm starts by ``warm_candidate`` instead
+    of the shifted sequence alone, and a fallback search that keeps the bound (``fallback_problem``)."""
+
+    def __init__(self, problem, *args, relaxed=None, **kwargs):
+        super().__init__(problem, *args, **kwargs)
+        self.relaxed = relaxed
+        self._key = self._key + ("hopper", relaxed.key if relaxed is not None else None)
 
     def _search(self, problem, x, params, previous):
+        if problem.terminal is None and self.relaxed is not None:  # the fallback search
+            problem = self.relaxed
         if previous is None:
             return super()._search(problem, x, params, previous)
         warm = warm_candidate(problem, x, previous, params)
@@ -201,8 +231,9 @@ def controller(params: hm.HopperParams, horizon: int, solver: str, bound: bool =
     (a, b) in {-1, 0, 1}: in flight at the sample both are 0; should no
     sequence be found at all (NaN input; it has not happened) b stays closed.
     Cached so that repeated closed loops reuse one compiled executable.
-    ``bound`` as in ``problem``; ``warm`` (sdfs only): seed each search with ``warm_candidate`` (the better of
-    the previous solution shifted and unshifted); ``options`` go to the solver (e.g. ``max_nodes``).
+    ``bound`` as in ``problem``, the fallback search with ``fallback_problem``'s bound; ``warm`` (sdfs only):
+    seed each search with ``warm_candidate`` (the better of the previous solution shifted and unshifted);
+    ``options`` go to the solver (e.g. ``max_nodes``).
     """
     p = params
 
@@ -210,10 +241,11 @@ def controller(params: hm.HopperParams, horizon: int, solver: str, bound: bool =
         b = jnp.where(jnp.isnan(u[0]), 0.0, jnp.sign(u[0]))
         return jnp.where(contact(X), jnp.stack([side_a_law(X[0] - X[2], X[4], p), b]), 0.0)
 
-    cls = _TwoCandidateFIRHC if warm else fj.FIRHC
-    ctrl = cls(problem(params, horizon, bound), solver, fallback="unconstrained", observe=observe,
-               actuate=actuate, warm_start=warm, **options)
-    return ctrl
+    common = dict(fallback="unconstrained", observe=observe, actuate=actuate, warm_start=warm, **options)
+    if not (bound or warm):
+        return fj.FIRHC(problem(params, horizon), solver, **common)
+    return _HopperFIRHC(problem(params, horizon, bound), solver, relaxed=fallback_problem(params, horizon) if bound
+                        else None, **common)
 
 
 def _period(X, cmd, p: hm.HopperParams):
