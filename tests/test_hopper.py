@@ -196,29 +196,38 @@ def test_bound_is_admissible_and_keeps_the_closed_loop():
     assert check_lower_bound(inflated, Z, max_steps=1)  # caught wherever the band is reachable in one step
 
     v = app.liftoff_velocity(P)
-
-    def err(z):
-        return hm.model_energy(z, P) - hm.orbit_energy(z, v, P)
-
-    closed = jax.vmap(lambda z: problem.dynamics(z, jnp.zeros(1)))(Zall)
-    assert np.all(np.abs(np.asarray(jax.vmap(err)(closed) - jax.vmap(err)(Zall))) <= app.PASSIVE_DRIFT)
-    bounds = np.asarray(jax.vmap(lambda z: problem.lower_bound(z, jnp.int32(3)))(Zall))
-    assert np.all((bounds > 0) & (bounds <= app.OPEN_COST))  # contact: at most one opening's worth
-    low_a = Zall.at[:, 2].multiply(0.98)  # side a's law would charge: the bound must not rely on conservation
-    assert np.all(np.asarray(jax.vmap(lambda z: problem.lower_bound(z, jnp.int32(3)))(low_a)) == 0)
-
-    # The fallback's bound (no terminal set) claims no +inf: admissible on contact states and on frozen (lifted-off)
-    # ones outside the band, where the constrained bound's +inf would be wrong.
     fallback = app.fallback_problem(P, 4)
-    assert fallback.terminal is None
-    frozen = Z.at[:, 4].set(1.0)
-    e = np.abs(np.asarray(jax.vmap(err)(frozen)))
-    assert np.any(e > app.ENERGY_TOL)
-    assert check_lower_bound(fallback, jnp.concatenate([Z, frozen]), max_steps=2) == []
+    three = jnp.int32(3)
+
+    @jax.jit
+    def probe(Z):
+        def err(z):
+            return hm.model_energy(z, P) - hm.orbit_energy(z, v, P)
+
+        def one_step(z):  # exact optimum of one unconstrained step
+            return jnp.min(jax.vmap(lambda u: fallback.stage_cost(fallback.dynamics(z, u[None]), u[None]))(
+                jnp.asarray(app.VALVE_B)))
+
+        closed = jax.vmap(lambda z: problem.dynamics(z, jnp.zeros(1)))(Z)
+        frozen = Z.at[:, 4].set(1.0)  # lifted off where it stands
+        return dict(moved=jnp.abs(jax.vmap(err)(closed) - jax.vmap(err)(Z)),
+                    bound=jax.vmap(lambda z: problem.lower_bound(z, three))(Z),
+                    low_a=jax.vmap(lambda z: problem.lower_bound(z, three))(Z.at[:, 2].multiply(0.98)),
+                    e_frozen=jnp.abs(jax.vmap(err)(frozen)),
+                    fallback=jax.vmap(lambda z: fallback.lower_bound(z, jnp.int32(1)))(jnp.concatenate([Z, frozen])),
+                    exact=jax.vmap(one_step)(jnp.concatenate([Z, frozen])))
+
+    r = {k: np.asarray(a) for k, a in probe(Zall).items()}
+    assert np.all(r["moved"] <= app.PASSIVE_DRIFT)
+    assert np.all((r["bound"] > 0) & (r["bound"] <= app.OPEN_COST))  # contact: at most one opening's worth
+    assert np.all(r["low_a"] == 0)  # side a's law would charge: the bound must not rely on conservation
+    # The fallback's bound (no terminal set) claims no +inf: admissible on contact states and on frozen
+    # (lifted-off) ones outside the band, where the constrained bound's +inf would be wrong.
+    assert fallback.terminal is None and np.any(r["e_frozen"] > app.ENERGY_TOL)
+    assert np.all(r["fallback"] <= r["exact"])
 
 
 def test_warm_candidate_takes_the_unshifted_plan_when_the_shifted_one_misses_the_band():
-    import firhc_jax as fj
     from firhc_jax.nodes import rollout_cost
 
     loop, _ = app.simulate(0.3, 4, "sdfs", P, progress=False)  # compiled by the test above
@@ -226,9 +235,14 @@ def test_warm_candidate_takes_the_unshifted_plan_when_the_shifted_one_misses_the
     problem = app.problem(P, 4, bound=True)
     previous = np.array([0, 0, 0, 1], np.int32)  # step 28's plan: exhaust for three periods
     z = app.observe(jnp.asarray(S[29]), None)
-    cost = jax.jit(lambda w: rollout_cost(problem, z, w, jnp.float64)[0])
-    assert np.isinf(cost(jnp.asarray([0, 0, 1, 1]))) and np.isfinite(cost(jnp.asarray(previous)))
-    warm = jax.jit(lambda z, w: app.warm_candidate(problem, z, w))
-    np.testing.assert_array_equal(warm(z, jnp.asarray(previous)), previous)
-    np.testing.assert_array_equal(warm(z, jnp.full(4, -1, jnp.int32)), -1)  # no previous plan: no warm start
-    assert fj.sdfs(problem, app.observe(jnp.asarray(S[28]), None)).sequence.tolist() == previous.tolist()
+
+    @jax.jit
+    def probe(z, previous):
+        shifted = jnp.concatenate([previous[1:], previous[-1:]])
+        return (rollout_cost(problem, z, shifted, jnp.float64)[0], rollout_cost(problem, z, previous, jnp.float64)[0],
+                app.warm_candidate(problem, z, previous), app.warm_candidate(problem, z, jnp.full(4, -1, jnp.int32)))
+
+    c_shifted, c_previous, warm, none = probe(z, jnp.asarray(previous))
+    assert np.isinf(c_shifted) and np.isfinite(c_previous)
+    np.testing.assert_array_equal(warm, previous)
+    np.testing.assert_array_equal(none, -1)  # no previous plan: no warm start
