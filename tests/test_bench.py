@@ -25,7 +25,8 @@ def test_exhaustive_subset_respects_the_node_budget():
     case = bench.synthetic_case(3, count=40)
     rows = bench.subset(case, max_nodes=case.problem.tree_size() * 7.5)
     assert len(rows) == 7 and rows[0] == 0 and rows[-1] == 39
-    assert len(bench.subset(case, max_nodes=1)) == 1
+    assert len(bench.subset(case, max_nodes=case.problem.tree_size())) == 1
+    assert len(bench.subset(case, max_nodes=case.problem.tree_size() - 1)) == 0  # one search alone is over budget
 
 
 def test_table_row_on_a_small_case():
@@ -36,3 +37,13 @@ def test_table_row_on_a_small_case():
     assert 0 < row["C_dfs_pct"] and 0 < row["C_levels_pct"]
     assert row["best_pop_width"] in bench.POP_WIDTHS
     np.testing.assert_array_equal(case.reference.shape, (3, 3))
+
+
+def test_table_row_without_exhaustive_searches_when_one_exceeds_the_budget():
+    case = bench.synthetic_case(3, count=2)
+    row = bench.table_row(case, repeats=1, max_es_nodes=case.problem.tree_size() - 1, pop_widths=(1, 2))
+    assert row["es_steps"] == 0 and row["steps"] == 2
+    assert row["C_dfs_pct"] is None and row["C_levels_pct"] is None and row["dfs_ms"] is None
+    assert 0 < row["sdfs_max_ms"] and row["best_pop_width"] in (1, 2)
+    text = bench.tables_markdown([{**row, "plant": "tanks", "N": 9}])
+    assert "| 9 | " in text and "over budget" in text

@@ -152,8 +152,10 @@ def test_cli_writes_summary_and_figures(tmp_path):
     assert cli.main(["hopper", "--horizon", "4", "--seconds", "0.6", "--out", str(out), "--no-progress"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     for key in ("T2", "E_d", "t_hop_mean", "t_air_mean", "hops", "infeasible_steps", "nodes_min", "nodes_max",
-                "nodes_mean", "solve_time_mean_s", "horizon", "solver"):
+                "nodes_mean", "solve_time_mean_s", "solve_time_median_s", "solve_time_max_s", "horizon", "solver",
+                "bound", "warm"):
         assert key in summary, key
+    assert 0 < summary["solve_time_median_s"] <= summary["solve_time_max_s"]
     assert summary["horizon"] == 4 and summary["solver"] == "sdfs" and summary["hops"] == 1
     assert summary["T2"] == pytest.approx(0.161, abs=1e-3)
     assert summary["contact_steps"] < summary["control_steps"] == 120 and summary["nodes_min"] == 3 * 4
@@ -175,17 +177,72 @@ def test_cli_rejects_bad_input(argv, message, capsys):
 
 
 def test_bound_is_admissible_and_keeps_the_closed_loop():
-    """The bound passes the exhaustive check on contact states, an inflated one is caught, and sDFS with it
-    drives the same closed loop with fewer nodes."""
+    """The bound passes the exhaustive check on contact states, an inflated one is caught, and sDFS with it,
+    warm-started from two candidates, drives the same closed loop with fewer nodes. The contact bound's
+    premise holds: with valve b closed (side a idle) one period moves e = E - E_d by at most PASSIVE_DRIFT;
+    where side a could charge, the bound claims nothing (0)."""
     from firhc_jax.diagnostics import check_lower_bound
 
     plain, _ = app.simulate(0.3, 4, "sdfs", P, progress=False)
-    bounded, _ = app.simulate(0.3, 4, "sdfs", P, progress=False, bound=True)
-    np.testing.assert_allclose(np.asarray(bounded.stage_costs), np.asarray(plain.stage_costs), rtol=1e-9)
-    assert np.asarray(bounded.nodes).sum() < np.asarray(plain.nodes).sum()
+    warm, _ = app.simulate(0.3, 4, "sdfs", P, progress=False, bound=True, warm=True)
+    np.testing.assert_array_equal(np.asarray(warm.stage_costs), np.asarray(plain.stage_costs))
+    assert np.asarray(warm.nodes).sum() < 0.85 * np.asarray(plain.nodes).sum()
     S = np.asarray(plain.states[:-1])
-    Z = np.asarray(jax.vmap(lambda X: app.observe(X, None))(S[app.contact(S)]))[::4]
+    Zall = jnp.asarray(np.asarray(jax.vmap(lambda X: app.observe(X, None))(S[app.contact(S)])))
+    Z = Zall[::4]
     problem = app.problem(P, 4, bound=True)
     assert check_lower_bound(problem, Z, max_steps=2) == []
     inflated = problem.replace(lower_bound=lambda z, s: problem.lower_bound(z, s) + 1.0)
     assert check_lower_bound(inflated, Z, max_steps=1)  # caught wherever the band is reachable in one step
+
+    v = app.liftoff_velocity(P)
+    fallback = app.fallback_problem(P, 4)
+    three = jnp.int32(3)
+
+    @jax.jit
+    def probe(Z):
+        def err(z):
+            return hm.model_energy(z, P) - hm.orbit_energy(z, v, P)
+
+        def one_step(z):  # exact optimum of one unconstrained step
+            return jnp.min(jax.vmap(lambda u: fallback.stage_cost(fallback.dynamics(z, u[None]), u[None]))(
+                jnp.asarray(app.VALVE_B)))
+
+        closed = jax.vmap(lambda z: problem.dynamics(z, jnp.zeros(1)))(Z)
+        frozen = Z.at[:, 4].set(1.0)  # lifted off where it stands
+        return dict(moved=jnp.abs(jax.vmap(err)(closed) - jax.vmap(err)(Z)),
+                    bound=jax.vmap(lambda z: problem.lower_bound(z, three))(Z),
+                    low_a=jax.vmap(lambda z: problem.lower_bound(z, three))(Z.at[:, 2].multiply(0.98)),
+                    e_frozen=jnp.abs(jax.vmap(err)(frozen)),
+                    fallback=jax.vmap(lambda z: fallback.lower_bound(z, jnp.int32(1)))(jnp.concatenate([Z, frozen])),
+                    exact=jax.vmap(one_step)(jnp.concatenate([Z, frozen])))
+
+    r = {k: np.asarray(a) for k, a in probe(Zall).items()}
+    assert np.all(r["moved"] <= app.PASSIVE_DRIFT)
+    assert np.all((r["bound"] > 0) & (r["bound"] <= app.OPEN_COST))  # contact: at most one opening's worth
+    assert np.all(r["low_a"] == 0)  # side a's law would charge: the bound must not rely on conservation
+    # The fallback's bound (no terminal set) claims no +inf: admissible on contact states and on frozen
+    # (lifted-off) ones outside the band, where the constrained bound's +inf would be wrong.
+    assert fallback.terminal is None and np.any(r["e_frozen"] > app.ENERGY_TOL)
+    assert np.all(r["fallback"] <= r["exact"])
+
+
+def test_warm_candidate_takes_the_unshifted_plan_when_the_shifted_one_misses_the_band():
+    from firhc_jax.nodes import rollout_cost
+
+    loop, _ = app.simulate(0.3, 4, "sdfs", P, progress=False)  # compiled by the test above
+    S = np.asarray(loop.states)
+    problem = app.problem(P, 4, bound=True)
+    previous = np.array([0, 0, 0, 1], np.int32)  # step 28's plan: exhaust for three periods
+    z = app.observe(jnp.asarray(S[29]), None)
+
+    @jax.jit
+    def probe(z, previous):
+        shifted = jnp.concatenate([previous[1:], previous[-1:]])
+        return (rollout_cost(problem, z, shifted, jnp.float64)[0], rollout_cost(problem, z, previous, jnp.float64)[0],
+                app.warm_candidate(problem, z, previous), app.warm_candidate(problem, z, jnp.full(4, -1, jnp.int32)))
+
+    c_shifted, c_previous, warm, none = probe(z, jnp.asarray(previous))
+    assert np.isinf(c_shifted) and np.isfinite(c_previous)
+    np.testing.assert_array_equal(warm, previous)
+    np.testing.assert_array_equal(none, -1)  # no previous plan: no warm start

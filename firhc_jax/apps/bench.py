@@ -91,6 +91,7 @@ def _case(plant, problem, states) -> Case:
 class Timing(NamedTuple):
     seconds: float  # median over repeats of the summed search times
     compile_s: float  # first call minus a typical one
+    slowest: float  # the slowest single search (s), its fastest repeat
     nodes: np.ndarray  # [S] nodes per state
     iterations: np.ndarray  # [S] loop iterations per state
 
@@ -120,21 +121,27 @@ def time_search(fn, case: Case, rows: np.ndarray, repeats: int) -> Timing:
     jax.block_until_ready(fn(*args[0]))
     first = time.perf_counter() - t0
     totals, results = [], []
+    each = np.full(len(args), np.inf)
     for _ in range(repeats):
         total, results = 0.0, []
-        for a in args:
+        for i, a in enumerate(args):
             t0 = time.perf_counter()
             results.append(jax.block_until_ready(fn(*a)))
-            total += time.perf_counter() - t0
+            dt = time.perf_counter() - t0
+            total += dt
+            each[i] = min(each[i], dt)
         totals.append(total)
     seconds = statistics.median(totals)
-    return Timing(seconds, max(first - seconds / len(args), 0.0),
+    return Timing(seconds, max(first - seconds / len(args), 0.0), float(each.max()),
                   np.array([int(r.nodes) for r in results]), np.array([int(r.iterations) for r in results]))
 
 
 def subset(case: Case, max_nodes: float) -> np.ndarray:
-    """Evenly spaced state indices so that an exhaustive search visits at most ``max_nodes`` in all."""
+    """Evenly spaced state indices so that an exhaustive search visits at most ``max_nodes`` in all;
+    empty when even one state's tree exceeds it (the exhaustive columns are then skipped)."""
     per_state = case.problem.tree_size()
+    if per_state > max_nodes:
+        return np.zeros(0, int)
     count = int(max(1, min(len(case.states), max_nodes // per_state)))
     return np.unique(np.linspace(0, len(case.states) - 1, count).round().astype(int))
 
@@ -149,21 +156,26 @@ def table_row(case: Case, repeats: int, max_es_nodes: float, pop_widths=POP_WIDT
     some = subset(case, max_es_nodes)
     full = {name: time_search(fn, case, every, repeats)
             for name, fn in fns.items() if not name.startswith("exhaustive")}
-    part = {name: time_search(fns[name], case, some, repeats)
-            for name in ("sdfs", "exhaustive dfs", "exhaustive levels")}
     tree = case.problem.tree_size()
-    assert np.all(part["exhaustive levels"].nodes == tree) and np.all(part["exhaustive dfs"].nodes == tree)
     sd = full["sdfs"]
+    S, s = len(every), len(some)
+    if s:
+        part = {name: time_search(fns[name], case, some, repeats)
+                for name in ("sdfs", "exhaustive dfs", "exhaustive levels")}
+        assert np.all(part["exhaustive levels"].nodes == tree) and np.all(part["exhaustive dfs"].nodes == tree)
+        es = {"C_dfs_pct": 100 * part["sdfs"].seconds / part["exhaustive dfs"].seconds,
+              "C_levels_pct": 100 * part["sdfs"].seconds / part["exhaustive levels"].seconds,
+              "dfs_ms": 1e3 * part["exhaustive dfs"].seconds / s,
+              "levels_ms": 1e3 * part["exhaustive levels"].seconds / s}
+    else:  # one exhaustive search alone would exceed the node budget: no Point C (say so, never guess)
+        part = {}
+        es = {"C_dfs_pct": None, "C_levels_pct": None, "dfs_ms": None, "levels_ms": None}
     widths = {k: full["sdfs" if k == 1 else f"sdfs K={k}"].seconds for k in pop_widths}
     best_k = min(widths, key=widths.get)
-    S, s = len(every), len(some)
     return {
         "plant": case.plant, "N": case.horizon, "steps": S, "es_steps": s,
         "A": tree, "B_max": int(sd.nodes.max()), "B_min": int(sd.nodes.min()), "B_mean": float(sd.nodes.mean()),
-        "C_dfs_pct": 100 * part["sdfs"].seconds / part["exhaustive dfs"].seconds,
-        "C_levels_pct": 100 * part["sdfs"].seconds / part["exhaustive levels"].seconds,
-        "sdfs_ms": 1e3 * sd.seconds / S, "dfs_ms": 1e3 * part["exhaustive dfs"].seconds / s,
-        "levels_ms": 1e3 * part["exhaustive levels"].seconds / s,
+        **es, "sdfs_ms": 1e3 * sd.seconds / S, "sdfs_max_ms": 1e3 * sd.slowest,
         "us_per_iteration": 1e6 * sd.seconds / sd.iterations.sum(),
         "warm_nodes_mean": float(full["sdfs warm"].nodes.mean()), "warm_ms": 1e3 * full["sdfs warm"].seconds / S,
         "best_pop_width": best_k, "best_pop_width_ms": 1e3 * widths[best_k] / S,
@@ -182,12 +194,21 @@ def tables_markdown(rows: list[dict], bound: bool = False) -> str:
                   "| sDFS ms/step | ES-dfs ms | ES-levels ms | us/iter | warm nodes / ms | fastest K (ms) | ES steps |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in mine:
-            pa, pbmax, pbmin, pc = PAPER[plant][r["N"]]
-            pcs = f"{pc}%" if pc is not None else "-"
+            paper = PAPER[plant].get(r["N"])
+            pa, pb, pcs = "-", "-", "-"
+            if paper:
+                pa, pb = f"{paper[0]:,}", f"{paper[1]:,}/{paper[2]:,}"
+                pcs = f"{paper[3]}%" if paper[3] is not None else "-"
+            no_es = "over budget" if r["C_dfs_pct"] is None else None
+
+            def es(key, spec, unit="", r=r, no_es=no_es):
+                return no_es or f"{format(r[key], spec)}{unit}"
+
             lines.append(
-                f"| {r['N']} | {r['A']:,} ({pa:,}) | {r['B_max']:,}/{r['B_min']:,} ({pbmax:,}/{pbmin:,}) | "
-                f"{r['B_mean']:.0f} | {r['C_dfs_pct']:.2f}% ({pcs}) | {r['C_levels_pct']:.2f}% | {r['sdfs_ms']:.3f} | "
-                f"{r['dfs_ms']:.2f} | {r['levels_ms']:.2f} | {r['us_per_iteration']:.2f} | "
+                f"| {r['N']} | {r['A']:,} ({pa}) | {r['B_max']:,}/{r['B_min']:,} ({pb}) | "
+                f"{r['B_mean']:.0f} | {es('C_dfs_pct', '.2f', '%')} ({pcs}) | {es('C_levels_pct', '.2f', '%')} | "
+                f"{r['sdfs_ms']:.3f} | {es('dfs_ms', '.2f')} | {es('levels_ms', '.2f')} | "
+                f"{r['us_per_iteration']:.2f} | "
                 f"{r['warm_nodes_mean']:.0f} / {r['warm_ms']:.3f} | "
                 f"{r['best_pop_width']} ({r['best_pop_width_ms']:.3f}) | {r['es_steps']}/{r['steps']} |")
         lines.append("")
@@ -197,7 +218,8 @@ def tables_markdown(rows: list[dict], bound: bool = False) -> str:
         "C: total sDFS search time / total exhaustive search time on the same steps, against the exhaustive "
         "depth-first search on the sDFS machinery (like for like with the paper) and against the vectorised "
         "level-by-level search (our strongest baseline). ES steps: the steps the exhaustive searches were timed "
-        "on (evenly spaced when the full run would take too long); the sDFS time in C is over the same steps. "
+        "on (evenly spaced when the full run would take too long; none, and no Point C: 'over budget', when one "
+        "exhaustive search alone exceeds --max-es-nodes); the sDFS time in C is over the same steps. "
         "warm: sDFS seeded with the previous step's solution shifted. fastest K: the pop_width with the least "
         "total time. Compile times are in the JSON output.", ""]
     return "\n".join(lines)
@@ -217,14 +239,19 @@ def run_tables(args) -> int:
     from ..progress import Progress
 
     plants = [p for p in ("hopper", "tanks") if p in args.plants]
-    todo = [(p, n) for p in plants for n in (HORIZONS[p][:1] if args.quick else HORIZONS[p])]
+    chosen = {"hopper": args.hopper_horizons, "tanks": args.tanks_horizons}
+    todo = [(p, n) for p in plants
+            for n in (chosen[p] or (HORIZONS[p][:1] if args.quick else HORIZONS[p]))]
+    widths = tuple(args.pop_widths) if args.pop_widths else (POP_WIDTHS[:2] if args.quick else POP_WIDTHS)
+    if widths[0] != 1 or len(set(widths)) != len(widths):
+        raise SystemExit(f"bench tables: --pop-widths must start with 1 (the paper's sDFS) and not repeat, "
+                         f"got {widths}")
     rows = []
     with Progress(len(todo), "tables") as bar:
         for i, (plant, n) in enumerate(todo):
             case = (hopper_case(n, 0.5 if args.quick else 2.0, args.bound) if plant == "hopper"
                     else tanks_case(n, 20.0 if args.quick else 200.0, args.bound))
-            rows.append(table_row(case, 1 if args.quick else args.repeats, args.max_es_nodes,
-                                  POP_WIDTHS[:2] if args.quick else POP_WIDTHS))
+            rows.append(table_row(case, 1 if args.quick else args.repeats, args.max_es_nodes, widths))
             bar.update(i + 1)
     text = f"Measured on {machine()}, float64, {time.strftime('%Y-%m-%d')}.\n\n" + tables_markdown(rows, args.bound)
     _write(args.out, "tables-bound" if args.bound else "tables", text, rows)
@@ -389,6 +416,12 @@ def register(subparsers) -> None:
         if name == "tables":
             q.add_argument("--plants", nargs="+", choices=("hopper", "tanks"), default=["hopper", "tanks"],
                            help="which tables: hopper (Table 2), tanks (Table 3); default both")
+            q.add_argument("--hopper-horizons", type=number(int, 1, 12), nargs="+", metavar="N",
+                           help="hopper horizons (default 5 6 7 8; --quick: the first)")
+            q.add_argument("--tanks-horizons", type=number(int, 1, 8), nargs="+", metavar="N",
+                           help="tanks horizons (default 3 4 5 6; --quick: the first)")
+            q.add_argument("--pop-widths", type=number(int, 1, 64), nargs="+", metavar="K",
+                           help="sDFS pop widths timed, the first must be 1 (default 1 2 4 8 16; --quick: 1 2)")
             q.add_argument("--bound", action="store_true",
                            help="sDFS variants with the applications' lower bounds (docs/bounds.md); the "
                                 "exhaustive searches are unchanged")

@@ -51,6 +51,7 @@ import numpy as np
 
 import firhc_jax as fj
 from firhc_jax.models import hopper as hm
+from firhc_jax.nodes import rollout_cost
 
 from ._args import number
 
@@ -64,7 +65,9 @@ ENERGY_TOL = 0.02  # J, terminal constraint |E(k+N) - E_d| <= tol
 A_DEADBAND = 0.01  # relative: side a charges below (1 - 1%) of the reference pressure
 SUBSTEPS = int(round(CONTROL_PERIOD / PLANT_DT))  # plant steps per control period
 IN_FLIGHT = 2.0  # model state's airborne flag for a decision taken in flight (see ``problem``)
-ENERGY_STEP_CAP = 0.2  # J, bound on |change of E - E_d| in one control period (docs/bounds.md: 1.27x the largest seen)
+OPEN_COST = BETA * min(u * u for u in VALVE_B if u != 0)  # cost of one period with valve b open (0.001)
+PASSIVE_DRIFT = 1e-6  # J, allowance per closed period for the RK4 drift of the conserved E - E_d (seen: <= 1e-10)
+A_IDLE_MARGIN = 1e-6  # relative margin on side a's threshold for "its law never fires below this node"
 
 
 # ---------------------------------------------------------------------------
@@ -108,6 +111,17 @@ def problem(params: hm.HopperParams, horizon: int, bound: bool = False) -> fj.Pr
     ``bound``: add the lower bound of ``docs/bounds.md`` (energy-band
     reachability and energy-error cost), exact results with fewer nodes.
     """
+    return _problems(params, horizon)["bounded" if bound else "plain"]
+
+
+def fallback_problem(params: hm.HopperParams, horizon: int) -> fj.Problem:
+    """The bounded problem without its terminal set, for the fallback search: its bound is the same one without
+    the ``+inf`` that only the terminal set justifies (the core drops a bound with the terminal set)."""
+    return _problems(params, horizon)["relaxed"]
+
+
+@functools.lru_cache(maxsize=None)
+def _problems(params: hm.HopperParams, horizon: int) -> dict:
     p = params
     v_liftoff, E_target = liftoff_velocity(p), static_target(p)
 
@@ -129,20 +143,35 @@ def problem(params: hm.HopperParams, horizon: int, bound: bool = False) -> fj.Pr
     def terminal(z):
         return (z[4] == IN_FLIGHT) | (jnp.abs(energy_error(z)) <= ENERGY_TOL)
 
-    def lower_bound(z, steps_left):
-        """In flight 0; after a predicted lift-off (frozen state) the exact cost with valve b closed; in contact
-        ``sum_j LAMBDA1 (|e| - j ENERGY_STEP_CAP)_+^2``. +inf where the band |e| <= ENERGY_TOL is out of reach."""
+    def bound(z, steps_left, band: bool):
+        """docs/bounds.md. In flight 0. After a predicted lift-off (frozen state) the exact cost with valve b
+        closed. In contact, with side a's law provably idle, e stays put while valve b is closed: either b stays
+        closed (every stage costs at least LAMBDA1 e^2) or it opens at least once (BETA u^2 = OPEN_COST); with side
+        a possibly charging, 0. ``band``: the terminal set applies, so a frozen or closed-valve future with e
+        outside the band is infeasible (+inf)."""
         e, s = jnp.abs(energy_error(z)), steps_left.astype(z.dtype)
         frozen = s * stage_cost(z, jnp.zeros(1, z.dtype))
         j = jnp.arange(1, horizon + 1, dtype=z.dtype)
-        gap = jnp.where(j <= s, jnp.maximum(e - j * ENERGY_STEP_CAP, 0.0), 0.0)
-        moving = LAMBDA1 * jnp.sum(gap * gap)
+        drift = jnp.where(j <= s, jnp.maximum(e - j * PASSIVE_DRIFT, 0.0), 0.0)  # e after j closed periods
+        closed = LAMBDA1 * jnp.sum(drift * drift)
         airborne = z[4] == 1.0
-        reach = jnp.where(airborne, e <= ENERGY_TOL, e - ENERGY_TOL <= s * ENERGY_STEP_CAP)
-        value = (1 - 1e-9) * jnp.where(airborne, frozen, moving)  # margin for the search's own rounding
-        return jnp.where(z[4] == IN_FLIGHT, 0.0, jnp.where(reach, value, jnp.inf))
+        if band:
+            closed = jnp.where(e - s * PASSIVE_DRIFT <= ENERGY_TOL, closed, jnp.inf)
+            frozen = jnp.where(e <= ENERGY_TOL, frozen, jnp.inf)
+        Pa_ref = hm.nominal_pressures(z[0], p)[0]
+        a_idle = z[2] >= (1 - A_DEADBAND) * (1 + A_IDLE_MARGIN) * Pa_ref  # side_a_law with a margin: never fires
+        value = jnp.where(airborne, frozen, jnp.where(a_idle, jnp.minimum(closed, OPEN_COST), 0.0))
+        return jnp.where(z[4] == IN_FLIGHT, 0.0, (1 - 1e-9) * value)  # margin for the search's own rounding
 
-    return fj.Problem(dynamics, jnp.asarray(VALVE_B), stage_cost, horizon, terminal, lower_bound if bound else None)
+    def lower_bound(z, steps_left):
+        return bound(z, steps_left, True)
+
+    def relaxed_bound(z, steps_left):
+        return bound(z, steps_left, False)
+
+    plain = fj.Problem(dynamics, jnp.asarray(VALVE_B), stage_cost, horizon, terminal)
+    return dict(plain=plain, bounded=plain.replace(lower_bound=lower_bound),
+                relaxed=plain.replace(terminal=None, lower_bound=relaxed_bound))
 
 
 def contact(X):
@@ -157,15 +186,54 @@ def observe(X, u_prev):
     return jnp.stack([X[0] - X[2], X[1] - X[3], X[4], X[5], flag])
 
 
+def warm_candidate(problem: fj.Problem, x, previous, params=None):
+    """The warm start for a search from ``x``: the cheaper of ``previous`` (the last decision's sequence ``[N]``)
+    shifted by one step and ``previous`` unshifted, all -1 (none) when neither meets the terminal test or there
+    is no previous sequence.
+
+    Why two: the plant loses energy to friction that the model does not have, so the shifted plan often just
+    misses the terminal band (no incumbent at all), while the same plan one period later meets it. Exact either
+    way: a warm start only sets the search's first incumbent.
+    """
+    shifted = jnp.concatenate([previous[1:], previous[-1:]])
+    candidates = jnp.stack([shifted, previous])  # [2, N]
+    dtype = jnp.promote_types(x.dtype, jnp.float32)
+    costs = jax.vmap(lambda w: rollout_cost(problem, x, w, dtype, params)[0])(jnp.maximum(candidates, 0))
+    i = jnp.argmin(costs)
+    return jnp.where((previous[0] >= 0) & jnp.isfinite(costs[i]), candidates[i], -1)
+
+
+class _HopperFIRHC(fj.FIRHC):
+    """FIRHC with the two search changes the hopper needs, through ``FIRHC._search``, a private hook
+    (docs/bounds.md describes the core options that would replace it): warm starts by ``warm_candidate`` instead
+    of the shifted sequence alone, and a fallback search that keeps the bound (``fallback_problem``)."""
+
+    def __init__(self, problem, *args, relaxed=None, **kwargs):
+        super().__init__(problem, *args, **kwargs)
+        self.relaxed = relaxed
+        self._key = self._key + ("hopper", relaxed.key if relaxed is not None else None)
+
+    def _search(self, problem, x, params, previous):
+        if problem.terminal is None and self.relaxed is not None:  # the fallback search
+            problem = self.relaxed
+        if previous is None:
+            return super()._search(problem, x, params, previous)
+        warm = warm_candidate(problem, x, previous, params)
+        return fj.sdfs(problem, x, params=params, warm_start=warm, **self.solver_options)
+
+
 @functools.lru_cache(maxsize=None)
-def controller(params: hm.HopperParams, horizon: int, solver: str, bound: bool = False, **options) -> fj.FIRHC:
+def controller(params: hm.HopperParams, horizon: int, solver: str, bound: bool = False, warm: bool = False,
+               **options) -> fj.FIRHC:
     """FIRHC on valve b; valve a by ``side_a_law``; both sealed in flight.
 
     ``actuate`` turns the searched input into the plant's commands ``[2]``
     (a, b) in {-1, 0, 1}: in flight at the sample both are 0; should no
     sequence be found at all (NaN input; it has not happened) b stays closed.
     Cached so that repeated closed loops reuse one compiled executable.
-    ``bound`` as in ``problem``; ``options`` go to the solver (e.g. ``max_nodes``).
+    ``bound`` as in ``problem``, the fallback search with ``fallback_problem``'s bound; ``warm`` (sdfs only):
+    seed each search with ``warm_candidate`` (the better of the previous solution shifted and unshifted);
+    ``options`` go to the solver (e.g. ``max_nodes``).
     """
     p = params
 
@@ -173,9 +241,11 @@ def controller(params: hm.HopperParams, horizon: int, solver: str, bound: bool =
         b = jnp.where(jnp.isnan(u[0]), 0.0, jnp.sign(u[0]))
         return jnp.where(contact(X), jnp.stack([side_a_law(X[0] - X[2], X[4], p), b]), 0.0)
 
-    ctrl = fj.FIRHC(problem(params, horizon, bound), solver, fallback="unconstrained", observe=observe,
-                    actuate=actuate, **options)
-    return ctrl
+    common = dict(fallback="unconstrained", observe=observe, actuate=actuate, warm_start=warm, **options)
+    if not (bound or warm):
+        return fj.FIRHC(problem(params, horizon), solver, **common)
+    return _HopperFIRHC(problem(params, horizon, bound), solver, relaxed=fallback_problem(params, horizon) if bound
+                        else None, **common)
 
 
 def _period(X, cmd, p: hm.HopperParams):
@@ -211,7 +281,7 @@ def _require_x64():
 
 
 def simulate(seconds: float = 2.0, horizon: int = 6, solver: str = "sdfs", params: hm.HopperParams | None = None,
-             progress: bool = True, timed: bool = False, bound: bool = False,
+             progress: bool = True, timed: bool = False, bound: bool = False, warm: bool = False,
              **options) -> tuple[fj.ClosedLoop, np.ndarray]:
     """Closed loop from the apex drop for ``seconds`` (rounded to whole control periods).
 
@@ -221,13 +291,13 @@ def simulate(seconds: float = 2.0, horizon: int = 6, solver: str = "sdfs", param
     period by period (in parallel) from the recorded states and commands.
     ``timed``: run the closed loop from Python so that ``loop.solve_times``
     holds each decision's wall time, compilation excluded (else one compiled
-    scan, the same trajectory bit for bit). ``bound`` and ``options`` as in ``controller``.
+    scan, the same trajectory bit for bit). ``bound``, ``warm`` and ``options`` as in ``controller``.
     """
     _require_x64()
     params = params or hm.HopperParams()
     steps = max(1, int(round(seconds / CONTROL_PERIOD)))
     X0 = jnp.asarray(hm.apex_state(params, params.g * T_AIR**2 / 8))
-    ctrl = controller(params, horizon, solver, bound, **options)
+    ctrl = controller(params, horizon, solver, bound, warm, **options)
     if timed:  # compile the decision first: FIRHC times it from its first call
         ctrl.simulate(X0, 1, plant(params), compiled=False)
     loop = ctrl.simulate(X0, steps, plant(params), progress=progress, compiled=not timed)
@@ -284,7 +354,7 @@ def last_compression(X):
 
 
 def summarize(loop: fj.ClosedLoop, X, horizon: int, solver: str, seconds: float, params: hm.HopperParams,
-              wall_s: float, loop_bound: bool = False) -> dict:
+              wall_s: float, loop_bound: bool = False, loop_warm: bool = False) -> dict:
     """The ``summary.json`` contents. Search statistics are over the contact steps (the flight steps' searches
     are discarded by ``actuate``); solve times are NaN unless the loop was ``timed``."""
     gait, metrics = hm.desired_energy(T_HOP, T_AIR, params), hop_metrics(X)
@@ -316,8 +386,8 @@ def summarize(loop: fj.ClosedLoop, X, horizon: int, solver: str, seconds: float,
         valve_b_supply=int(np.count_nonzero(cmd[:, 1] > 0)),
         valve_b_exhaust=int(np.count_nonzero(cmd[:, 1] < 0)),
         stroke_min=float(stroke.min()), stroke_max=float(stroke.max()), stroke_limit=params.stroke / 2,
-        horizon=horizon, solver=solver, bound=loop_bound, seconds=seconds, control_period_s=CONTROL_PERIOD,
-        plant_dt_s=PLANT_DT,
+        horizon=horizon, solver=solver, bound=loop_bound, warm=loop_warm, seconds=seconds,
+        control_period_s=CONTROL_PERIOD, plant_dt_s=PLANT_DT,
         weights=dict(lambda1=LAMBDA1, lambda2=LAMBDA2, beta=BETA), energy_tol=ENERGY_TOL,
         params=dataclasses.asdict(params), wall_time_s=wall_s,
     )
@@ -404,6 +474,9 @@ def register(subparsers) -> None:
                         help="prediction horizon (default 6)")
     parser.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs", help="search (default sdfs)")
     parser.add_argument("--bound", action="store_true", help="sDFS with the admissible lower bound (docs/bounds.md)")
+    parser.add_argument("--warm", action="store_true",
+                        help="sDFS seeded with the better of the previous solution shifted and unshifted (exact; "
+                             "with --bound: N = 10 in real time, docs/bounds.md)")
     parser.add_argument("--seconds", type=number(float, CONTROL_PERIOD, 60), default=2.0,
                         help="simulated time in s (default 2)")
     parser.add_argument("--out", default=os.path.join("out", "hopper"), metavar="DIR",
@@ -416,14 +489,16 @@ def run(args) -> int:
     """Simulate with every decision timed, write the figures and ``summary.json``."""
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         raise SystemExit(f"hopper: --out {args.out!r} exists and is not a directory")
+    if args.warm and args.solver != "sdfs":
+        raise SystemExit("hopper: --warm needs --solver sdfs")
     os.makedirs(args.out, exist_ok=True)
     jax.config.update("jax_enable_x64", True)
     params = hm.HopperParams()
     t0 = time.perf_counter()
     loop, X = simulate(args.seconds, args.horizon, args.solver, params, progress=not args.no_progress, timed=True,
-                       bound=args.bound)
+                       bound=args.bound, warm=args.warm)
     wall = time.perf_counter() - t0
-    summary = summarize(loop, X, args.horizon, args.solver, args.seconds, params, wall, args.bound)
+    summary = summarize(loop, X, args.horizon, args.solver, args.seconds, params, wall, args.bound, args.warm)
     figures(loop, X, params, args.out)
     with open(os.path.join(args.out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=2)
