@@ -203,25 +203,6 @@ def warm_candidate(problem: fj.Problem, x, previous, params=None):
     return jnp.where((previous[0] >= 0) & jnp.isfinite(costs[i]), candidates[i], -1)
 
 
-class _HopperFIRHC(fj.FIRHC):
-    """FIRHC with the two search changes the hopper needs, through ``FIRHC._search``, a private hook
-    (docs/bounds.md describes the core options that would replace it): warm starts by ``warm_candidate`` instead
-    of the shifted sequence alone, and a fallback search that keeps the bound (``fallback_problem``)."""
-
-    def __init__(self, problem, *args, relaxed=None, **kwargs):
-        super().__init__(problem, *args, **kwargs)
-        self.relaxed = relaxed
-        self._key = self._key + ("hopper", relaxed.key if relaxed is not None else None)
-
-    def _search(self, problem, x, params, previous):
-        if problem.terminal is None and self.relaxed is not None:  # the fallback search
-            problem = self.relaxed
-        if previous is None:
-            return super()._search(problem, x, params, previous)
-        warm = warm_candidate(problem, x, previous, params)
-        return fj.sdfs(problem, x, params=params, warm_start=warm, **self.solver_options)
-
-
 @functools.lru_cache(maxsize=None)
 def controller(params: hm.HopperParams, horizon: int, solver: str, bound: bool = False, warm: bool = False,
                **options) -> fj.FIRHC:
@@ -241,11 +222,9 @@ def controller(params: hm.HopperParams, horizon: int, solver: str, bound: bool =
         b = jnp.where(jnp.isnan(u[0]), 0.0, jnp.sign(u[0]))
         return jnp.where(contact(X), jnp.stack([side_a_law(X[0] - X[2], X[4], p), b]), 0.0)
 
-    common = dict(fallback="unconstrained", observe=observe, actuate=actuate, warm_start=warm, **options)
-    if not (bound or warm):
-        return fj.FIRHC(problem(params, horizon), solver, **common)
-    return _HopperFIRHC(problem(params, horizon, bound), solver, relaxed=fallback_problem(params, horizon) if bound
-                        else None, **common)
+    return fj.FIRHC(problem(params, horizon, bound), solver,
+                    fallback=fallback_problem(params, horizon) if bound else "unconstrained",
+                    warm_start=warm_candidate if warm else False, observe=observe, actuate=actuate, **options)
 
 
 def _period(X, cmd, p: hm.HopperParams):
