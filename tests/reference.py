@@ -17,7 +17,7 @@ def rollout(step, x0, inputs, terminal=None):
     """Accumulated cost of applying ``inputs[..., t, :]`` for t = 0, 1, ... from
     ``x0`` (``+inf`` where the final state misses ``terminal``), and the final
     state. ``inputs`` is ``[N, m]`` for one sequence or ``[S, N, m]`` for S."""
-    inputs = np.asarray(inputs, float)
+    inputs = np.asarray(inputs)
     x = np.broadcast_to(np.asarray(x0, float), inputs.shape[:-2] + np.shape(x0))
     cost = np.zeros(inputs.shape[:-2])
     for t in range(inputs.shape[-2]):
@@ -44,8 +44,9 @@ def brute_force(step, controls, x0, N, terminal=None):
 def same_cost(a, b, rtol=1e-9):
     """Equal costs up to a relative ``rtol`` (the library and the reference
     evaluate the same sums at other batch shapes: a few ulps apart). Two
-    infinite costs (both infeasible) are equal; finite and infinite never."""
-    a, b = float(a), float(b)
-    if np.isinf(a) or np.isinf(b):
-        return a == b
-    return abs(a - b) <= rtol * max(abs(a), abs(b))
+    infinite costs (both infeasible) are equal; finite and infinite never; NaN
+    never. Scalars or arrays (then every element)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    with np.errstate(invalid="ignore"):
+        close = np.where(np.isinf(a) | np.isinf(b), a == b, np.abs(a - b) <= rtol * np.maximum(np.abs(a), np.abs(b)))
+    return bool(np.all(close))

@@ -116,7 +116,7 @@ def test_corners_that_work():
     assert _simulate_vmapped().shape == (2, 3, 1)  # simulate under vmap without a fallback
     built = jax.jit(lambda x: fj.sdfs(fj.Problem(_dyn, np.array([-1.0, 0.0, 1.0]), fj.quadratic_cost(1.0, 0.0), 3),
                                       x).cost)(jnp.ones(1))
-    assert np.isclose(float(built), float(fj.sdfs(P, jnp.ones(1)).cost))  # a Problem built inside jit
+    assert same_cost(built, fj.sdfs(P, jnp.ones(1)).cost)  # a Problem built inside jit
     for value in (np.int64(2), 2):  # one validator: NumPy integers everywhere
         fj.sdfs(P, jnp.ones(1), pop_width=value)
         fj.exhaustive(P, jnp.ones(1), chunk_nodes=np.int64(100) * value)
