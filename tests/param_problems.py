@@ -8,13 +8,13 @@ Each problem has a NumPy twin for the independent brute force.
 from __future__ import annotations
 
 import functools
-import itertools
 
 import jax.numpy as jnp
 import numpy as np
 from hypothesis import strategies as st
 
 import firhc_jax as fj
+from reference import brute_force, rollout, same_cost  # noqa: F401 (same_cost: re-exported for the tests)
 
 SHAPES = ((1, 1, 3, 4), (2, 2, 4, 3), (3, 1, 2, 6), (2, 3, 5, 3))  # (n, m, M, N)
 
@@ -58,35 +58,31 @@ def as_jax(params: dict, dtype=jnp.float64) -> dict:
     return {k: jnp.asarray(v, dtype) for k, v in params.items()}
 
 
+def numpy_step(params):
+    """The NumPy twin's ``step(x, u, t)`` for tests/reference.py (``u``: the input vector)."""
+    def step(x, u, t=None):
+        x = dynamics(x, u, params, xp=np)
+        return x, stage_cost(x, u, params, xp=np)
+    return step
+
+
 def cost_to_go(shape, params, x, steps):
     """Brute-force optimal cost of ``steps`` steps from ``x`` (+inf if the
     terminal set cannot be reached), NumPy float64, and the best sequence."""
-    n, m, M, N = shape
-    if steps == 0:
-        return (0.0 if terminal(np.asarray(x, float), params, xp=np) else np.inf), np.zeros(0, int)
-    seqs = np.array(list(itertools.product(range(M), repeat=steps)))
-    xs = np.broadcast_to(np.asarray(x, float), (len(seqs), n))
-    cost = np.zeros(len(seqs))
-    for t in range(steps):
-        u = params["U"][seqs[:, t]]
-        xs = dynamics(xs, u, params, xp=np)
-        cost = cost + stage_cost(xs, u, params, xp=np)
-    cost = np.where(terminal(xs, params, xp=np), cost, np.inf)
-    return cost.min(), seqs[int(np.argmin(cost))]
+    return brute_force(numpy_step(params), params["U"], x, steps, lambda z: terminal(z, params, xp=np))
 
 
-def same_cost(a, b, rtol=1e-9):
-    """Equal optimal costs (the tests run in float64; the brute force sums in
-    another order)."""
-    if np.isinf(b):
-        return np.isinf(a)
-    return abs(a - b) <= rtol * max(1.0, abs(b))
+def sequence_cost(params, x0, seq):
+    """NumPy cost of one index sequence (+inf if it misses the terminal set)."""
+    return float(rollout(numpy_step(params), x0, params["U"][np.asarray(seq)],
+                         lambda z: terminal(z, params, xp=np))[0])
 
 
 @st.composite
-def cases(draw, tightness=("none", "loose", "tight")):
-    """(shape, params, x0) with every number random."""
-    shape = draw(st.sampled_from(SHAPES))
+def cases(draw, tightness=("none", "loose", "tight"), shapes=SHAPES):
+    """(shape, params, x0) with every number random; ``shapes``: a subset of
+    SHAPES where each shape's compiles are costly."""
+    shape = draw(st.sampled_from(shapes))
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     params = draw_params(rng, shape, draw(st.sampled_from(tightness)))
     x0 = np.asarray(draw(st.lists(st.floats(-1, 1), min_size=shape[0], max_size=shape[0])))

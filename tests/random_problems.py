@@ -2,13 +2,13 @@
 library) and a NumPy form (for the independent brute force)."""
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 
 import jax.numpy as jnp
 import numpy as np
 
 import firhc_jax as fj
+import reference
 
 
 @dataclass
@@ -45,18 +45,22 @@ class RandomProblem:
                           lambda x, u: self.stage_cost(x, u), self.N,
                           None if self.radius is None else (lambda x: self.terminal(x)))
 
+    # The NumPy twin, for the brute force of tests/reference.py.
+    def step(self, x, u, t=None):
+        x = self.dynamics(x, u, xp=np)
+        return x, self.stage_cost(x, u, xp=np)
+
+    @property
+    def terminal_np(self):
+        return None if self.radius is None else (lambda x: self.terminal(x, xp=np))
+
     def brute_force(self, x0):
-        """(cost, feasible) by rolling out every sequence from itertools.product in NumPy."""
-        seqs = np.array(list(itertools.product(range(self.M), repeat=self.N)))  # [M^N, N]
-        x = np.broadcast_to(np.asarray(x0, float), (len(seqs), self.n))
-        cost = np.zeros(len(seqs))
-        for t in range(self.N):
-            u = self.controls[seqs[:, t]]
-            x = self.dynamics(x, u, xp=np)
-            cost = cost + self.stage_cost(x, u, xp=np)
-        if self.radius is not None:
-            cost = np.where(self.terminal(x, xp=np), cost, np.inf)
-        return cost.min(), seqs[int(np.argmin(cost))]
+        """(optimal cost, first optimal index sequence) over every sequence, in NumPy."""
+        return reference.brute_force(self.step, self.controls, x0, self.N, self.terminal_np)
+
+    def sequence_cost(self, x0, seq):
+        """NumPy cost of one index sequence (inf if it misses the terminal set)."""
+        return float(reference.rollout(self.step, x0, self.controls[np.asarray(seq)], self.terminal_np)[0])
 
 
 def make(seed: int, n: int, m: int, M: int, N: int, terminal: str = "none") -> RandomProblem:

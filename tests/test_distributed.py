@@ -64,6 +64,7 @@ def run_all(commands, tmp_path, timeout=TIMEOUT):
                                   + texts[i][-3000:]
 
 
+@pytest.mark.slow
 def test_two_processes_give_the_single_process_result(tmp_path):
     """2 processes x 1 device: every process gets the whole batch's result, identical (costs, sequences, node
     counts) to 1 process x 2 devices; costs and sequences also match 1 process x 1 device."""
@@ -93,6 +94,7 @@ def test_two_processes_give_the_single_process_result(tmp_path):
     assert np.any(p0["sdfs.feasible"]) and not np.all(p0["sdfs.nodes"] == 0)
 
 
+@pytest.mark.slow
 def test_batch_command_on_two_local_processes(tmp_path):
     """``python -m firhc_jax batch --launch-local 2``'s machinery (launch_local and the app on 2 processes)
     gives the costs and sequences of a single-process run of the same command."""

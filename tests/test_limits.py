@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 import firhc_jax as fj
 from param_problems import as_jax, cases, cost_to_go, problem
+from reference import same_cost
 
 
 def _dyn(x, u):
@@ -33,12 +34,13 @@ def test_a_budget_is_honest(case, budget, pop_width):
     if bool(cut.complete):
         assert float(cut.cost) == float(full.cost) and int(cut.nodes) == int(full.nodes)
     else:
-        assert int(full.nodes) > int(cut.nodes)
+        # It stopped only because the next iteration (up to K * M children) could pass the budget; the nodes
+        # still on its stack may all be pruned, so the full search can end on the same count.
+        assert int(cut.nodes) + pop_width * shape[2] > budget
+        assert int(full.nodes) >= int(cut.nodes)
         assert float(cut.cost) >= float(full.cost)  # an incumbent, never better than the optimum
     assert float(less.cost) >= float(cut.cost)  # a smaller budget never finds more
-    if bool(cut.feasible):
-        ref, _ = cost_to_go(shape, params, x0, shape[3])
-        assert float(cut.cost) >= ref - 1e-9
+    assert same_cost(float(full.cost), cost_to_go(shape, params, x0, shape[3])[0])
 
 
 def test_budget_stops_a_search_that_would_never_end():
@@ -114,7 +116,7 @@ def test_corners_that_work():
     assert _simulate_vmapped().shape == (2, 3, 1)  # simulate under vmap without a fallback
     built = jax.jit(lambda x: fj.sdfs(fj.Problem(_dyn, np.array([-1.0, 0.0, 1.0]), fj.quadratic_cost(1.0, 0.0), 3),
                                       x).cost)(jnp.ones(1))
-    assert np.isclose(float(built), float(fj.sdfs(P, jnp.ones(1)).cost))  # a Problem built inside jit
+    assert same_cost(built, fj.sdfs(P, jnp.ones(1)).cost)  # a Problem built inside jit
     for value in (np.int64(2), 2):  # one validator: NumPy integers everywhere
         fj.sdfs(P, jnp.ones(1), pop_width=value)
         fj.exhaustive(P, jnp.ones(1), chunk_nodes=np.int64(100) * value)

@@ -8,7 +8,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import firhc_jax as fj
-from param_problems import SHAPES, as_jax, cases, cost_to_go, draw_params, problem, same_cost
+from param_problems import SHAPES, as_jax, cases, cost_to_go, draw_params, problem, sequence_cost
+from reference import brute_force, same_cost
 
 SETTINGS = settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -18,44 +19,37 @@ def _check(result, shape, params, x0, name):
     assert same_cost(float(result.cost), ref), (name, float(result.cost), ref)
     assert bool(result.feasible) == np.isfinite(ref), name
     if np.isfinite(ref):  # the sequence really achieves the cost
-        again = _rollout(shape, params, x0, np.asarray(result.sequence))
-        assert same_cost(again, float(result.cost)), name
+        assert same_cost(sequence_cost(params, x0, np.asarray(result.sequence)), float(result.cost)), name
     else:
         assert np.all(np.asarray(result.sequence) == -1) and np.all(np.isnan(result.first_input)), name
 
 
-def _rollout(shape, params, x0, seq):
-    from param_problems import dynamics, stage_cost, terminal
-    x, cost = np.asarray(x0, float), 0.0
-    for i in seq:
-        u = params["U"][i]
-        x = dynamics(x, u, params, xp=np)
-        cost += float(stage_cost(x, u, params, xp=np))
-    return cost if terminal(x, params, xp=np) else np.inf
-
-
+# pop_width 3 (2 is in tests/test_limits.py): at most five compiled searches per shape serve every example.
 @SETTINGS
-@given(cases(), st.sampled_from([1, 2, 3]))
-def test_sdfs_and_exhaustive_with_params_match_brute_force(case, pop_width):
+@given(cases())
+def test_sdfs_and_exhaustive_with_params_match_brute_force(case):
     shape, params, x0 = case
     p, prm = problem(shape), as_jax(params)
     _check(fj.sdfs(p, x0, params=prm), shape, params, x0, "sdfs")
-    _check(fj.sdfs(p, x0, params=prm, pop_width=pop_width), shape, params, x0, f"sdfs K={pop_width}")
+    _check(fj.sdfs(p, x0, params=prm, pop_width=3), shape, params, x0, "sdfs K=3")
     _check(fj.exhaustive(p, x0, params=prm), shape, params, x0, "exhaustive")
     _check(fj.exhaustive(p, x0, params=prm, method="dfs"), shape, params, x0, "exhaustive dfs")
 
 
-@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(st.sampled_from(SHAPES), st.integers(0, 2**32 - 1), st.sampled_from(["sdfs", "sdfs-vmap", "exhaustive"]),
-       st.sampled_from([1, 2]), st.sampled_from([1, 3]))
-def test_solve_batch_with_random_params_per_row_matches_brute_force(shape, seed, solver, pop_width, lanes):
+# The solver options are compile-time constants: one test per option set, each on its own shape (all four
+# covered), so that one compiled batch search serves each test's examples.
+@pytest.mark.parametrize("solver, pop_width, lanes, shape", [
+    ("sdfs", 1, 3, SHAPES[0]), ("sdfs", 2, 1, SHAPES[1]), ("sdfs-vmap", 2, None, SHAPES[2]),
+    ("exhaustive", 1, None, SHAPES[3])])
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 2**32 - 1))
+def test_solve_batch_with_random_params_per_row_matches_brute_force(solver, pop_width, lanes, shape, seed):
     rng = np.random.default_rng(seed)
     B = 4
     rows = [draw_params(rng, shape, t) for t in ("none", "loose", "tight", "loose")]
     batched = {k: jnp.asarray(np.stack([r[k] for r in rows])) for k in rows[0]}
     X0 = rng.uniform(-1, 1, (B, shape[0]))
-    res = fj.solve_batch(problem(shape), X0, params=batched, solver=solver, pop_width=pop_width,
-                         lanes=lanes if solver == "sdfs" else None)
+    res = fj.solve_batch(problem(shape), X0, params=batched, solver=solver, pop_width=pop_width, lanes=lanes)
     for b in range(B):
         _check(jax.tree_util.tree_map(lambda a, b=b: a[b], res), shape, rows[b], X0[b], f"{solver} row {b}")
 
@@ -150,21 +144,17 @@ def test_closed_loop_with_moving_reference_matches_brute_force_receding_horizon(
     ctrl = fj.FIRHC(prob, observe=observe)
     run = ctrl.simulate(jnp.zeros(2), steps, plant=lambda x, u, p: jnp.stack(
         [x[0] + 0.1 * x[1], 0.9 * x[1] + 0.2 * u[0]]), params={"ref": jnp.asarray(refs), "w": jnp.asarray(w)})
-    # The brute-force receding horizon loop, in NumPy.
-    import itertools
+    # The brute-force receding horizon loop, in NumPy: step k's horizon step t tracks refs[k, t].
     x = np.zeros(2)
     for k in range(steps):
-        best, first = np.inf, None
-        for seq in itertools.product(range(len(U)), repeat=N):
-            z, c = x, 0.0
-            for i, s in enumerate(seq):
-                z = plant_np(z, U[s:s + 1])
-                c += np.sum((z - refs[k, i]) ** 2) + w[k] * U[s] ** 2
-            if c < best - 1e-12:
-                best, first = c, s_first if (s_first := seq[0]) is not None else None
-        assert np.isclose(float(run.predicted_costs[k]), best, rtol=1e-9), k
-        assert int(run.input_indices[k]) == first, k
-        x = plant_np(x, U[first:first + 1])
+        def step(z, u, t, k=k):
+            z = np.stack([z[..., 0] + 0.1 * z[..., 1], 0.9 * z[..., 1] + 0.2 * u[..., 0]], -1)
+            return z, np.sum((z - refs[k, t]) ** 2, -1) + w[k] * u[..., 0] ** 2
+
+        best, seq = brute_force(step, U, x, N)
+        assert same_cost(run.predicted_costs[k], best), k
+        assert int(run.input_indices[k]) == seq[0], k
+        x = plant_np(x, U[seq[0]:seq[0] + 1])
         np.testing.assert_allclose(np.asarray(run.states[k + 1]), x, rtol=1e-12, atol=1e-12)
 
 
@@ -179,19 +169,16 @@ def test_switching_penalty_matches_brute_force():
 
     base = fj.Problem(dyn, U, lambda x, u: (x[0] - 0.5) ** 2, N)
     mem = fj.with_input_memory(base, lambda u, u_prev: lam * jnp.sum(jnp.abs(u - u_prev)))
-    import itertools
+
+    def step(z, u, t):  # z = [x, the input applied last]
+        x = 0.8 * z[..., :1] + 0.3 * u
+        return np.concatenate([x, u], -1), (x[..., 0] - 0.5) ** 2 + lam * np.abs(u[..., 0] - z[..., 1])
+
     for x0, u_prev in ((0.0, -1.0), (0.4, 1.0), (-0.3, 0.0)):
-        best = np.inf
-        for seq in itertools.product(range(3), repeat=N):
-            x, c, last = x0, 0.0, u_prev
-            for s in seq:
-                x = 0.8 * x + 0.3 * U[s]
-                c += (x - 0.5) ** 2 + lam * abs(U[s] - last)
-                last = U[s]
-            best = min(best, c)
+        best, _ = brute_force(step, U, [x0, u_prev], N)
         z0 = mem.observe(jnp.array([x0]), jnp.array([u_prev]))
         for r in (fj.sdfs(mem.problem, z0), fj.exhaustive(mem.problem, z0)):
-            assert np.isclose(float(r.cost), best, rtol=1e-12), (x0, u_prev, float(r.cost), best)
+            assert same_cost(r.cost, best, rtol=1e-12), (x0, u_prev, float(r.cost), best)
     # In closed loop the applied input reaches the next decision: a large penalty holds the input.
     stiff = fj.with_input_memory(base, lambda u, u_prev: 100.0 * jnp.sum(jnp.abs(u - u_prev)))
     held = fj.FIRHC(stiff.problem, observe=stiff.observe).simulate(jnp.array([0.5]), 6, plant=dyn,
