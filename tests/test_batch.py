@@ -1,5 +1,4 @@
 """fj.solve_batch: exactness per row, parameters, validation, memory, retracing."""
-import itertools
 import os
 import re
 import subprocess
@@ -13,28 +12,13 @@ import pytest
 import firhc_jax as fj
 from firhc_jax.batch import pool_memory, pool_row_memory, row_memory, solve_batch
 from random_problems import make
+from reference import brute_force, same_cost
 
 SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
 
 
 def states(seed, B, n, scale=1.0):
     return jnp.asarray(np.random.default_rng(seed).uniform(-scale, scale, (B, n)))
-
-
-def same_cost(a, b):
-    """Equal up to the last bits: vectorised transcendentals may round differently
-    between batch shapes, so a cost can differ from NumPy's by an ulp."""
-    a, b = float(a), float(b)
-    return np.isinf(a) and np.isinf(b) or np.isclose(a, b, rtol=1e-12, atol=0)
-
-
-def rollout(rp, x0, seq):
-    """NumPy cost of one sequence of a random problem (inf if it misses the terminal set)."""
-    x, cost = np.asarray(x0, float), 0.0
-    for i in seq:
-        x = rp.dynamics(x, rp.controls[i], xp=np)
-        cost += rp.stage_cost(x, rp.controls[i], xp=np)
-    return cost if rp.radius is None or rp.terminal(x, xp=np) else np.inf
 
 
 def assert_exact(rp, X0, batch):
@@ -45,7 +29,7 @@ def assert_exact(rp, X0, batch):
         assert same_cost(batch.cost[b], ref_cost), (b, float(batch.cost[b]), ref_cost)
         assert bool(batch.feasible[b]) == np.isfinite(ref_cost), b
         if np.isfinite(ref_cost):
-            assert same_cost(rollout(rp, X0[b], np.asarray(batch.sequence[b])), ref_cost), b
+            assert same_cost(rp.sequence_cost(X0[b], np.asarray(batch.sequence[b])), ref_cost), b
             np.testing.assert_array_equal(batch.first_input[b], rp.controls[int(batch.sequence[b][0])])
         else:
             assert np.all(np.asarray(batch.sequence[b]) == -1)
@@ -105,13 +89,10 @@ def param_problem(N=4):
 
 def param_brute_force(x0, r, w, N=4):
     """NumPy optimum of ``param_problem`` for one parameter set, over all M^N sequences."""
-    seqs = np.array(list(itertools.product(range(len(CONTROLS)), repeat=N)))
-    x, cost = np.broadcast_to(np.asarray(x0, float), (len(seqs), 2)), np.zeros(len(seqs))
-    for t in range(N):
-        u = CONTROLS[seqs[:, t]]
-        x = param_dynamics(x, u, None, xp=np)
-        cost = cost + np.sum((x - r) ** 2, axis=-1) + w * u**2
-    return np.min(np.where(np.abs(x[:, 0] - r[0]) < 0.4, cost, np.inf))
+    def step(x, u, t):
+        x = param_dynamics(x, u[..., 0], None, xp=np)
+        return x, np.sum((x - r) ** 2, axis=-1) + w * u[..., 0] ** 2
+    return brute_force(step, CONTROLS, x0, N, lambda x: np.abs(x[..., 0] - r[0]) < 0.4)[0]
 
 
 def test_params_give_each_row_its_set_point():
@@ -221,6 +202,7 @@ import jax, numpy as np
 jax.config.update("jax_enable_x64", True)
 from firhc_jax.batch import solve_batch
 from random_problems import make
+from reference import brute_force, same_cost
 assert jax.local_device_count() == 4, jax.local_devices()
 rp = make(7, 3, 1, 5, 4, "loose")
 p = rp.problem()

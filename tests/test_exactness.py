@@ -8,15 +8,10 @@ from hypothesis import strategies as st
 
 import firhc_jax as fj
 from random_problems import make
+from reference import same_cost
 
 # Fewer examples: each compiles a new problem; tests/test_params.py carries the breadth on one compile per shape.
 SETTINGS = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-
-
-def _same_cost(a, b):
-    if np.isinf(b):
-        return np.isinf(a)
-    return np.isclose(a, b, rtol=1e-10, atol=1e-12)
 
 
 @st.composite
@@ -44,12 +39,12 @@ def test_every_search_matches_brute_force(case, pop_width):
         f"exhaustive dfs K={pop_width}": fj.exhaustive(problem, x0, method="dfs", pop_width=pop_width),
     }
     for name, r in results.items():
-        assert _same_cost(float(r.cost), ref_cost), (name, float(r.cost), ref_cost)
+        assert same_cost(float(r.cost), ref_cost), (name, float(r.cost), ref_cost)
         assert bool(r.feasible) == np.isfinite(ref_cost), name
         if np.isfinite(ref_cost):
             # The returned sequence really achieves the returned cost.
-            again, _ = _rollout(rp, x0, np.asarray(r.sequence))
-            assert _same_cost(again, float(r.cost)), name
+            again = rp.sequence_cost(x0, np.asarray(r.sequence))
+            assert same_cost(again, float(r.cost)), name
             np.testing.assert_array_equal(r.first_input, rp.controls[int(r.sequence[0])])
         else:
             assert np.all(np.asarray(r.sequence) == -1) and np.all(np.isnan(r.first_input)), name
@@ -57,17 +52,6 @@ def test_every_search_matches_brute_force(case, pop_width):
     assert int(results["exhaustive"].nodes) == problem.tree_size()
     assert int(results[f"exhaustive dfs K={pop_width}"].nodes) == problem.tree_size()
     assert int(results["sdfs"].nodes) <= problem.tree_size()
-
-
-def _rollout(rp, x0, seq):
-    x, cost = np.asarray(x0, float), 0.0
-    for i in seq:
-        u = rp.controls[i]
-        x = rp.dynamics(x, u, xp=np)
-        cost += float(rp.stage_cost(x, u, xp=np))
-    if rp.radius is not None and not rp.terminal(x, xp=np):
-        cost = np.inf
-    return cost, x
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -78,7 +62,7 @@ def test_warm_start_keeps_the_optimum(case):
     plain = fj.sdfs(problem, x0)
     seq = np.random.default_rng(0).integers(0, rp.M, rp.N)
     warm = fj.sdfs(problem, x0, warm_start=seq)
-    assert _same_cost(float(warm.cost), float(plain.cost))
+    assert same_cost(float(warm.cost), float(plain.cost))
     # Warm-started with the optimum itself, the search returns it and counts its N nodes.
     if bool(plain.feasible):
         opt = fj.sdfs(problem, x0, warm_start=plain.sequence)
@@ -117,7 +101,7 @@ def test_node_count_equals_table1(seed):
     ref_cost, ref_path, ref_nodes = table1_reference(rp, x0)
     r = fj.sdfs(rp.problem(), x0)
     assert int(r.nodes) == ref_nodes
-    assert _same_cost(float(r.cost), ref_cost)
+    assert same_cost(float(r.cost), ref_cost)
     if ref_path is not None:
         assert tuple(np.asarray(r.sequence)) == ref_path
 
@@ -129,7 +113,7 @@ def test_node_count_on_a_deep_pruned_tree():
     ref_cost, _, ref_nodes = table1_reference(rp, x0)
     r = fj.sdfs(rp.problem(), x0)
     assert int(r.nodes) == ref_nodes < rp.problem().tree_size()
-    assert _same_cost(float(r.cost), ref_cost)
+    assert same_cost(float(r.cost), ref_cost)
 
 
 def test_exhaustive_chunking_changes_nothing():
@@ -180,5 +164,5 @@ def test_pop_width_regression(seed):
     p, x0 = rp.problem(), np.array([0.3])
     ref = float(fj.exhaustive(p, x0).cost)
     for k in (2, 3):
-        assert _same_cost(float(fj.sdfs(p, x0, pop_width=k).cost), ref)
-        assert _same_cost(float(fj.exhaustive(p, x0, method="dfs", pop_width=k).cost), ref)
+        assert same_cost(float(fj.sdfs(p, x0, pop_width=k).cost), ref)
+        assert same_cost(float(fj.exhaustive(p, x0, method="dfs", pop_width=k).cost), ref)
