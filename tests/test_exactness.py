@@ -7,11 +7,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import firhc_jax as fj
+import param_problems as pp
 from random_problems import make
 from reference import same_cost
 
-# Fewer examples: each compiles a new problem; tests/test_params.py carries the breadth on one compile per shape.
-SETTINGS = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+# Breadth of shapes (n, m, M, N drawn, M = 1 and N = 1 included): every example compiles its own problem, so
+# few examples; tests/test_params.py carries the breadth of values on one compile per shape.
+SETTINGS = settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 @st.composite
@@ -55,19 +57,19 @@ def test_every_search_matches_brute_force(case, pop_width):
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(problems())
-def test_warm_start_keeps_the_optimum(case):
-    rp, x0 = case
-    problem = rp.problem()
-    plain = fj.sdfs(problem, x0)
-    seq = np.random.default_rng(0).integers(0, rp.M, rp.N)
-    warm = fj.sdfs(problem, x0, warm_start=seq)
+@given(pp.cases(), st.integers(0, 2**32 - 1))
+def test_warm_start_keeps_the_optimum(case, seed):
+    shape, params, x0 = case  # every number a parameter: two compiles per shape (with and without a seed)
+    problem, prm, N = pp.problem(shape), pp.as_jax(params), shape[3]
+    plain = fj.sdfs(problem, x0, params=prm)
+    seq = np.random.default_rng(seed).integers(0, shape[2], N)
+    warm = fj.sdfs(problem, x0, params=prm, warm_start=seq)
     assert same_cost(float(warm.cost), float(plain.cost))
     # Warm-started with the optimum itself, the search returns it and counts its N nodes.
     if bool(plain.feasible):
-        opt = fj.sdfs(problem, x0, warm_start=plain.sequence)
+        opt = fj.sdfs(problem, x0, params=prm, warm_start=plain.sequence)
         np.testing.assert_array_equal(opt.sequence, plain.sequence)
-        assert int(opt.nodes) <= int(plain.nodes) + rp.N
+        assert int(opt.nodes) <= int(plain.nodes) + N
 
 
 def table1_reference(rp, x0):
