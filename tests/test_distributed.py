@@ -115,12 +115,11 @@ def test_batch_command_on_two_local_processes(tmp_path):
 
 
 def test_launcher_kills_the_job_when_a_process_fails(tmp_path):
-    """Process 1 fails at once; process 0 would wait for it forever: both are gone within the timeout."""
+    """Process 1 fails at once; process 0 would wait for it forever (here: sleep 60 s, twice the timeout): the
+    launcher returns both, killed, instead of raising TimeoutExpired."""
     code = "import os, time, sys\nif os.environ['JAX_PROCESS_ID'] == '1': sys.exit(3)\ntime.sleep(60)"
-    t0 = time.monotonic()
     done = distributed.launch_local(["-c", code], 2, timeout=30, capture=True)
     assert [d.returncode for d in done][1] == 3 and done[0].returncode != 0
-    assert time.monotonic() - t0 < 20
     with pytest.raises(subprocess.TimeoutExpired):
         distributed.launch_local(["-c", "import time; time.sleep(60)"], 2, timeout=1)
 
