@@ -19,7 +19,7 @@ SETTINGS = settings(max_examples=10, deadline=None, suppress_health_check=[Healt
 def exact_bound(shape):
     """``p["scale"]`` times the exact cost-to-go, by brute force in JAX: for
     ``steps_left = s`` every sequence of length s is rolled out (one branch of a
-    ``lax.switch`` per s). Admissible for scale in [0, 1)."""
+    ``lax.switch`` per s). Admissible for scale in [0, 1); +inf (terminal set out of reach) is kept."""
     n, m, M, N = shape
 
     def ctg(x, p, s):
@@ -39,7 +39,8 @@ def exact_bound(shape):
     def bound(x, steps_left, p):
         branches = [lambda x, p: jnp.zeros((), x.dtype)] + [functools.partial(lambda x, p, s: ctg(x, p, s), s=s)
                                                             for s in range(1, N)]
-        return p["scale"] * jax.lax.switch(jnp.clip(steps_left, 0, N - 1), branches, x, p)
+        c = jax.lax.switch(jnp.clip(steps_left, 0, N - 1), branches, x, p)
+        return jnp.where(jnp.isinf(c), c, p["scale"] * c)  # +inf stays +inf (scale 0 would make it NaN)
 
     return problem(shape, True, bound)
 
