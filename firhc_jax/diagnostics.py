@@ -55,7 +55,7 @@ def check_lower_bound(problem: Problem, states, params=None, max_steps: int | No
     with the problem's terminal set) for every sample state ``[S, n]`` and
     every ``s`` in ``1..max_steps`` (default: the horizon). Returns every
     ``(state, s, bound, exact)`` where the bound exceeds the exact cost by more
-    than ``rtol`` relative (empty: admissible on these samples). An
+    than ``rtol`` relative, or is NaN (empty: admissible on these samples). An
     inadmissible bound never crashes a search; it can prune the optimum, so
     the answer may then be suboptimal."""
     if problem.lower_bound is None:
@@ -72,6 +72,7 @@ def check_lower_bound(problem: Problem, states, params=None, max_steps: int | No
                                                                   jnp.int32(s))))(X))
         bad = (bound > exact + rtol * np.abs(np.where(np.isfinite(exact), exact, 0))) & ~(np.isinf(bound)
                                                                                           & np.isinf(exact))
+        bad |= np.isnan(bound)  # a NaN bound prunes nothing in the searches, but it is a bug to report
         out += [Violation(int(i), s, float(bound[i]), float(exact[i])) for i in np.flatnonzero(bad)]
     return out
 

@@ -63,6 +63,7 @@ def expand(problem: Problem, x, cost, params, *, steps_left, check_terminal: boo
         steps = jnp.broadcast_to(jnp.asarray(steps_left, jnp.int32), x.shape[:1])
         bound = jax.vmap(jax.vmap(lambda xi, s, p: call(problem.lower_bound, p, xi, s), in_axes=(0, None, None)),
                          in_axes=(0, 0, p_axis))(xs, steps, params)
+        bound = jnp.where(jnp.isnan(bound), 0, bound)  # a NaN bound (a user bug) prunes nothing: stays exact
         key = child_cost + jnp.where(steps[:, None] > 0, bound.astype(cost.dtype), 0)
     return Children(x=xs, cost=child_cost, key=key, bad=bad, flags=flags, terminal_ok=ok)
 

@@ -8,6 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import firhc_jax as fj
+import param_problems as pp
 from firhc_jax.diagnostics import check_lower_bound
 from param_problems import SHAPES, as_jax, cases, cost_to_go, draw_params, dynamics, problem, same_cost, stage_cost, \
     terminal
@@ -91,3 +92,17 @@ def test_check_lower_bound_catches_an_inadmissible_bound():
     assert check_lower_bound(good, states, params=dict(params, scale=jnp.asarray(0.9))) == []
     bad = check_lower_bound(good, states, params=dict(params, scale=jnp.asarray(1.5)))
     assert bad and all(v.value > v.limit for v in bad)
+
+
+def test_a_nan_bound_prunes_nothing_in_every_solver():
+    """A bound that returns NaN (a bug in the user's bound) is treated as 0: every solver stays exact."""
+    shape = pp.SHAPES[0]
+    params = pp.draw_params(np.random.default_rng(5), shape, "loose")
+    x0 = np.array([0.3])
+    nan_bound = pp.problem(shape, lower_bound=lambda x, s, p: jnp.nan * x[0])
+    ref, _ = pp.cost_to_go(shape, params, x0, shape[3])
+    prm = pp.as_jax(params)
+    assert pp.same_cost(float(fj.sdfs(nan_bound, x0, params=prm).cost), ref)
+    batch = fj.solve_batch(nan_bound, x0[None], params=jax.tree_util.tree_map(lambda a: a[None], prm))
+    assert pp.same_cost(float(batch.cost[0]), ref)
+    assert check_lower_bound(nan_bound, x0[None], params=prm, max_steps=1)  # and the check reports it
