@@ -124,7 +124,8 @@ def test_timed_loop_is_the_compiled_one(problems):
     np.testing.assert_array_equal(loop.nodes, timed.nodes)
     assert compile_s is None and timed_compile_s > 0
     times = np.asarray(timed.solve_times)
-    assert np.all(np.isnan(np.asarray(loop.solve_times))) and np.all((times > 0) & (times < 0.5))
+    assert np.all(np.isnan(np.asarray(loop.solve_times))) and np.all(times > 0)
+    assert times[0] < timed_compile_s  # compilation is measured apart, not inside the first decision
 
 
 def test_levels_settle_within_5_mm_and_stay(problems):
