@@ -263,9 +263,8 @@ def expand_and_store(problem: Problem, pool: Pool, rows: Rows, work: Work, param
     cand, leaf, improve = best_leaf(cost, ch.terminal_ok.reshape(S, L), ok, (depth == N)[:, None], best)
     new_cost = rows.cost.at[jnp.where(improve, row, B)].min(cand, mode="drop")
     winner = improve & (cand == new_cost.at[row].get(mode="fill", fill_value=jnp.inf))
-    paths = jax.vmap(stacks.child_paths, in_axes=(0, 0, None))(work.popped.path, work.depth, M)  # [S, L, N]
-    path = rows.path.at[jnp.where(winner, row, B)].set(jnp.take_along_axis(paths, leaf[:, None, None], 1)[:, 0],
-                                                      mode="drop")
+    leaf_path = jax.vmap(stacks.child_path, in_axes=(0, 0, None, 0))(work.popped.path, work.depth, M, leaf)
+    path = rows.path.at[jnp.where(winner, row, B)].set(leaf_path, mode="drop")  # [S, N] each slot's leaf
 
     keep = ok & (depth < N)[:, None]
     put = jnp.where(work.depth >= 0, depth, N)  # idle slots write nothing live into the leaf row

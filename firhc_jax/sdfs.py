@@ -125,7 +125,7 @@ def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int,
 
         leaf_cost, i, improve = best_leaf(cost, ch.terminal_ok.reshape(L), ok, depth == N, c.best_cost)
         best_cost = jnp.where(improve, leaf_cost, c.best_cost)
-        best_path = jnp.where(improve, stacks.child_paths(c.popped.path, c.row, M)[i], c.best_path)
+        best_path = jnp.where(improve, stacks.child_path(c.popped.path, c.row, M, i), c.best_path)
 
         keep = ok & (depth < N) & (key < incumbent(best_cost))
         stack = stacks.push(c.stack, depth, ch.x.reshape(L, n).astype(x0.dtype), cost, jnp.where(keep, key, inf),
