@@ -38,6 +38,12 @@ def test_orifice_flow_choked_below_critical_ratio_and_continuous():
     assert float(hm.orifice_flow(2e5, 3e5, P)) == -float(hm.orifice_flow(3e5, 2e5, P))
 
 
+def test_power_is_the_float_power():
+    x = np.geomspace(1e-6, 1e7, 2001)
+    for a in (1.4, 1 / 1.4, 0.4 / 1.4, -0.4 / 1.4):
+        np.testing.assert_allclose(np.asarray(hm.power(jnp.asarray(x), a)), x**a, rtol=1e-13, atol=0)
+
+
 def test_stance_stiffness_matches_desired_gait():
     gait = hm.desired_energy(0.4, 0.2, P)
     assert P.stance_stiffness() == pytest.approx(P.M * (math.pi / gait.T2) ** 2, rel=0.01)
@@ -153,10 +159,10 @@ def test_cli_writes_summary_and_figures(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     for key in ("T2", "E_d", "t_hop_mean", "t_air_mean", "hops", "infeasible_steps", "nodes_min", "nodes_max",
                 "nodes_mean", "solve_time_mean_s", "solve_time_median_s", "solve_time_max_s", "horizon", "solver",
-                "bound", "warm"):
+                "bound", "warm", "pop_width"):
         assert key in summary, key
     assert 0 < summary["solve_time_median_s"] <= summary["solve_time_max_s"]
-    assert summary["horizon"] == 4 and summary["solver"] == "sdfs" and summary["hops"] == 1
+    assert summary["horizon"] == 4 and summary["solver"] == "sdfs" and summary["pop_width"] == 1 and summary["hops"] == 1
     assert summary["T2"] == pytest.approx(0.161, abs=1e-3)
     assert summary["contact_steps"] < summary["control_steps"] == 120 and summary["nodes_min"] == 3 * 4
     assert summary["solve_time_mean_s"] > 0 and summary["unsolved_steps"] == 0
@@ -169,6 +175,7 @@ def test_cli_writes_summary_and_figures(tmp_path):
     (["--seconds", "-1"], "--seconds: must be a number between"),
     (["--seconds", "nan"], "--seconds: must be a number between"),
     (["--solver", "greedy"], "invalid choice"),
+    (["--pop-width", "0"], "--pop-width: must be an integer between 1 and 64"),
 ])
 def test_cli_rejects_bad_input(argv, message, capsys):
     with pytest.raises(SystemExit):

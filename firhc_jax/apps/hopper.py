@@ -333,7 +333,7 @@ def last_compression(X):
 
 
 def summarize(loop: fj.ClosedLoop, X, horizon: int, solver: str, seconds: float, params: hm.HopperParams,
-              wall_s: float, loop_bound: bool = False, loop_warm: bool = False) -> dict:
+              wall_s: float, loop_bound: bool = False, loop_warm: bool = False, pop_width: int = 1) -> dict:
     """The ``summary.json`` contents. Search statistics are over the contact steps (the flight steps' searches
     are discarded by ``actuate``); solve times are NaN unless the loop was ``timed``."""
     gait, metrics = hm.desired_energy(T_HOP, T_AIR, params), hop_metrics(X)
@@ -365,7 +365,7 @@ def summarize(loop: fj.ClosedLoop, X, horizon: int, solver: str, seconds: float,
         valve_b_supply=int(np.count_nonzero(cmd[:, 1] > 0)),
         valve_b_exhaust=int(np.count_nonzero(cmd[:, 1] < 0)),
         stroke_min=float(stroke.min()), stroke_max=float(stroke.max()), stroke_limit=params.stroke / 2,
-        horizon=horizon, solver=solver, bound=loop_bound, warm=loop_warm, seconds=seconds,
+        horizon=horizon, solver=solver, bound=loop_bound, warm=loop_warm, pop_width=pop_width, seconds=seconds,
         control_period_s=CONTROL_PERIOD, plant_dt_s=PLANT_DT,
         weights=dict(lambda1=LAMBDA1, lambda2=LAMBDA2, beta=BETA), energy_tol=ENERGY_TOL,
         params=dataclasses.asdict(params), wall_time_s=wall_s,
@@ -456,6 +456,9 @@ def register(subparsers) -> None:
     parser.add_argument("--warm", action="store_true",
                         help="sDFS seeded with the better of the previous solution shifted and unshifted (exact; "
                              "with --bound: N = 10 in real time, docs/bounds.md)")
+    parser.add_argument("--pop-width", type=number(int, 1, 64), default=1, metavar="K",
+                        help="nodes expanded per search iteration (default 1, the paper's sDFS; exact for every K; "
+                             "--bound --warm --pop-width 4: N = 10 within the 5 ms period, docs/bounds.md)")
     parser.add_argument("--seconds", type=number(float, CONTROL_PERIOD, 60), default=2.0,
                         help="simulated time in s (default 2)")
     parser.add_argument("--out", default=os.path.join("out", "hopper"), metavar="DIR",
@@ -475,9 +478,10 @@ def run(args) -> int:
     params = hm.HopperParams()
     t0 = time.perf_counter()
     loop, X = simulate(args.seconds, args.horizon, args.solver, params, progress=not args.no_progress, timed=True,
-                       bound=args.bound, warm=args.warm)
+                       bound=args.bound, warm=args.warm, pop_width=args.pop_width)
     wall = time.perf_counter() - t0
-    summary = summarize(loop, X, args.horizon, args.solver, args.seconds, params, wall, args.bound, args.warm)
+    summary = summarize(loop, X, args.horizon, args.solver, args.seconds, params, wall, args.bound, args.warm,
+                        args.pop_width)
     figures(loop, X, params, args.out)
     with open(os.path.join(args.out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=2)

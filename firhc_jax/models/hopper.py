@@ -155,6 +155,17 @@ class Gait(NamedTuple):
 # Thermodynamics
 # ---------------------------------------------------------------------------
 
+def power(x, a):
+    """``x ** a`` for positive ``x`` and a constant float exponent, as ``exp(a log x)``.
+
+    XLA:CPU evaluates a float power element by element through a scalar library
+    call, exp and log as vector code: the prediction model (about 80 powers per
+    control period and node) runs 2.2x faster in batches this way
+    (docs/hopper.md). Agrees with ``**`` to about 1e-14 relative.
+    """
+    return jnp.exp(a * jnp.log(x))
+
+
 def orifice_flow(p_up, p_down, p: HopperParams):
     """Mass flow (kg/s) through a valve orifice from ``p_up`` to ``p_down``, eq. (15).
 
@@ -168,7 +179,7 @@ def orifice_flow(p_up, p_down, p: HopperParams):
     hi, lo = jnp.maximum(p_up, p_down), jnp.minimum(p_up, p_down)
     r = lo / hi
     k = p.gamma
-    subsonic = p.C2 * r ** (1 / k) * jnp.sqrt(jnp.maximum(1 - r ** ((k - 1) / k), 0.0))
+    subsonic = p.C2 * power(r, 1 / k) * jnp.sqrt(jnp.maximum(1 - power(r, (k - 1) / k), 0.0))
     shape = jnp.where(r <= p.P_crit, p.C1, subsonic)
     return jnp.sign(p_up - p_down) * p.C_f * p.A_v * hi / math.sqrt(p.T) * shape
 
@@ -201,7 +212,7 @@ def piston_force(Pa, Pb, p: HopperParams):
 def chamber_energy(P, V, p: HopperParams):
     """PE of one chamber, eq. (6): ``P V / (1 - k) ((P / P_atm)^((1 - k) / k) - 1)`` (J)."""
     k = p.gamma
-    return P * V / (1 - k) * ((P / p.P_atm) ** ((1 - k) / k) - 1)
+    return P * V / (1 - k) * (power(P / p.P_atm, (1 - k) / k) - 1)
 
 
 def energy(x, xdot, Pa, Pb, p: HopperParams):
@@ -215,7 +226,7 @@ def nominal_pressures(s, p: HopperParams):
     """Pressures (Pa) at stroke ``s`` with the static charge of air, sealed: the adiabats through (P_a0, P_b0)."""
     Va, Vb = chamber_volumes(s, p)
     k = p.gamma
-    return p.P_a0 * (p.V_mida / Va) ** k, p.P_b0 * (p.V_midb / Vb) ** k
+    return p.P_a0 * power(p.V_mida / Va, k), p.P_b0 * power(p.V_midb / Vb, k)
 
 
 def nominal_potential(x, p: HopperParams):
@@ -336,7 +347,7 @@ def liftoff_stroke(Ca, Cb, p: HopperParams, iterations: int = 6):
 
     def newton(_, x):
         Va, Vb = chamber_volumes(x, p)
-        Pa, Pb = Ca / Va**k, Cb / Vb**k
+        Pa, Pb = Ca / power(Va, k), Cb / power(Vb, k)
         residual = piston_force(Pa, Pb, p) + p.m * p.g
         slope = -k * (Pa * p.A_a**2 / Va + Pb * p.A_b**2 / Vb)
         return x - residual / slope
@@ -356,10 +367,10 @@ def orbit_energy(z, v_liftoff: float, p: HopperParams):
     """
     k = p.gamma
     Va, Vb = chamber_volumes(z[..., 0], p)
-    Ca, Cb = z[..., 2] * Va**k, z[..., 3] * Vb**k
+    Ca, Cb = z[..., 2] * power(Va, k), z[..., 3] * power(Vb, k)
     x1 = liftoff_stroke(Ca, Cb, p)
     Va1, Vb1 = chamber_volumes(x1, p)
-    return energy(x1, v_liftoff, Ca / Va1**k, Cb / Vb1**k, p)
+    return energy(x1, v_liftoff, Ca / power(Va1, k), Cb / power(Vb1, k), p)
 
 
 # ---------------------------------------------------------------------------
