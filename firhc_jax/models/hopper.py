@@ -161,7 +161,7 @@ def power(x, a):
     XLA:CPU evaluates a float power element by element through a scalar library
     call, exp and log as vector code: the prediction model (about 80 powers per
     control period and node) runs 2.2x faster in batches this way
-    (docs/hopper.md). Agrees with ``**`` to about 1e-14 relative.
+    (docs/xla_notes.md). Agrees with ``**`` to about 1e-14 relative.
     """
     return jnp.exp(a * jnp.log(x))
 
