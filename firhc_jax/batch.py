@@ -80,7 +80,7 @@ def _check_batch(X0):
         X = X0
     else:
         try:
-            X = strong(np.asarray(X0) if not isinstance(X0, jax.Array) else X0)
+            X = jnp.asarray(strong(X0))
         except (TypeError, ValueError) as e:
             raise TypeError(f"X0 must be a numeric array [B, n]: {e}") from None
     if X.ndim != 2:

@@ -258,7 +258,7 @@ class FIRHC:
             cannot be traced, and with each decision timed in ``solve_times``.
         """
         steps = positive_int("steps", steps)
-        x0 = as_state(x0)
+        x0 = jnp.asarray(as_state(x0))
         params = check_params(params, leading=steps, axis="steps")
         m = self.problem.input_dim
         u0 = jnp.zeros((m,), input_dtype(self.problem)) if u0 is None else jnp.asarray(u0, input_dtype(self.problem))
