@@ -163,6 +163,9 @@ def test_same_problem_twice_does_not_retrace():
         solve(p, X0 + 0.5)
         # A rebuilt Problem with the same callables and control values reuses the compiled search too.
         solve(fj.Problem(counting_dyn, np.asarray(CONTROLS), COST, 4), X0)
+        # NumPy, JAX and weakly typed JAX states of one dtype share it (eager calls keep NumPy states NumPy).
+        for x in (np.asarray(X0), jnp.asarray(X0), jnp.full(np.shape(X0), 0.3), list(np.asarray(X0))):
+            solve(p, x)
         assert len(traces) == before, "the second solve re-traced dynamics"
     # Other control values are compiled in as constants: that is a new search.
     fj.sdfs(fj.Problem(counting_dyn, CONTROLS * 2, COST, 4), X0)
