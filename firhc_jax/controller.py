@@ -197,7 +197,7 @@ class FIRHC:
         """``(deciding result, nodes of the constrained search, used_fallback)``."""
         result = self._search(self.problem, x, params, previous)
         if self._relaxed is None:
-            return result, result.nodes, jnp.array(False)
+            return result, result.nodes, np.False_  # eager calls: NumPy scalars cost no dispatch (traced: constants)
 
         def fall_back(_):  # only searched when needed (both run under vmap)
             relaxed = self._search(self._relaxed, x, params, previous)
@@ -205,12 +205,12 @@ class FIRHC:
                                     negative_cost=result.negative_cost | relaxed.negative_cost,
                                     nan_encountered=result.nan_encountered | relaxed.nan_encountered,
                                     overflow=result.overflow | relaxed.overflow,
-                                    complete=result.complete & relaxed.complete), jnp.array(True)
+                                    complete=result.complete & relaxed.complete), np.True_
 
         if is_tracer(result.feasible):
-            chosen, used = jax.lax.cond(result.feasible, lambda _: (result, jnp.array(False)), fall_back, None)
+            chosen, used = jax.lax.cond(result.feasible, lambda _: (result, np.False_), fall_back, None)
         else:
-            chosen, used = (result, jnp.array(False)) if bool(result.feasible) else fall_back(None)
+            chosen, used = (result, np.False_) if np.asarray(result.feasible) else fall_back(None)
         return chosen, result.nodes, used
 
     def solve(self, x, params=None, previous_sequence=None) -> tuple[SearchResult, jax.Array]:
@@ -234,9 +234,9 @@ class FIRHC:
         """The FIRHC law at model state ``x``: ``(u, result)`` with
         ``u = controls[sequence[0]]`` (eq. 4)."""
         result, _ = self.solve(x, params, previous_sequence)
-        if self.fallback is None and not is_tracer(result.feasible) and not bool(result.feasible):
+        if self.fallback is None and not is_tracer(result.feasible) and not np.asarray(result.feasible):
             why = (" (the accumulated cost overflowed: scale the cost down or use float64)"
-                   if bool(result.overflow) else "")
+                   if np.asarray(result.overflow) else "")
             raise InfeasibleError(f"no input sequence of length {self.problem.horizon} meets the terminal "
                                   f"constraint with a finite cost from this state{why}; use "
                                   "fallback='unconstrained' or relax the constraint")
