@@ -57,6 +57,8 @@ def main():
     timed(lambda: ctrl(mem.observe(x, u_prev, params(0)), params(0)))  # compiles once
     with_params = [timed(lambda k=k: ctrl(mem.observe(x, u_prev, params(k)), params(k)))
                    for k in range(args.steps)]
+    observed = [(mem.observe(x, u_prev, params(k)), params(k)) for k in range(args.steps)]
+    ctrl_only = [timed(lambda z=z, p=p: ctrl(z, p)) for z, p in observed]
     loop = fj.FIRHC(mem.problem, observe=mem.observe).simulate(
         x, args.steps, plant=lambda i, u, p: inverter.make_plant(prm)(i, u), compiled=False,
         params={"ref": jnp.asarray(refs), "lambda_u": jnp.ones(args.steps)})
@@ -67,7 +69,8 @@ def main():
     print("| how the reference reaches the decision | decisions | median ms | mean ms | max ms |")
     print("|---|---:|---:|---:|---:|")
     for name, ts in (("rebuilt Problem per step (compiles every step)", rebuilt),
-                     ("`ctrl(x, params)` per step", with_params),
+                     ("`ctrl(observe(x, u, p), p)` per step, eager", with_params),
+                     ("`ctrl(z, p)` alone (z observed beforehand)", ctrl_only),
                      ("`simulate(..., params=..., compiled=False)` solve_times", list(in_loop))):
         ms = 1e3 * np.asarray(ts)
         print(f"| {name} | {len(ms)} | {statistics.median(ms):.3f} | {ms.mean():.3f} | {ms.max():.3f} |")
