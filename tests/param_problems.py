@@ -45,6 +45,14 @@ def problem(shape, constrained: bool = True, lower_bound=None) -> fj.Problem:
                       terminal if constrained else None, lower_bound)
 
 
+def from_random(rp) -> tuple[fj.Problem, dict]:
+    """A problem of tests/random_problems.py as ``(problem, params)`` of this module: the same numbers, the same
+    arithmetic, but as parameters, so that every such problem of one shape shares one compiled search."""
+    params = {"W": rp.W, "V": rp.V, "b": rp.b, "a": rp.a, "q": rp.q, "r": rp.r, "w": rp.w, "U": rp.controls,
+              "radius": np.float64(1e30 if rp.radius is None else rp.radius)}  # unused without one
+    return problem((rp.n, rp.m, rp.M, rp.N), rp.radius is not None), as_jax(params)
+
+
 def draw_params(rng: np.random.Generator, shape, tightness: str = "loose") -> dict:
     n, m, M, N = shape
     radius = {"loose": 1.0, "tight": 0.02, "none": np.inf}[tightness] * n

@@ -1,5 +1,6 @@
 """Admissible lower bounds keep every search exact and prune more (issue 11)."""
 import functools
+import itertools
 
 import jax
 import jax.numpy as jnp
@@ -18,38 +19,41 @@ SETTINGS = settings(max_examples=10, deadline=None, suppress_health_check=[Healt
 
 @functools.lru_cache(maxsize=None)
 def exact_bound(shape):
-    """``p["scale"]`` times the exact cost-to-go, by brute force in JAX: for
-    ``steps_left = s`` every sequence of length s is rolled out (one branch of a
-    ``lax.switch`` per s). Admissible for scale in [0, 1); +inf (terminal set out of reach) is kept."""
+    """``p["scale"]`` times the exact cost-to-go, by brute force in JAX: every sequence of length N - 1 is rolled
+    out once, and the optimum for ``steps_left = s`` is the least cost among their length-s prefixes that end in
+    the terminal set (0 for s = 0). Admissible for scale in [0, 1); +inf (terminal set out of reach) is kept.
+    (One scan for every s, not a ``lax.switch`` branch per s: the same values, a third of the compile time.)"""
     n, m, M, N = shape
+    seqs = jnp.asarray(np.array(list(itertools.product(range(M), repeat=N - 1)), np.int32).reshape(-1, N - 1))
 
-    def ctg(x, p, s):
-        seqs = jnp.asarray(np.array(np.meshgrid(*[np.arange(M)] * s, indexing="ij")).reshape(s, -1).T)
-
-        def roll(seq):
+    def bound(x, steps_left, p):
+        def roll(seq):  # [N - 1]: the cost of the first j + 1 steps of seq, +inf where they miss the terminal set
             def step(carry, i):
                 z, c = carry
                 u = jnp.array([i], jnp.float32)
                 z = dynamics(z, u, p)
-                return (z, c + stage_cost(z, u, p)), None
-            (z, c), _ = jax.lax.scan(step, (x, jnp.zeros((), x.dtype)), seq)
-            return jnp.where(terminal(z, p), c, jnp.inf)
+                c = c + stage_cost(z, u, p)
+                return (z, c), jnp.where(terminal(z, p), c, jnp.inf)
+            return jax.lax.scan(step, (x, jnp.zeros((), x.dtype)), seq)[1]
 
-        return jnp.min(jax.vmap(roll)(seqs))
-
-    def bound(x, steps_left, p):
-        branches = [lambda x, p: jnp.zeros((), x.dtype)] + [functools.partial(lambda x, p, s: ctg(x, p, s), s=s)
-                                                            for s in range(1, N)]
-        c = jax.lax.switch(jnp.clip(steps_left, 0, N - 1), branches, x, p)
+        ctg = jnp.min(jax.vmap(roll)(seqs), axis=0)  # [N - 1]: the exact cost-to-go of 1, ..., N - 1 steps
+        s = jnp.clip(steps_left, 0, N - 1)
+        c = jnp.where(s == 0, jnp.zeros((), x.dtype), ctg[jnp.maximum(s - 1, 0)])
         return jnp.where(jnp.isinf(c), c, p["scale"] * c)  # +inf stays +inf (scale 0 would make it NaN)
 
     return problem(shape, True, bound)
 
 
+# The pop width is a compile-time constant: one per shape (2 and 3 both covered), so that each shape compiles
+# its five searches once and every example of that shape reuses them (K = 1 is the "sdfs" entry).
+POP_WIDTH = {shape: 2 + i % 2 for i, shape in enumerate(SHAPES)}
+
+
 @SETTINGS
-@given(cases(tightness=("loose", "tight")), st.floats(0.0, 0.99), st.sampled_from([1, 2, 3]))
-def test_admissible_bounds_keep_every_solver_exact(case, scale, pop_width):
+@given(cases(tightness=("loose", "tight")), st.floats(0.0, 0.99))
+def test_admissible_bounds_keep_every_solver_exact(case, scale):
     shape, params, x0 = case
+    pop_width = POP_WIDTH[shape]
     prm = dict(as_jax(params), scale=jnp.asarray(scale))
     bounded = exact_bound(shape)
     ref, _ = cost_to_go(shape, params, x0, shape[3])

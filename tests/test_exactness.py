@@ -161,10 +161,11 @@ def test_edge_sizes_m1_n1():
 
 @pytest.mark.parametrize("seed", [0, 7, 16, 29, 31, 3])
 def test_pop_width_regression(seed):
-    """Cases where an earlier sort-free ranking broke pop_width 2 (found by fuzzing; kept as regressions)."""
-    rp = make(seed, 1, 1, 5, 3, ["none", "loose", "tight"][seed % 3])
-    p, x0 = rp.problem(), np.array([0.3])
-    ref = float(fj.exhaustive(p, x0).cost)
+    """Cases where an earlier sort-free ranking broke pop_width 2 (found by fuzzing; kept as regressions). The
+    problems' numbers are parameters (the same problems): the six share two problems' compiled searches."""
+    p, prm = pp.from_random(make(seed, 1, 1, 5, 3, ["none", "loose", "tight"][seed % 3]))
+    x0 = np.array([0.3])
+    ref = float(fj.exhaustive(p, x0, params=prm).cost)
     for k in (2, 3):
-        assert same_cost(float(fj.sdfs(p, x0, pop_width=k).cost), ref)
-        assert same_cost(float(fj.exhaustive(p, x0, method="dfs", pop_width=k).cost), ref)
+        assert same_cost(float(fj.sdfs(p, x0, params=prm, pop_width=k).cost), ref)
+        assert same_cost(float(fj.exhaustive(p, x0, params=prm, method="dfs", pop_width=k).cost), ref)

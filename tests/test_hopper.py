@@ -121,9 +121,16 @@ def test_static_equilibrium_is_an_equilibrium():
     assert np.max(np.abs(traj - np.asarray(X))[:, :4]) < 1e-12
 
 
-def test_closed_loop_sdfs_equals_exhaustive_and_hops():
+@pytest.fixture(scope="module")
+def sdfs_loop():
+    """The sDFS closed loop of 0.6 s (120 periods, one hop) at horizon 4, run once for every test below that
+    looks at it: one compiled loop and one fine trajectory serve them all."""
     # Horizon 4 keeps the exhaustive closed loop's compile short; docs/hopper.md reports N = 5-8.
-    runs = {s: app.simulate(0.6, 4, s, progress=False) for s in ("sdfs", "exhaustive")}
+    return app.simulate(0.6, 4, "sdfs", progress=False)
+
+
+def test_closed_loop_sdfs_equals_exhaustive_and_hops(sdfs_loop):
+    runs = {"sdfs": sdfs_loop, "exhaustive": app.simulate(0.6, 4, "exhaustive", progress=False)}
     np.testing.assert_array_equal(runs["sdfs"][1], runs["exhaustive"][1])
     np.testing.assert_array_equal(runs["sdfs"][0].inputs, runs["exhaustive"][0].inputs)
     loop, X = runs["sdfs"]
@@ -142,9 +149,9 @@ def test_closed_loop_sdfs_equals_exhaustive_and_hops():
     assert np.any(cmd[c, 1] != 0)  # valve b acts in contact
 
 
-def test_timed_loop_is_the_compiled_one():
-    loop, X = app.simulate(0.3, 4, "sdfs", progress=False)
-    timed, X_timed = app.simulate(0.3, 4, "sdfs", progress=False, timed=True)
+def test_timed_loop_is_the_compiled_one(sdfs_loop):
+    loop, X = sdfs_loop
+    timed, X_timed = app.simulate(0.6, 4, "sdfs", progress=False, timed=True)
     np.testing.assert_array_equal(X, X_timed)
     np.testing.assert_array_equal(loop.nodes, timed.nodes)
     times = np.asarray(timed.solve_times)
@@ -154,7 +161,7 @@ def test_timed_loop_is_the_compiled_one():
 
 def test_cli_writes_summary_and_figures(tmp_path):
     out = tmp_path / "hop"
-    # Horizon 4 and 0.6 s reuse the closed loop compiled by the test above.
+    # Horizon 4 and 0.6 s reuse the decision and the fine trajectory compiled by the tests above.
     assert cli.main(["hopper", "--horizon", "4", "--seconds", "0.6", "--out", str(out), "--no-progress"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     for key in ("T2", "E_d", "t_hop_mean", "t_air_mean", "hops", "infeasible_steps", "nodes_min", "nodes_max",
@@ -184,15 +191,15 @@ def test_cli_rejects_bad_input(argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
-def test_bound_is_admissible_and_keeps_the_closed_loop():
+def test_bound_is_admissible_and_keeps_the_closed_loop(sdfs_loop):
     """The bound passes the exhaustive check on contact states, an inflated one is caught, and sDFS with it,
     warm-started from two candidates, drives the same closed loop with fewer nodes. The contact bound's
     premise holds: with valve b closed (side a idle) one period moves e = E - E_d by at most PASSIVE_DRIFT;
     where side a could charge, the bound claims nothing (0)."""
     from firhc_jax.diagnostics import check_lower_bound
 
-    plain, _ = app.simulate(0.3, 4, "sdfs", P, progress=False)
-    warm, _ = app.simulate(0.3, 4, "sdfs", P, progress=False, bound=True, warm=True)
+    plain, _ = sdfs_loop
+    warm, _ = app.simulate(0.6, 4, "sdfs", P, progress=False, bound=True, warm=True)
     np.testing.assert_array_equal(np.asarray(warm.stage_costs), np.asarray(plain.stage_costs))
     assert np.asarray(warm.nodes).sum() < 0.85 * np.asarray(plain.nodes).sum()
     S = np.asarray(plain.states[:-1])
@@ -235,10 +242,10 @@ def test_bound_is_admissible_and_keeps_the_closed_loop():
     assert np.all(r["fallback"] <= r["exact"])
 
 
-def test_warm_candidate_takes_the_unshifted_plan_when_the_shifted_one_misses_the_band():
+def test_warm_candidate_takes_the_unshifted_plan_when_the_shifted_one_misses_the_band(sdfs_loop):
     from firhc_jax.nodes import rollout_cost
 
-    loop, _ = app.simulate(0.3, 4, "sdfs", P, progress=False)  # compiled by the test above
+    loop, _ = sdfs_loop
     S = np.asarray(loop.states)
     problem = app.problem(P, 4, bound=True)
     previous = np.array([0, 0, 0, 1], np.int32)  # step 28's plan: exhaust for three periods

@@ -30,6 +30,16 @@ def problems():
     return {n: model.make_problem(n, P) for n in (3, 4)}
 
 
+STEPS = 40  # 80 s: the whole transient into the 5 mm band, and the settled levels after it
+
+
+@pytest.fixture(scope="module")
+def sdfs_n3(problems):
+    """``(loop, compile_s)`` of the N = 3 sDFS closed loop for STEPS samples, run once for every test that
+    looks at it (one compiled loop)."""
+    return app.simulate(problems[3], "sdfs", STEPS)
+
+
 def test_volume_change_is_pump_inflow_minus_drain_outflow():
     rng = np.random.default_rng(0)
     h, modes = _grid(rng.uniform(0.05, 0.5, (40, 3)))  # interior: no clipping within one sample
@@ -107,19 +117,19 @@ def test_switch_penalty_counts_toggled_actuators():
     assert float(problem.stage_cost(x1, u)) == pytest.approx(float(plain) + 8.0)
 
 
-@pytest.mark.parametrize("horizon", [3, 4])
-def test_sdfs_and_exhaustive_closed_loops_are_identical(problems, horizon):
-    steps = 12  # 24 s: the whole transient into the 5 mm band
-    runs = {s: app.simulate(problems[horizon], s, steps)[0] for s in ("sdfs", "exhaustive")}
+@pytest.mark.parametrize("horizon, steps", [(3, STEPS), (4, 12)])  # 12 steps, 24 s: the transient into the band
+def test_sdfs_and_exhaustive_closed_loops_are_identical(problems, sdfs_n3, horizon, steps):
+    sdfs = sdfs_n3[0] if horizon == 3 else app.simulate(problems[horizon], "sdfs", steps)[0]
+    runs = {"sdfs": sdfs, "exhaustive": app.simulate(problems[horizon], "exhaustive", steps)[0]}
     np.testing.assert_array_equal(runs["sdfs"].states, runs["exhaustive"].states)
     np.testing.assert_array_equal(runs["sdfs"].input_indices, runs["exhaustive"].input_indices)
     assert np.all(np.asarray(runs["exhaustive"].nodes) == problems[horizon].tree_size())
     assert np.all(np.asarray(runs["sdfs"].nodes) < problems[horizon].tree_size())
 
 
-def test_timed_loop_is_the_compiled_one(problems):
-    loop, compile_s = app.simulate(problems[3], "sdfs", 6)
-    timed, timed_compile_s = app.simulate(problems[3], "sdfs", 6, timed=True)
+def test_timed_loop_is_the_compiled_one(problems, sdfs_n3):
+    loop, compile_s = sdfs_n3
+    timed, timed_compile_s = app.simulate(problems[3], "sdfs", STEPS, timed=True)
     np.testing.assert_array_equal(loop.states, timed.states)
     np.testing.assert_array_equal(loop.nodes, timed.nodes)
     assert compile_s is None and timed_compile_s > 0
@@ -128,8 +138,8 @@ def test_timed_loop_is_the_compiled_one(problems):
     assert times[0] < timed_compile_s  # compilation is measured apart, not inside the first decision
 
 
-def test_levels_settle_within_5_mm_and_stay(problems):
-    loop, _ = app.simulate(problems[3], "sdfs", steps=40)
+def test_levels_settle_within_5_mm_and_stay(sdfs_n3):
+    loop, _ = sdfs_n3
     errors = np.asarray(loop.states)[:, :3] - np.asarray(model.SET_POINT)  # [41, 3]
     settled = app.settling_time(errors, P.ts, 0.005)
     assert settled is not None and settled <= 30.0
@@ -174,14 +184,15 @@ def test_cli_rejects_run_shorter_than_a_sample(tmp_path):
         cli.main(["tanks", "--seconds", "1", "--out", str(tmp_path)])
 
 
-def test_bound_is_admissible_and_keeps_the_closed_loop():
+def test_bound_is_admissible_and_keeps_the_closed_loop(sdfs_n3):
     """The level-rate bound passes the exhaustive check, 10x it is caught, and the bounded closed loop (with and
     without a terminal box) is the unbounded one."""
     from firhc_jax.diagnostics import check_lower_bound
 
     for tol in (None, 0.01):
-        plain, _ = app.simulate(model.make_problem(3, terminal_tol=tol), steps=20)
-        bounded, _ = app.simulate(model.make_problem(3, terminal_tol=tol, bound=True), steps=20)
+        # Without a box the unbounded loop is the shared one (problems[3] is make_problem(3) with P's defaults).
+        plain = sdfs_n3[0] if tol is None else app.simulate(model.make_problem(3, terminal_tol=tol), steps=STEPS)[0]
+        bounded, _ = app.simulate(model.make_problem(3, terminal_tol=tol, bound=True), steps=STEPS)
         np.testing.assert_allclose(np.asarray(bounded.stage_costs), np.asarray(plain.stage_costs), rtol=1e-9)
         assert np.asarray(bounded.nodes).sum() < np.asarray(plain.nodes).sum()
     problem = model.make_problem(2, bound=True)
