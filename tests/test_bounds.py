@@ -22,7 +22,8 @@ def exact_bound(shape):
     """``p["scale"]`` times the exact cost-to-go, by brute force in JAX: every sequence of length N - 1 is rolled
     out once, and the optimum for ``steps_left = s`` is the least cost among their length-s prefixes that end in
     the terminal set (0 for s = 0). Admissible for scale in [0, 1); +inf (terminal set out of reach) is kept.
-    (One scan for every s, not a ``lax.switch`` branch per s: the same values, a third of the compile time.)"""
+    (One scan for every s, not a ``lax.switch`` branch per s: the same values up to rounding, less to trace and
+    compile.)"""
     n, m, M, N = shape
     seqs = jnp.asarray(np.array(list(itertools.product(range(M), repeat=N - 1)), np.int32).reshape(-1, N - 1))
 
