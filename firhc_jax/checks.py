@@ -22,8 +22,8 @@ def strong(a):
     ``jnp.full(n, 0.2)``) would compile a second search for the same shapes
     and dtypes. A strongly typed JAX array stays as it is; anything else
     becomes a NumPy array of JAX's canonical dtype, which a jitted search
-    takes as it is (making a device array here costs a dispatch, 18 us, per
-    call)."""
+    takes as it is (making a device array here would cost a dispatch per
+    call; benchmarks/RESULTS.md, issue 9 section)."""
     if isinstance(a, jax.Array) and not a.weak_type:
         return a
     a = np.asarray(a)

@@ -159,9 +159,9 @@ def power(x, a):
     """``x ** a`` for positive ``x`` and a constant float exponent, as ``exp(a log x)``.
 
     XLA:CPU evaluates a float power element by element through a scalar library
-    call, exp and log as vector code: the prediction model (about 80 powers per
-    control period and node) runs 2.2x faster in batches this way
-    (docs/xla_notes.md). Agrees with ``**`` to about 1e-14 relative.
+    call, exp and log as vector code; the prediction model evaluates about 80
+    powers per control period and node (measured in docs/xla_notes.md). Agrees
+    with ``**`` to about 1e-14 relative.
     """
     return jnp.exp(a * jnp.log(x))
 
