@@ -15,7 +15,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .checks import as_state, check_params, check_state
+from .cache import cached
+from .checks import as_state, check_params, check_state, params_spec
 from .exhaustive import exhaustive
 from .problem import Problem, call, positive_int
 
@@ -64,12 +65,13 @@ def check_lower_bound(problem: Problem, states, params=None, max_steps: int | No
     params = check_params(params)
     check_state(problem, X[0], params)
     max_steps = problem.horizon if max_steps is None else positive_int("max_steps", max_steps)
+    steps = jnp.arange(1, max_steps + 1, dtype=jnp.int32)
+    bounds = np.asarray(_bound_table(problem, X, params)(X, params, steps))  # [S, max_steps]
     out = []
     for s in range(1, max_steps + 1):
         short = problem.replace(horizon=s, lower_bound=None)
         exact = np.asarray(jax.vmap(lambda x, short=short: exhaustive(short, x, params=params).cost)(X))
-        bound = np.asarray(jax.jit(jax.vmap(lambda x, s=s: call(problem.lower_bound, params, x,
-                                                                  jnp.int32(s))))(X))
+        bound = bounds[:, s - 1]
         bad = (bound > exact + rtol * np.abs(np.where(np.isfinite(exact), exact, 0))) & ~(np.isinf(bound)
                                                                                           & np.isinf(exact))
         bad |= np.isnan(bound)  # a NaN bound prunes nothing in the searches, but it is a bug to report
@@ -77,10 +79,21 @@ def check_lower_bound(problem: Problem, states, params=None, max_steps: int | No
     return out
 
 
+def _bound_table(problem: Problem, X, params):
+    """``fn(X [S, n], params, steps [T]) -> [S, T]`` bounds, compiled once per problem, shapes and parameter
+    structure (values are arguments)."""
+    def table(X, p, steps):
+        return jax.vmap(lambda x: jax.vmap(lambda s: call(problem.lower_bound, p, x, s))(steps))(X)
+
+    pkey, _ = params_spec(params)
+    return cached(("bound table", problem.key, X.shape, jnp.dtype(X.dtype), pkey), lambda: jax.jit(table))
+
+
 def _states(states) -> jax.Array:
     X = jnp.asarray(states)
     if X.ndim != 2 or X.shape[0] == 0:
         raise ValueError(f"states must be a non-empty batch of states [S, n], got shape {tuple(X.shape)}")
+    X_np = np.asarray(X)  # row checks on a host copy (an eager slice of a device array costs a dispatch)
     for i in range(X.shape[0]):
-        as_state(X[i], f"states[{i}]")
+        as_state(X_np[i], f"states[{i}]")
     return X
