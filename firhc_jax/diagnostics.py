@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .cache import cached
-from .checks import as_state, check_params, check_state, params_spec
+from .checks import as_state, check_params, check_state
 from .exhaustive import exhaustive
 from .problem import Problem, call, positive_int
 
@@ -66,7 +66,7 @@ def check_lower_bound(problem: Problem, states, params=None, max_steps: int | No
     check_state(problem, X[0], params)
     max_steps = problem.horizon if max_steps is None else positive_int("max_steps", max_steps)
     steps = jnp.arange(1, max_steps + 1, dtype=jnp.int32)
-    bounds = np.asarray(_bound_table(problem, X, params)(X, params, steps))  # [S, max_steps]
+    bounds = np.asarray(_bound_table(problem)(X, params, steps))  # [S, max_steps]
     out = []
     for s in range(1, max_steps + 1):
         short = problem.replace(horizon=s, lower_bound=None)
@@ -79,14 +79,13 @@ def check_lower_bound(problem: Problem, states, params=None, max_steps: int | No
     return out
 
 
-def _bound_table(problem: Problem, X, params):
-    """``fn(X [S, n], params, steps [T]) -> [S, T]`` bounds, compiled once per problem, shapes and parameter
-    structure (values are arguments)."""
+def _bound_table(problem: Problem):
+    """``fn(X [S, n], params, steps [T]) -> [S, T]`` bounds: one jitted function per problem (jit keys the
+    shapes; values are arguments)."""
     def table(X, p, steps):
         return jax.vmap(lambda x: jax.vmap(lambda s: call(problem.lower_bound, p, x, s))(steps))(X)
 
-    pkey, _ = params_spec(params)
-    return cached(("bound table", problem.key, X.shape, jnp.dtype(X.dtype), pkey), lambda: jax.jit(table))
+    return cached(("bound table", problem.key), lambda: jax.jit(table))
 
 
 def _states(states) -> jax.Array:
