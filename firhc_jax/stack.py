@@ -107,10 +107,3 @@ def child_path(path, row, inputs: int, i):
     """Path ``[N]`` of child ``i`` (input ``i % M`` of node ``i // M``) of
     nodes with paths ``[K, N]`` at depth ``row``."""
     return jnp.where(jnp.arange(path.shape[1]) == row, i % inputs, path[i // inputs])
-
-
-def child_paths(path, row, inputs: int):
-    """Paths ``[K M, N]`` of all children of nodes with paths ``[K, N]`` at
-    depth ``row``."""
-    i = jnp.arange(path.shape[0] * inputs, dtype=jnp.int32)
-    return jax.vmap(child_path, in_axes=(None, None, None, 0))(path, row, inputs, i)

@@ -78,9 +78,11 @@ def test_pop_outside_the_stack_takes_nothing():
             np.testing.assert_array_equal(np.asarray(getattr(s, field)), np.asarray(getattr(t, field)))
 
 
-def test_child_paths_set_the_depth_entry():
+def test_child_path_sets_the_depth_entry():
     parents = jnp.array([[1, 0, -1, -1], [2, 2, -1, -1]], jnp.int32)  # two nodes of depth 2
-    paths = np.asarray(stacks.child_paths(parents, jnp.int32(2), M))
+    every_child = jnp.arange(K * M, dtype=jnp.int32)
+    paths = np.asarray(jax.vmap(stacks.child_path, in_axes=(None, None, None, 0))(parents, jnp.int32(2), M,
+                                                                                  every_child))
     assert paths.shape == (K * M, N)
     np.testing.assert_array_equal(paths[:, :2], [[1, 0]] * M + [[2, 2]] * M)
     np.testing.assert_array_equal(paths[:, 2], [0, 1, 2, 0, 1, 2])
