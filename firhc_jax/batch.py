@@ -273,9 +273,14 @@ def expand_and_store(problem: Problem, pool: Pool, rows: Rows, work: Work, param
     slot = jax.vmap(lambda c, a: tally(no_stats(), c, a))(ch, work.alive)  # [S] fields
     at = jnp.where(work.depth >= 0, row, B)
 
+    def flag(old, met):  # or over the slots of each row (all of them set True: duplicates agree)
+        return old.at[jnp.where(met, at, B)].set(True, mode="drop")
+
     stats = SearchStats(nodes=rows.stats.nodes.at[at].add(slot.nodes, mode="drop"),
                         iterations=rows.stats.iterations.at[at].add(slot.iterations, mode="drop"),
-                        flags=rows.stats.flags.at[at].max(slot.flags, mode="drop"))  # max of bools: or
+                        negative=flag(rows.stats.negative, slot.negative),
+                        nonfinite=flag(rows.stats.nonfinite, slot.nonfinite),
+                        overflow=flag(rows.stats.overflow, slot.overflow))
     return pool._replace(stack=stack), rows._replace(cost=new_cost, path=path, stats=stats)
 
 

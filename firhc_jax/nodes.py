@@ -70,39 +70,25 @@ def expand(problem: Problem, x, cost, params, *, steps_left, check_terminal: boo
 
 class SearchStats(NamedTuple):
     """What a search counts: the same fields in every solver (batched searches
-    add a leading axis). The three error flags are one array so that a search
-    updates them in one operation, not three."""
+    add a leading axis)."""
 
     nodes: jax.Array  # [] int32 child nodes computed (the paper's count)
     iterations: jax.Array  # [] int32 loop iterations: batched calls of ``dynamics``
-    flags: jax.Array  # [3] bool met so far: a negative stage cost, a non-finite state or NaN cost, an overflow
-
-    @property
-    def negative(self):
-        return self.flags[..., 0]
-
-    @property
-    def nonfinite(self):
-        return self.flags[..., 1]
-
-    @property
-    def overflow(self):
-        return self.flags[..., 2]
-
-
-_BITS = (NEGATIVE, NONFINITE, OVERFLOW)  # the order of SearchStats.flags
-
-
-def flag_array(bits):
-    """Error bits (an int32 of NEGATIVE | NONFINITE | OVERFLOW) as SearchStats' ``[3]`` bools."""
-    return (jnp.asarray(bits)[..., None] & jnp.array(_BITS, jnp.int32)) > 0
+    negative: jax.Array  # [] bool a negative stage cost was computed
+    nonfinite: jax.Array  # [] bool a non-finite state or a NaN cost was computed
+    overflow: jax.Array  # [] bool a finite cost plus a finite stage cost overflowed
 
 
 def no_stats(nodes=0, flags=0) -> SearchStats:
     """Counters of a search that has not started: ``nodes`` already computed
     and error ``flags`` (bits) already met."""
     zero = jnp.zeros((), jnp.int32)
-    return SearchStats(nodes=zero + nodes, iterations=zero, flags=flag_array(flags))
+    return SearchStats(nodes=zero + nodes, iterations=zero, **_bits(jnp.asarray(flags)))
+
+
+def _bits(flags):
+    return {"negative": (flags & NEGATIVE) > 0, "nonfinite": (flags & NONFINITE) > 0,
+            "overflow": (flags & OVERFLOW) > 0}
 
 
 def tally(stats: SearchStats, children: Children, expanded) -> SearchStats:
@@ -110,9 +96,9 @@ def tally(stats: SearchStats, children: Children, expanded) -> SearchStats:
     the nodes marked in ``expanded`` ``[B]`` into ``children`` (``[B, M]``
     fields): M nodes each, and the error flags of their children."""
     M = children.cost.shape[-1]
-    met = flag_array(jax.lax.reduce_or(jnp.where(expanded[:, None], children.flags, 0), axes=(0, 1)))
+    met = _bits(jax.lax.reduce_or(jnp.where(expanded[:, None], children.flags, 0), axes=(0, 1)))
     return SearchStats(nodes=stats.nodes + M * jnp.sum(expanded, dtype=jnp.int32), iterations=stats.iterations + 1,
-                       flags=stats.flags | met)
+                       **{k: getattr(stats, k) | v for k, v in met.items()})
 
 
 def first_min(a):
