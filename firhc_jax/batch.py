@@ -63,11 +63,10 @@ from .nodes import SearchStats, best_leaf, expand, no_stats, tally
 from .problem import Problem, positive_int, refuse_differentiation
 from .result import SearchResult, finish, raise_on_errors
 from .sdfs import _search as sdfs_search
-from .sdfs import node_budget, stack_memory
+from .sdfs import DEFAULT_MAX_MEMORY, node_budget, stack_memory
 from .stack import Popped, Stack
 
 SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
-DEFAULT_MAX_MEMORY = 1 << 30  # bytes
 DEFAULT_LANES = 64
 
 
@@ -132,13 +131,14 @@ class Pool(NamedTuple):
     row N takes leaf batches) working on one row of the batch."""
 
     stack: Stack  # [S, ...] fields
-    row: jax.Array  # [S] int32 row of the batch each slot works on (B: none)
+    row: jax.Array  # [S] int32 row of the batch each slot works or last worked on (B: none yet)
 
 
 class Work(NamedTuple):
     """What each slot expands in the next iteration (taken out of the stacks
     at the end of the previous one, so that the stacks are written, then read,
-    within an iteration: XLA updates them in place)."""
+    within an iteration: XLA updates them in place; docs/xla_notes.md,
+    "Pop right after the push")."""
 
     popped: Popped  # [S, K] fields: the nodes, cheapest first
     alive: jax.Array  # [S, K] bool to expand (below the row's incumbent)
@@ -153,11 +153,6 @@ class Plan(NamedTuple):
     victim: jax.Array  # [S] int32 steal one node from this slot (-1: no)
     robbed: jax.Array  # [S] int32 row of this slot's stack that a thief takes a node from (-1: none)
     depth: jax.Array  # [S] int32 depth of the nodes the slot expands (-1: none)
-
-
-def pool_capacity(problem: Problem, lanes: int, pop_width: int = 1) -> int:
-    """Nodes the pool stores: ``lanes`` stacks of ``(N + 1) K M`` nodes, whatever B is."""
-    return lanes * (problem.horizon + 1) * pop_width * problem.num_controls
 
 
 def pool_memory(problem: Problem, n: int, itemsize: int, lanes: int, pop_width: int = 1) -> int:
@@ -223,7 +218,6 @@ def take(pool: Pool, rows: Rows, todo: Plan, X, K: int) -> tuple[Pool, Work]:
     stack, popped = pop(pool.stack, todo.own, K)  # [S, K]
     stack, given = pop(stack, todo.robbed, 1)  # [S, 1]: the node each robbed slot hands over
     first = (jnp.arange(K) == 0)[None, :]  # [1, K]
-    inf = jnp.full_like(popped.key, jnp.inf)
     is_root, thief = (todo.root >= 0)[:, None], (todo.victim >= 0)[:, None]
     v = jnp.maximum(todo.victim, 0)
 
@@ -236,7 +230,7 @@ def take(pool: Pool, rows: Rows, todo: Plan, X, K: int) -> tuple[Pool, Work]:
     no_path = jnp.full(popped.path.shape[::2], -1, jnp.int32)  # [S, N]
     popped = Popped(x=pick(popped.x, root_x, given.x[v, 0]),
                     cost=pick(popped.cost, jnp.zeros_like(popped.cost[:, 0]), given.cost[v, 0]),
-                    key=pick(jnp.where(is_root | thief, inf, popped.key), jnp.zeros_like(popped.key[:, 0]),
+                    key=pick(popped.key, jnp.zeros_like(popped.key[:, 0]),
                              given.key[v, 0]),
                     path=pick(popped.path, no_path, given.path[v, 0]))
     alive = popped.key < incumbent(rows, pool.row)[:, None]
@@ -445,10 +439,11 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         slot, per iteration).
       lanes: slots of the ``"sdfs"`` pool on each device: each iteration
         expands up to ``lanes * pop_width * M`` children in one call.
-        Default: the rows per device, at most ``DEFAULT_LANES`` = 64: on CPU
-        wider iterations gained nothing on the tanks and hopper and were up
-        to 3x slower on the synthetic plant (measured on 2 cores, see
-        docs/batch.md). A GPU wants far more.
+        Default: the rows per device, at most ``DEFAULT_LANES`` = 64. The
+        best count depends on the plant and on B (2-core CPU, N = 5: at
+        B = 256 64 lanes beat 16 and 256 on the linear and tank plants; at
+        B = 4096 the linear plant is fastest at 256 and the tanks at 1,024;
+        benchmarks/RESULTS.md). A GPU wants far more.
       chunk_nodes: per-row ``chunk_nodes`` of ``"exhaustive"``.
       max_nodes: optional node budget per row (sDFS solvers): a row stops
         expanding once its count could pass it and keeps its incumbent, with
@@ -474,8 +469,15 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         raise ValueError(f"solver must be one of {list(SOLVERS)}, got {solver!r}")
     pop_width = positive_int("pop_width", pop_width)
     max_memory = positive_int("max_memory", max_memory)
+    chunk_nodes = positive_int("chunk_nodes", chunk_nodes)
     if max_nodes is not None and solver == "exhaustive":
         raise ValueError("max_nodes applies to the sDFS solvers; exhaustive search always visits the whole tree")
+    if pop_width != 1 and solver == "exhaustive":
+        raise ValueError("pop_width applies to the sDFS solvers; solver='exhaustive' expands level by level")
+    if lanes is not None and solver != "sdfs":
+        raise ValueError(f"lanes sizes the work pool of solver='sdfs'; solver={solver!r} has no pool")
+    if solver != "exhaustive":
+        chunk_nodes = DEFAULT_CHUNK_NODES  # unused: keep the compiled batch's cache key
     budget = node_budget(max_nodes)
     refuse_differentiation(X0, params)
     X = _check_batch(X0)

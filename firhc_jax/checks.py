@@ -113,7 +113,7 @@ def check_state(problem: Problem, x0, params=None, batched_params: bool = False)
     pkey, pspec = params_spec(params, drop_leading=batched_params)
     x = jax.ShapeDtypeStruct(x0.shape, x0.dtype)
     cached(("checked", problem.key, x.shape, jnp.dtype(x.dtype), pkey),
-           lambda: _check_callables(problem, x, pspec, params is not None) or True)
+           lambda: _check_callables(problem, x, pspec, params is not None))
     return x0
 
 

@@ -273,7 +273,7 @@ class FIRHC:
         cached(("closed-loop check", self._key, plant if compiled else None, x0.shape, jnp.dtype(x0.dtype),
                 jnp.dtype(u0.dtype), pkey),
                lambda: self._check_loop(plant if compiled else None, x0, u0, p0, params is not None,
-                                        default_plant) or True)
+                                        default_plant))
         with Progress(steps, f"FIRHC[{self.solver}]", enabled=progress):
             if compiled:
                 key = ("closed loop", self._key, plant, steps, progress)

@@ -13,7 +13,8 @@ first optimal sequence.
 Levels are unrolled in Python only while they widen (at most
 ``log_M(chunk_nodes)`` of them on each side of the split); with ``M = 1`` the
 levels are one ``lax.scan``, so compile time does not grow with N.
-``iterations`` counts batched calls of ``dynamics`` (one per level per chunk).
+``iterations`` counts batched calls of ``dynamics``: one per level of the
+prefix, then one per level per chunk (``split + chunks * (N - split)``).
 """
 from __future__ import annotations
 
@@ -28,9 +29,9 @@ from .checks import check_params, check_state, cost_dtype
 from .nodes import best_leaf, expand, no_stats, tally
 from .problem import Problem, positive_int, refuse_differentiation
 from .result import SearchResult, finish, raise_on_errors
+from .sdfs import INT32_MAX, exhaustive_dfs
 
 DEFAULT_CHUNK_NODES = 1 << 20
-_INT32_MAX = 2**31 - 1
 
 
 class Plan(NamedTuple):
@@ -51,7 +52,7 @@ def plan(problem: Problem, chunk_nodes: int = DEFAULT_CHUNK_NODES) -> Plan:
     N, M = problem.horizon, problem.num_controls
     chunk_nodes = positive_int("chunk_nodes", chunk_nodes)
     total = problem.tree_size()
-    if total > _INT32_MAX:
+    if total > INT32_MAX:
         raise ValueError(f"exhaustive search of M={M}, N={N} has {total:,} nodes, more than the int32 node "
                          "counter holds; use fj.sdfs or a shorter horizon")
     if M == 1:
@@ -141,7 +142,6 @@ def exhaustive(problem: Problem, x0, *, params=None, method: str = "levels",
     The lower bound, if the problem has one, is not used: this is the reference.
     """
     if method == "dfs":
-        from .sdfs import exhaustive_dfs
         return exhaustive_dfs(problem, x0, params=params, pop_width=pop_width)
     if method != "levels":
         raise ValueError(f"method must be 'levels' or 'dfs', got {method!r}")
@@ -150,10 +150,12 @@ def exhaustive(problem: Problem, x0, *, params=None, method: str = "levels",
     refuse_differentiation(x0, params)
     params = check_params(params)
     x0 = check_state(problem, x0, params)
+    if pop_width != 1:
+        raise ValueError("pop_width applies to method='dfs'; method='levels' expands whole levels")
+    chunk_nodes = positive_int("chunk_nodes", chunk_nodes)  # a plain int: part of the cache key
     plan(problem, chunk_nodes)  # refuse before tracing
     search = _levels_executable(problem, x0, params, chunk_nodes)
     if search is None:  # XLA:CPU could not compile it: the same tree, visited depth first
-        from .sdfs import exhaustive_dfs
         return exhaustive_dfs(problem, x0, params=params)
     return raise_on_errors(search(x0, params))
 

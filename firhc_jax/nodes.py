@@ -70,10 +70,11 @@ def expand(problem: Problem, x, cost, params, *, steps_left, check_terminal: boo
 
 class SearchStats(NamedTuple):
     """What a search counts: the same fields in every solver (batched searches
-    add a leading axis)."""
+    add a leading axis). Three bool flags, not one array: docs/xla_notes.md
+    ("Tried in the third session")."""
 
     nodes: jax.Array  # [] int32 child nodes computed (the paper's count)
-    iterations: jax.Array  # [] int32 loop iterations: batched calls of ``dynamics``
+    iterations: jax.Array  # [] int32 batched expansions (SearchResult.iterations says per solver)
     negative: jax.Array  # [] bool a negative stage cost was computed
     nonfinite: jax.Array  # [] bool a non-finite state or a NaN cost was computed
     overflow: jax.Array  # [] bool a finite cost plus a finite stage cost overflowed

@@ -27,8 +27,9 @@ class SearchResult(NamedTuple):
     first_input: jax.Array  # [m] floating: controls[sequence[0]], the input to apply (eq. 4); NaN if infeasible
     nodes: jax.Array  # [] int32 child nodes computed (the paper's count)
     feasible: jax.Array  # [] bool some sequence met the terminal constraint (with a finite cost)
-    iterations: jax.Array  # [] int32 batched calls of dynamics that expanded this search (solve_batch
-    #                        pool: slot-iterations spent on the row; exhaustive: levels x chunks)
+    iterations: jax.Array  # [] int32 batched expansions of this search's nodes: sdfs: loop iterations;
+    #                        solve_batch pool: slot-iterations spent on the row (shares of batched calls);
+    #                        exhaustive: prefix levels + chunks x remaining levels
     negative_cost: jax.Array  # [] bool a negative stage cost was computed (exactness lost)
     nan_encountered: jax.Array  # [] bool a non-finite (NaN or inf) state or a NaN cost was computed; discarded
     overflow: jax.Array  # [] bool a finite cost plus a finite stage cost overflowed to +inf

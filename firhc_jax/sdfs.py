@@ -24,7 +24,8 @@ ratio between the two measures pruning alone.
 
 Memory: one batch per depth, ``(N + 1) K M`` nodes (``stack_memory``; larger
 stacks are refused up front). ``iterations`` counts loop iterations, one
-batched call of ``dynamics`` each, in every solver. ``max_nodes`` stops the
+batched call of ``dynamics`` each (``SearchResult.iterations`` for the other
+solvers). ``max_nodes`` stops the
 loop before an iteration could take the node count above it; the result then
 holds the incumbent found so far and ``complete=False``.
 """
@@ -52,7 +53,8 @@ class _Carry(NamedTuple):
     """Loop state. The nodes to expand are popped at the end of the previous
     iteration, right after the push: the stack's buffers are then only ever
     written and then read within an iteration, which XLA updates in place
-    (read first, and it copies every buffer each iteration)."""
+    (read first, and it copies every buffer each iteration; docs/xla_notes.md,
+    "Pop right after the push")."""
 
     stack: Stack
     popped: Popped  # the K nodes to expand next

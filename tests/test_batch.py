@@ -180,17 +180,18 @@ def test_bad_params_are_refused_clearly():
 def test_memory_limit_chunks_or_refuses(solver):
     p = make(6, 3, 1, 5, 4, "loose").problem()
     X0 = states(6, 10, 3)
-    whole = solve_batch(p, X0, solver=solver, lanes=4)
+    lanes = {"lanes": 4} if solver == "sdfs" else {}  # the pool's option (the other solvers refuse it)
+    whole = solve_batch(p, X0, solver=solver, **lanes)
     if solver == "sdfs":
         fixed, one_row = pool_memory(p, 3, X0.dtype.itemsize, 4), pool_row_memory(p, 3, X0.dtype.itemsize)
     else:
         fixed, one_row = 0, row_memory(p, 3, X0.dtype.itemsize, solver)
-    chunked = solve_batch(p, X0, solver=solver, lanes=4, max_memory=fixed + 3 * one_row)  # 3 rows, last one short
+    chunked = solve_batch(p, X0, solver=solver, max_memory=fixed + 3 * one_row, **lanes)  # 3 rows, last one short
     # The pool's node counts depend on which rows share it; costs and sequences do not.
     for field in ("cost", "sequence", "feasible") + (("nodes",) if solver != "sdfs" else ()):
         np.testing.assert_array_equal(getattr(chunked, field), getattr(whole, field))
     with pytest.raises(ValueError, match="max_memory"):
-        solve_batch(p, X0, solver=solver, lanes=4, max_memory=fixed + one_row - 1)
+        solve_batch(p, X0, solver=solver, max_memory=fixed + one_row - 1, **lanes)
     if solver == "sdfs":
         with pytest.raises(ValueError, match="lanes"):
             solve_batch(p, X0, lanes=0)
@@ -288,3 +289,6 @@ def test_pool_matches_brute_force_per_row(shape, seed, tightness):
         ref, _ = pp.cost_to_go(shape, rows[b], X0[b], shape[3])
         assert pp.same_cost(float(res.cost[b]), ref), (b, float(res.cost[b]), ref)
         assert bool(res.feasible[b]) == np.isfinite(ref)
+        if np.isfinite(ref):  # the stored path (stolen subtrees included) really achieves the cost
+            again = pp.sequence_cost(rows[b], X0[b], np.asarray(res.sequence[b]))
+            assert pp.same_cost(again, float(res.cost[b])), (b, again, float(res.cost[b]))

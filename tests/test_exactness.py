@@ -128,6 +128,8 @@ def test_exhaustive_chunking_changes_nothing():
     assert float(chunked.cost) == float(whole.cost)
     np.testing.assert_array_equal(chunked.sequence, whole.sequence)
     assert int(chunked.nodes) == int(whole.nodes) == p.tree_size()
+    for result, layout in ((whole, plan(p)), (chunked, plan(p, 200))):  # SearchResult.iterations' formula
+        assert int(result.iterations) == layout.split + layout.chunks * (p.horizon - layout.split)
 
 
 def test_vmap_batch_equals_per_item():

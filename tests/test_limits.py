@@ -124,6 +124,36 @@ def test_corners_that_work():
         fj.FIRHC(P).simulate(jnp.ones(1), value)
 
 
+COUNTS = {  # every count argument: refuses what is not an int >= 1, naming itself
+    "pop_width": lambda v: fj.sdfs(P, jnp.ones(1), pop_width=v),
+    "max_nodes": lambda v: fj.sdfs(P, jnp.ones(1), max_nodes=v),
+    "chunk_nodes": lambda v: fj.exhaustive(P, jnp.ones(1), chunk_nodes=v),
+    "lanes": lambda v: fj.solve_batch(P, jnp.ones((2, 1)), lanes=v),
+    "max_memory": lambda v: fj.solve_batch(P, jnp.ones((2, 1)), max_memory=v),
+    "steps": lambda v: fj.FIRHC(P).simulate(jnp.ones(1), v),
+    "horizon": lambda v: fj.Problem(_dyn, [0.0, 1.0], fj.quadratic_cost(1.0, 0.0), v),
+}
+
+
+@pytest.mark.parametrize("name", sorted(COUNTS))
+def test_every_count_argument_refuses_non_positive_ints_by_name(name):
+    for value in (0, -1, True, 2.5, "3", np.float64(2.0)):
+        with pytest.raises((TypeError, ValueError), match=name):
+            COUNTS[name](value)
+    COUNTS[name](jnp.int32({"max_memory": 10**8, "chunk_nodes": 100}.get(name, 3)))  # a 0-d JAX int is an int
+
+
+def test_options_a_solver_does_not_use_are_refused():
+    with pytest.raises(ValueError, match="lanes"):
+        fj.solve_batch(P, jnp.ones((2, 1)), solver="sdfs-vmap", lanes=8)
+    with pytest.raises(ValueError, match="pop_width"):
+        fj.solve_batch(P, jnp.ones((2, 1)), solver="exhaustive", pop_width=2)
+    with pytest.raises(ValueError, match="pop_width"):
+        fj.exhaustive(P, jnp.ones(1), pop_width=2)
+    with pytest.raises(TypeError, match="chunk_nodes"):
+        fj.solve_batch(P, jnp.ones((2, 1)), solver="sdfs", chunk_nodes=2.0)
+
+
 # ---------------------------------------------------------------- fuzzing the entry points
 BAD = st.one_of(st.none(), st.text(max_size=3), st.floats(allow_nan=True), st.integers(-3, 0), st.just([1, [2]]),
                 st.just(np.zeros((2, 2, 2))), st.just(np.array(["a"])), st.just(jnp.full(1, jnp.nan)),

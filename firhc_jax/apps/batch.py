@@ -127,7 +127,10 @@ def run(args) -> int:
         result = jax.block_until_ready(solve_batch(problem, X0, **options))
         return time.perf_counter() - t0, result
 
-    first, result = timed()
+    try:
+        first, result = timed()
+    except ValueError as e:  # options the solver refuses (e.g. --lanes without the pool): a message, no traceback
+        raise SystemExit(f"batch: {e}") from None
     times = [timed()[0] for _ in range(args.repeats)]
     seconds = statistics.median(times) if times else first
     if jax.process_index() == 0:

@@ -167,7 +167,7 @@ def make_plant(params: TankParams = TankParams()):
 
     def plant(h, mode):
         c = jnp.asarray(coeffs, h.dtype)[mode]  # [5]
-        # A loop, not unrolled: unrolled, XLA recomputes the whole chain for each output level (about 14x slower).
+        # A loop, not unrolled: unrolled, XLA recomputes the chain for each output level (docs/tanks.md, 14x slower).
         h1, h2, h3, out, _ = jax.lax.fori_loop(0, steps, substep, (h[0], h[1], h[2], jnp.zeros((), h.dtype), c))
         return jnp.stack([h1, h2, h3]), out * params.area
 
