@@ -25,9 +25,9 @@ ratio between the two measures pruning alone.
 Memory: one batch per depth, ``(N + 1) K M`` nodes (``stack_memory``; larger
 stacks are refused up front). ``iterations`` counts loop iterations, one
 batched call of ``dynamics`` each (``SearchResult.iterations`` for the other
-solvers). ``max_nodes`` stops the
-loop before an iteration could take the node count above it; the result then
-holds the incumbent found so far and ``complete=False``.
+solvers). ``max_nodes`` stops the loop before an iteration could take the
+node count above it; the result then holds the incumbent found so far and
+``complete=False``.
 """
 from __future__ import annotations
 
