@@ -31,7 +31,7 @@ stacks are written, then read (XLA then updates them in place).
 ``iterations`` of a row counts the slot-iterations spent on it.
 
 Memory. The pool stores ``lanes * (N + 1) * K * M`` nodes whatever B is, plus
-``n + N + 7`` numbers per row (``pool_memory``, ``pool_row_memory``); the
+``n + 2 N + m + 14`` numbers per row (``pool_memory``, ``pool_row_memory``); the
 vmapped solvers need ``row_memory`` per row. A batch that would exceed
 ``max_memory`` bytes is solved in chunks of rows (``lax.map``), and a pool or
 row that does not fit on its own is refused before anything is compiled.
@@ -155,16 +155,18 @@ class Plan(NamedTuple):
     depth: jax.Array  # [S] int32 depth of the nodes the slot expands (-1: none)
 
 
-def pool_memory(problem: Problem, n: int, itemsize: int, lanes: int, pop_width: int = 1) -> int:
+def pool_memory(problem: Problem, n: int, itemsize: int, lanes: int, pop_width: int = 1,
+                param_bytes: int = 0) -> int:
     """Estimated peak bytes of the pool: ``lanes`` sDFS stacks (``fj.sdfs``'s
-    ``stack_memory`` each)."""
-    return lanes * stack_memory(problem, n, itemsize, pop_width)
+    ``stack_memory`` each) and the parameters gathered for the K nodes each
+    slot expands (``param_bytes`` per row)."""
+    return lanes * (stack_memory(problem, n, itemsize, pop_width) + pop_width * param_bytes)
 
 
 def pool_row_memory(problem: Problem, n: int, itemsize: int, param_bytes: int = 0) -> int:
-    """Bytes per row outside the pool: its state, its parameters and its result
-    (N + 7 numbers)."""
-    return itemsize * (n + problem.horizon + 7) + param_bytes
+    """Bytes per row outside the pool: its state, its parameters, its incumbent
+    and counters (N + 6 numbers) and its result (N + m + 8 numbers)."""
+    return itemsize * (n + 2 * problem.horizon + problem.input_dim + 14) + param_bytes
 
 
 def incumbent(rows: Rows, row):
@@ -485,11 +487,11 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
     params = check_params(params, leading=B)
     check_state(problem, X[0], params, batched_params=True)
     mesh = _mesh(devices)
-    per_device, item = -(-B // mesh.devices.size), X.dtype.itemsize
+    per_device, item = -(-B // mesh.devices.size), max(X.dtype.itemsize, 4)  # as fj.sdfs sizes its stack
     param_bytes = sum(a.dtype.itemsize * math.prod(a.shape[1:]) for a in jax.tree_util.tree_leaves(params))
     if solver == "sdfs":
         lanes = min(DEFAULT_LANES, per_device) if lanes is None else positive_int("lanes", lanes)
-        fixed = pool_memory(problem, n, item, lanes, pop_width)
+        fixed = pool_memory(problem, n, item, lanes, pop_width, param_bytes)
         if fixed >= max_memory:
             raise ValueError(f"the pool of {lanes} lanes needs about {fixed:,} bytes, more than "
                              f"max_memory={max_memory:,}; lower lanes or pop_width, or raise max_memory")
