@@ -159,16 +159,10 @@ BAD = st.one_of(st.none(), st.text(max_size=3), st.floats(allow_nan=True), st.in
                 st.just(np.zeros((2, 2, 2))), st.just(np.array(["a"])), st.just(jnp.full(1, jnp.nan)),
                 st.just(np.ones(5)), st.booleans())
 ENTRY = {
-    "sdfs x0": lambda v: fj.sdfs(P, v), "sdfs pop_width": lambda v: fj.sdfs(P, jnp.ones(1), pop_width=v),
-    "sdfs max_nodes": lambda v: fj.sdfs(P, jnp.ones(1), max_nodes=v),
-    "sdfs warm_start": lambda v: fj.sdfs(P, jnp.ones(1), warm_start=v),
-    "exhaustive x0": lambda v: fj.exhaustive(P, v), "exhaustive chunk_nodes": lambda v: fj.exhaustive(
-        P, jnp.ones(1), chunk_nodes=v),
-    "solve_batch X0": lambda v: fj.solve_batch(P, v), "solve_batch lanes": lambda v: fj.solve_batch(
-        P, jnp.ones((2, 1)), lanes=v),
-    "simulate steps": lambda v: fj.FIRHC(P).simulate(jnp.ones(1), v),
-    "Problem horizon": lambda v: fj.Problem(_dyn, [0.0, 1.0], fj.quadratic_cost(1.0, 0.0), v),
+    "sdfs x0": lambda v: fj.sdfs(P, v), "sdfs warm_start": lambda v: fj.sdfs(P, jnp.ones(1), warm_start=v),
+    "exhaustive x0": lambda v: fj.exhaustive(P, v), "solve_batch X0": lambda v: fj.solve_batch(P, v),
     "Problem controls": lambda v: fj.Problem(_dyn, v, fj.quadratic_cost(1.0, 0.0), 2),
+    **{f"count {name}": call for name, call in COUNTS.items()},
 }
 NAMES = {"sdfs x0": "x0", "exhaustive x0": "x0", "solve_batch X0": "X0", "Problem controls": "controls"}
 
