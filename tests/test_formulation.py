@@ -283,3 +283,14 @@ def test_fallback_keeps_constraints_and_terminal_cost():
     u, res = ctrl(x0, p)
     relaxed = dict(p, radius=FAR)
     assert reference.same_cost(res.cost, brute_force(relaxed, x0))
+
+
+def test_the_documented_plants_run():
+    """docs/formulation.md's three plants, as written there (each block in its own namespace)."""
+    import pathlib
+    import re
+    text = (pathlib.Path(__file__).parent.parent / "docs" / "formulation.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
+    assert len(blocks) == 3
+    for block in blocks:
+        exec(compile(block, "docs/formulation.md", "exec"), {})
