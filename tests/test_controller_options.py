@@ -1,4 +1,4 @@
-"""FIRHC's fallback problem and warm-start callable."""
+"""FIRHC's fallback problem, warm-start callable and progress bar."""
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -50,3 +50,24 @@ def test_bad_options_are_refused():
         fj.FIRHC(p, fallback="relaxed")
     with pytest.raises(ValueError, match="solver='sdfs' only"):
         fj.FIRHC(p, "exhaustive", warm_start=lambda *a: None)
+
+
+def test_a_progress_bar_costs_at_most_TICKS_host_callbacks(capsys, monkeypatch):
+    """A host callback per step made progress=True 23x slower (issue 24): a run reports every
+    interval(T) steps and at its end, whatever T, compiled or not."""
+    from firhc_jax import controller, progress
+
+    ticks = []
+    original = progress.tick_python
+    counting = lambda step: (ticks.append(int(step)), original(step))  # noqa: E731
+    monkeypatch.setattr(progress, "tick_python", counting)  # reached from the compiled loop's callback
+    monkeypatch.setattr(controller, "tick_python", counting)  # called by the Python loop
+    fj.clear_cache()  # a closed loop compiled earlier would hold the original callback
+    ctrl = fj.FIRHC(fj.Problem(dyn, CONTROLS, COST, 2))
+    for steps, compiled in ((1_000, True), (1_001, True), (250, False)):
+        ticks.clear()
+        ctrl.simulate(jnp.array([1.0, -0.5]), steps, progress=True, compiled=compiled)
+        every = progress.interval(steps)
+        expected = sorted({k for k in range(steps) if (k + 1) % every == 0} | {steps - 1})
+        assert ticks == expected and len(ticks) <= progress.TICKS + 1, (steps, compiled)
+        assert f"{steps}/{steps}" in capsys.readouterr().err
