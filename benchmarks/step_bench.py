@@ -15,7 +15,11 @@ The three rows are interleaved in rounds so that a noisy neighbour hits them
 alike; the ratio of medians is the figure of merit (contract: step <= 1.3x
 loop).
 
-    python benchmarks/step_bench.py [--steps 300] [--rounds 3] [--horizon 3]
+A second table times a compiled ``simulate`` of ``--progress-steps`` cheap
+steps (N = 2, 3 inputs) with and without ``progress=True`` (issue 24: a host
+callback per step made it 23x slower).
+
+    python benchmarks/step_bench.py [--steps 300] [--rounds 3] [--horizon 3] [--progress-steps 100000]
 """
 from __future__ import annotations
 
@@ -37,6 +41,7 @@ def main():
     ap.add_argument("--steps", type=int, default=300, help="decisions per round and row")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--horizon", type=int, default=3)
+    ap.add_argument("--progress-steps", type=int, default=100_000)
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
     prm, N, T = inverter.InverterParams(), args.horizon, args.steps
@@ -96,6 +101,34 @@ def main():
     for name, ts in times.items():
         print(f"\n{name} / loop (medians): {statistics.median(ts) / base:.2f}x", end="")
     print()
+    progress_table(args.progress_steps, args.rounds)
+
+
+def progress_table(steps: int, rounds: int):
+    """Compiled closed loop of cheap steps with and without a progress bar (drawn on stderr), interleaved."""
+    from firhc_jax import progress
+
+    prob = fj.Problem(lambda x, u: 0.9 * x + 0.1 * u, jnp.array([-1.0, 0.0, 1.0]), fj.quadratic_cost(1.0, 0.0), 2)
+    ctrl, x0 = fj.FIRHC(prob), jnp.ones(1)
+
+    def run(on):
+        t0 = time.perf_counter()
+        jax.block_until_ready(ctrl.simulate(x0, steps, progress=on).states)
+        return time.perf_counter() - t0
+
+    run(False), run(True)  # compile both
+    times = {False: [], True: []}
+    for _ in range(rounds):
+        for on in (False, True):
+            times[on].append(run(on))
+    off, on = statistics.median(times[False]), statistics.median(times[True])
+    print(f"\n# Compiled simulate of {steps:,} cheap steps (N = 2, M = 3), median of {rounds}\n")
+    print("| progress | s per run | us per step |")
+    print("|---|---:|---:|")
+    for name, t in (("off", off), ("on", on)):
+        print(f"| {name} | {t:.3f} | {1e6 * t / steps:.2f} |")
+    every = progress.interval(steps) if hasattr(progress, "interval") else 1  # 1: before issue 24
+    print(f"\nprogress on / off: {on / off:.3f}x ({every} steps per bar update)")
 
 
 if __name__ == "__main__":
