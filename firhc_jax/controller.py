@@ -178,7 +178,7 @@ class FIRHC:
         """One searched input ``[m]`` of the problem's input dtype, finite, or a clear error."""
         m, dtype = self.problem.input_dim, input_dtype(self.problem)
         if is_tracer(value):
-            raise TypeError(f"{name} must be concrete, not a traced array")
+            raise TypeError(f"{name} must be concrete, not a traced array (it is compiled in as a constant)")
         try:
             a = np.asarray(value, dtype=dtype)
         except (TypeError, ValueError) as e:
@@ -199,8 +199,15 @@ class FIRHC:
         checked by the first ``step`` (they need the parameters' shapes).
         """
         as_state(x0)
-        N = self.problem.horizon
-        u0 = np.zeros(self.problem.input_dim, input_dtype(self.problem)) if u0 is None else self._input("u0", u0)
+        N, m, dtype = self.problem.horizon, self.problem.input_dim, input_dtype(self.problem)
+        if u0 is None:
+            u0 = np.zeros(m, dtype)
+        elif is_tracer(u0):  # init under jit/vmap: a state like any other
+            if u0.shape != (m,):
+                raise ValueError(f"u0 must be one input of shape ({m},), got {u0.shape}")
+            u0 = u0.astype(dtype)
+        else:
+            u0 = self._input("u0", u0)
         return ControllerState(u=u0, plan=np.full((N,), -1, np.int32))
 
     def step(self, state: ControllerState, x, params=None):
@@ -221,7 +228,8 @@ class FIRHC:
         callables); nothing is checked or scanned per call, and error flags
         (``info.result.negative_cost``, ...) are reported, not raised.
         ``simulate`` is this function in a loop: a Python loop of ``step``
-        with the same plant and per-step ``params`` gives the same states.
+        with the same plant (jitted, as ``simulate`` compiles it) and
+        per-step ``params`` gives the same states, to the last bit.
         """
         if type(state) is not ControllerState:
             raise TypeError(f"state must be the ControllerState from ctrl.init or ctrl.step, got "
@@ -477,10 +485,12 @@ class FIRHC:
 
     def _scan(self, plant, state, x0, params, steps, progress):
         def body(carry, inp):
-            state, x = carry
+            # Barriers keep the step and the plant apart, as in a user's loop of the compiled step and a
+            # jitted plant: XLA fuses (and rounds) each the same way there and here.
+            state, x = jax.lax.optimization_barrier(carry)
             k, p = inp
             u, state, info = self._checked_step(state, x, p)
-            x_next = call(plant, p, x, u)
+            x_next = call(plant, p, *jax.lax.optimization_barrier((x, u)))
             if progress:
                 tick(k, steps)
             return (state, x_next), (x_next, u, info)

@@ -19,8 +19,8 @@ def plant(x, u, p):  # x [2] plant state, u [2] plant input
     return jnp.stack([x[0] + 0.1 * x[1], 0.97 * x[1] + 0.1 * p["gain"] * u[0] + 0.01 * u[1]])
 
 
-def observe(x, u_prev, p):
-    return jnp.concatenate([x, u_prev])
+def observe(x, u_prev, p):  # model state [position, velocity, input applied last, its switching cost]
+    return jnp.concatenate([x, u_prev, jnp.zeros(1)])
 
 
 def actuate(x, u, p):
@@ -28,11 +28,11 @@ def actuate(x, u, p):
 
 
 def dynamics(z, u, p):
-    return jnp.stack([z[0] + 0.1 * z[1], z[1] + 0.1 * u[0], u[0]])
+    return jnp.stack([z[0] + 0.1 * z[1], z[1] + 0.1 * u[0], u[0], 0.05 * (u[0] - z[2]) ** 2])
 
 
 def stage_cost(z, u, p):
-    return (z[0] - p["ref"]) ** 2 + 0.1 * z[1] ** 2 + 0.05 * (u[0] - z[2]) ** 2
+    return (z[0] - p["ref"]) ** 2 + 0.1 * z[1] ** 2 + z[3]
 
 
 def terminal(z, p):
@@ -58,12 +58,16 @@ def _row(params, k):
 
 
 def test_a_python_loop_of_step_is_simulate_bit_for_bit(ctrl):
+    """The user's loop runs the plant jitted, as simulate compiles it (an eager plant of several operations
+    can round differently in the last bit where XLA fuses a multiply and an add)."""
     params, x0, u0 = per_step_params(), jnp.array([0.8, 0.0]), jnp.array([1.0])
-    runs = [ctrl.simulate(x0, T, plant, params=params, u0=u0, compiled=c) for c in (True, False)]
+    jitted = jax.jit(plant)
+    runs = [ctrl.simulate(x0, T, plant, params=params, u0=u0),
+            ctrl.simulate(x0, T, jitted, params=params, u0=u0, compiled=False)]
     state, x, xs, us, infos = ctrl.init(x0, u0), x0, [x0], [], []
     for k in range(T):
         u, state, info = ctrl.step(state, x, _row(params, k))
-        x = plant(x, u, _row(params, k))
+        x = jitted(x, u, _row(params, k))
         xs.append(x), us.append(u), infos.append(info)
     for run in runs:
         np.testing.assert_array_equal(np.asarray(run.states), np.stack(xs))
@@ -82,7 +86,7 @@ def test_step_under_jit_vmap_and_scan(ctrl):
     U = jnp.array([[1.0], [0.0], [-1.0]])
     p0 = _row(params, 0)
     eager = [ctrl.step(ctrl.init(x, u), x, p0) for x, u in zip(X, U)]
-    states = jax.vmap(ctrl.init)(X, U) if False else fj.ControllerState(u=U, plan=jnp.full((3, N), -1, jnp.int32))
+    states = jax.vmap(ctrl.init)(X, U)
     u, _, info = jax.jit(jax.vmap(ctrl.step, in_axes=(0, 0, None)))(states, X, p0)
     for b, (ue, _, ie) in enumerate(eager):
         np.testing.assert_array_equal(np.asarray(u[b]), np.asarray(ue))
@@ -150,6 +154,46 @@ def test_one_shot_call_is_the_first_step_and_reports_the_fallback(ctrl):
     u, info = ctrl(x, p, u_prev=jnp.array([1.0]))
     u_step, _, info_step = ctrl.step(ctrl.init(x, jnp.array([1.0])), x, p)
     np.testing.assert_array_equal(np.asarray(u), np.asarray(u_step))
+    assert float(info.result.cost) == float(info_step.result.cost)
+    assert float(info.result.cost) != float(ctrl(x, p)[1].result.cost)  # u_prev reached observe
     assert bool(info.used_fallback) and bool(info_step.used_fallback) and not bool(info.feasible)
     result, used = ctrl.solve(observe(x, jnp.array([1.0]), p), p)
     assert bool(used) and int(result.sequence[0]) == int(info.result.sequence[0])
+
+
+@pytest.mark.slow
+def test_default_float32_path():
+    """Without x64 (the suite turns it on): step == simulate bit for bit, and a decision that finds nothing
+    holds a finite input."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import warnings
+        import jax, jax.numpy as jnp, numpy as np
+        import firhc_jax as fj
+        assert not jax.config.jax_enable_x64
+        prob = fj.Problem(lambda x, u: jnp.stack([x[0] + 0.1 * x[1], x[1] + 0.1 * u[0]]), [-1.0, 0.0, 1.0],
+                          fj.quadratic_cost(jnp.array([1.0, 0.1]), jnp.zeros(2), 0.01), 3,
+                          terminal=lambda x: jnp.abs(x[0]) < 0.9)
+        ctrl = fj.FIRHC(prob, fallback="unconstrained", warm_start=True)
+        plant = jax.jit(lambda x, u: jnp.stack([x[0] + 0.1 * x[1], 0.98 * x[1] + 0.1 * u[0]]))
+        x0 = np.array([1.0, 0.0], np.float32)
+        run = ctrl.simulate(x0, 10, plant)
+        state, x, xs = ctrl.init(x0), x0, [x0]
+        for k in range(10):
+            u, state, info = ctrl.step(state, x)
+            x = plant(x, u)
+            xs.append(x)
+        assert run.states.dtype == jnp.float32 and np.array_equal(np.asarray(run.states), np.stack(xs))
+        assert np.asarray(run.used_fallback).any()
+        stuck = fj.FIRHC(prob.replace(terminal=lambda x: x[0] > 50.0), u_safe=[0.0])
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            out = stuck.simulate(x0, 3, plant)
+        assert np.asarray(out.held).all() and np.isfinite(np.asarray(out.inputs)).all() and w
+        print("ok")
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.stdout.strip().endswith("ok"), out.stdout + out.stderr
