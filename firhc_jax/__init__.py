@@ -2,7 +2,10 @@
 
 Public API (see each object's docstring; notation in ``firhc_jax.problem``):
 
-* ``Problem``, ``quadratic_cost``: describe the problem (eqs. 1-3).
+* ``Problem``, ``quadratic_cost``: describe the problem (eqs. 1-3), with step
+  indices along the horizon, a terminal cost and hard constraints.
+* ``discretize``, ``linear_dynamics``, ``product_controls``, ``tracking_cost``,
+  ``input_change_cost``: linear plants, switch-level products, tracking costs.
 * ``sdfs``: sorted depth-first search (Table 1), exact.
 * ``exhaustive``: vectorised exhaustive search (the reference).
 * ``FIRHC``, ``ControllerState``, ``StepInfo``, ``ClosedLoop``: the receding
@@ -22,12 +25,14 @@ from .closed_loop import ClosedLoop
 from .controller import FIRHC, ControllerState, InfeasibleError, StepInfo
 from .diagnostics import check_lower_bound, check_problem
 from .exhaustive import exhaustive
+from .linear import discretize, input_change_cost, linear_dynamics, product_controls, tracking_cost
 from .problem import Problem, quadratic_cost
 from .result import SearchResult
 from .sdfs import sdfs
 from .transforms import InputMemory, with_input_memory
 
-__all__ = ["Problem", "quadratic_cost", "sdfs", "exhaustive", "SearchResult", "FIRHC", "ControllerState",
-           "StepInfo", "ClosedLoop", "InfeasibleError", "InputMemory", "with_input_memory", "solve_batch",
-           "clear_cache", "set_cache_size", "cache_info", "check_problem", "check_lower_bound", "diagnostics"]
+__all__ = ["Problem", "quadratic_cost", "discretize", "linear_dynamics", "product_controls", "tracking_cost",
+           "input_change_cost", "sdfs", "exhaustive", "SearchResult", "FIRHC", "ControllerState", "StepInfo",
+           "ClosedLoop", "InfeasibleError", "InputMemory", "with_input_memory", "solve_batch", "clear_cache",
+           "set_cache_size", "cache_info", "check_problem", "check_lower_bound", "diagnostics"]
 __version__ = "0.2.0"

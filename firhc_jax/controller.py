@@ -334,7 +334,7 @@ class FIRHC:
         u_plant = call(self.actuate, p, x, u) if self.actuate else u
         idx = result.sequence[0]
         u_model = jnp.asarray(self.problem.controls)[jnp.maximum(idx, 0)]
-        stage = call(self.problem.stage_cost, p, call(self.problem.dynamics, p, xm, u_model), u_model)
+        stage = self.problem.cost_of_step(self.problem.next_state(xm, u_model, 0, p), u_model, 0, p)
         info = StepInfo(result=result, used_fallback=used, complete=result.complete, nodes=nodes,
                         fallback_nodes=jnp.where(used, result.nodes, 0), feasible=result.feasible & ~used,
                         held=held, stage_cost=jnp.where(held, jnp.nan, stage))
@@ -434,7 +434,7 @@ class FIRHC:
                 raise ValueError(f"dt must be a finite positive number of seconds, got {dt!r}")
             times = np.arange(steps + 1) * float(dt)
         default_plant = plant is None
-        plant = plant or self.problem.dynamics
+        plant = plant or self.problem.model_plant
         if not callable(plant):
             raise TypeError(f"plant must be callable, got {type(plant).__name__}")
         pkey, pspec = params_spec(params, drop_leading=True)
