@@ -434,16 +434,17 @@ class FIRHC:
                 raise ValueError(f"dt must be a finite positive number of seconds, got {dt!r}")
             times = np.arange(steps + 1) * float(dt)
         default_plant = plant is None
-        plant = plant or self.problem.model_plant
-        if not callable(plant):
+        if not default_plant and not callable(plant):
             raise TypeError(f"plant must be callable, got {type(plant).__name__}")
+        # The default plant is keyed as None: the model_plant of an equal problem is another bound method.
+        plant_key, plant = (None, self.problem.model_plant) if default_plant else (plant, plant)
         pkey, pspec = params_spec(params, drop_leading=True)
-        cached(("closed-loop check", self._key, plant if compiled else None, _spec(x0), _spec(state.u), pkey),
+        cached(("closed-loop check", self._key, plant_key if compiled else False, _spec(x0), _spec(state.u), pkey),
                lambda: self._check_loop(plant if compiled else None, _spec(state.u), _spec(state.plan),
                                         _spec(x0), pspec, default_plant))
         with Progress(steps, f"FIRHC[{self.solver}]", enabled=progress):
             if compiled:
-                key = ("closed loop", self._key, plant, steps, progress)
+                key = ("closed loop", self._key, plant_key, steps, progress)
                 run = cached(key, lambda: jax.jit(lambda s, x, p: self._scan(plant, s, x, p, steps, progress)))
                 out = run(state, x0, params)
             else:
