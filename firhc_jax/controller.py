@@ -71,7 +71,7 @@ class ControllerState(NamedTuple):
 class StepInfo(NamedTuple):
     """What one decision did (``FIRHC.step``); ``ClosedLoop`` holds these stacked over the steps."""
 
-    result: "SearchResult"  # the deciding search: the fallback's when used_fallback
+    result: SearchResult  # the deciding search: the fallback's when used_fallback
     used_fallback: jax.Array  # [] bool the input came from the fallback search
     complete: jax.Array  # [] bool every search behind the decision ran to the end (not stopped by max_nodes)
     nodes: jax.Array  # [] int32 nodes of the terminal-constrained search
@@ -254,8 +254,8 @@ class FIRHC:
         instead of holding. Inside ``jit``/``vmap`` it holds and flags like
         ``step``. In a loop over time use ``init``/``step``.
         """
-        state = self.init(x, u_prev)
-        u, _, info = self.step(state, as_state(x), check_params(params))
+        x = as_state(x)
+        u, _, info = self.step(self.init(x, u_prev), x, check_params(params))
         if not is_tracer(info.held):
             raise_on_errors(info.result)
             if np.asarray(info.held):

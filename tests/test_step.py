@@ -85,7 +85,7 @@ def test_step_under_jit_vmap_and_scan(ctrl):
     X = jnp.array([[0.8, 0.0], [-0.4, 0.3], [0.1, -0.2]])
     U = jnp.array([[1.0], [0.0], [-1.0]])
     p0 = _row(params, 0)
-    eager = [ctrl.step(ctrl.init(x, u), x, p0) for x, u in zip(X, U)]
+    eager = [ctrl.step(ctrl.init(x, u), x, p0) for x, u in zip(X, U, strict=True)]
     states = jax.vmap(ctrl.init)(X, U)
     u, _, info = jax.jit(jax.vmap(ctrl.step, in_axes=(0, 0, None)))(states, X, p0)
     for b, (ue, _, ie) in enumerate(eager):
