@@ -294,3 +294,40 @@ def test_the_documented_plants_run():
     assert len(blocks) == 3
     for block in blocks:
         exec(compile(block, "docs/formulation.md", "exec"), {})
+
+
+def _leg(x, u, p):
+    return p["A"] @ x + p["B"] * u[0]
+
+
+def _leg_cost(x_next, u, p):
+    return jnp.sum((x_next - p["ref"]) ** 2)
+
+
+LEG = fj.with_input_memory(fj.Problem(_leg, CONTROLS, _leg_cost, N), fj.input_change_cost(0.05, norm="abs"),
+                           transition=lambda u, u_prev, p: jnp.all(jnp.abs(u - u_prev) <= 1))
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([-1.0, 0.0, 1.0]))
+def test_forbidden_transitions_are_never_taken(seed, u_prev):
+    """A three-level leg never jumps between -1 and +1, the first step against the input applied last."""
+    rng = np.random.default_rng(seed)
+    p = {"A": rng.normal(0, 0.6, (n, n)), "B": rng.normal(0, 1, n), "ref": rng.normal(0, 2, n)}
+    x0 = rng.normal(0, 1, n)
+
+    def cost(seq):
+        us = CONTROLS[list(seq)]
+        if np.any(np.abs(np.diff(np.concatenate([[u_prev], us]))) > 1):
+            return np.inf
+        x, total, last = x0, 0.0, u_prev
+        for u in us:
+            x = p["A"] @ x + p["B"] * u
+            total += np.sum((x - p["ref"]) ** 2) + 0.05 * abs(u - last)
+            last = u
+        return total
+
+    best = min(cost(s) for s in itertools.product(range(M), repeat=N))
+    z0 = LEG.observe(jnp.asarray(x0), jnp.array([u_prev]), p)
+    for r in (fj.sdfs(LEG.problem, z0, params=p), fj.exhaustive(LEG.problem, z0, params=p)):
+        assert reference.same_cost(r.cost, best) and np.isfinite(cost(np.asarray(r.sequence)))
