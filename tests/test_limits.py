@@ -43,6 +43,25 @@ def test_a_budget_is_honest(case, budget, pop_width):
     assert same_cost(float(full.cost), cost_to_go(shape, params, x0, shape[3])[0])
 
 
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(cases(tightness=("none", "loose")), st.integers(1, 40), st.integers(0, 2**32 - 1), st.booleans())
+def test_a_budget_bounds_the_count_with_a_warm_start(case, budget, seed, none):
+    """``nodes <= max_nodes`` in every case, a warm start's N nodes included: a warm start that does not fit in
+    the budget is not evaluated (one compile per shape, shared with tests/test_exactness.py's warm start)."""
+    shape, params, x0 = case
+    N, M, prm = shape[3], shape[2], as_jax(params)
+    warm = np.full(N, -1) if none else np.random.default_rng(seed).integers(0, M, N)
+    full = fj.sdfs(problem(shape), x0, params=prm)
+    cut = fj.sdfs(problem(shape), x0, params=prm, warm_start=warm, max_nodes=budget)
+    assert int(cut.nodes) <= budget, (budget, int(cut.nodes))
+    if none or budget < N:  # no warm start: no nodes counted for it, no incumbent from it
+        assert int(cut.nodes) % M == 0
+    if bool(cut.complete):
+        assert same_cost(float(cut.cost), float(full.cost))
+    else:  # an incumbent (perhaps the warm start, costed by its own rollout: a few ulps), never below the optimum
+        assert float(cut.cost) >= float(full.cost) or same_cost(float(cut.cost), float(full.cost))
+
+
 def test_budget_stops_a_search_that_would_never_end():
     hard = fj.Problem(_dyn, np.linspace(-1, 1, 17), fj.quadratic_cost(1.0, 0.0), 40, terminal=lambda x: x[0] > 100.0)
     r = fj.sdfs(hard, jnp.ones(1), max_nodes=5_000)
