@@ -3,7 +3,6 @@
 ``pytest --float32`` runs only the tests marked ``float32`` with x64 left off: the library's default
 float32 path, on the exactness and budget properties (.ci/run runs both; README, "Tests")."""
 import jax
-import pytest
 
 
 def pytest_addoption(parser):

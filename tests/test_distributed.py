@@ -170,10 +170,10 @@ def test_no_launched_process_outlives_the_launcher(tmp_path):
         while any(map(_alive, pids)) and time.monotonic() < deadline:
             time.sleep(0.05)
         assert not any(map(_alive, pids)), pids
-    finally:
+    finally:  # nothing left behind, whatever happened
         launcher.kill()
-        for i in "01":
-            if (tmp_path / i).exists() and (tmp_path / i).read_text() and _alive(pid := int((tmp_path / i).read_text())):
+        for f in (tmp_path / i for i in "01"):
+            if f.exists() and f.read_text() and _alive(pid := int(f.read_text())):
                 os.kill(pid, 9)
 
 
