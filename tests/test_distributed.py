@@ -143,6 +143,7 @@ def test_a_failure_in_any_process_ends_the_whole_job(tmp_path, monkeypatch, capf
     assert not (tmp_path / "r.npz").exists()
 
 
+@pytest.mark.slow
 def test_launcher_stops_on_timeout_with_a_message(tmp_path, capsys):
     """``--timeout`` too short for the job: a message and exit status 1, not a TimeoutExpired traceback."""
     distributed.save_states(tmp_path / "X0.npz", np.zeros((2, 3)))
@@ -152,6 +153,7 @@ def test_launcher_stops_on_timeout_with_a_message(tmp_path, capsys):
     assert "did not finish within 0.5 s (--timeout); every process was stopped" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_no_launched_process_outlives_the_launcher(tmp_path):
     """The launcher killed with SIGKILL (no Python clean-up runs): its processes die with it."""
     child = f"import os, time; open(os.path.join({str(tmp_path)!r}, os.environ['JAX_PROCESS_ID']), 'w')" \
@@ -170,10 +172,10 @@ def test_no_launched_process_outlives_the_launcher(tmp_path):
         while any(map(_alive, pids)) and time.monotonic() < deadline:
             time.sleep(0.05)
         assert not any(map(_alive, pids)), pids
-    finally:
+    finally:  # nothing left behind, whatever happened
         launcher.kill()
-        for i in "01":
-            if (tmp_path / i).exists() and (tmp_path / i).read_text() and _alive(pid := int((tmp_path / i).read_text())):
+        for f in (tmp_path / i for i in "01"):
+            if f.exists() and f.read_text() and _alive(pid := int(f.read_text())):
                 os.kill(pid, 9)
 
 
