@@ -27,6 +27,7 @@ Memory: ``lanes * (N + 1) * K * M`` nodes whatever the number of rows
 """
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -34,10 +35,10 @@ import jax.numpy as jnp
 
 from . import stack as stacks
 from .checks import cost_dtype
-from .nodes import SearchStats, best_leaf, expand, no_stats, tally
+from .nodes import SearchStats, expand, no_stats
 from .problem import Problem
 from .result import SearchResult, finish
-from .sdfs import stack_memory
+from .sdfs import settle_children, stack_memory
 from .stack import Popped, Stack
 
 
@@ -64,8 +65,7 @@ class Work(NamedTuple):
     within an iteration: XLA updates them in place; docs/xla_notes.md,
     "Pop right after the push")."""
 
-    popped: Popped  # [S, K] fields: the nodes, cheapest first
-    alive: jax.Array  # [S, K] bool to expand (below the row's incumbent)
+    popped: Popped  # [S, K] fields: the nodes, cheapest first (expanded where below the row's incumbent)
     depth: jax.Array  # [S] int32 depth of the nodes (-1: the slot is idle)
 
 
@@ -137,7 +137,7 @@ def plan(pool: Pool, rows: Rows, head, n_valid, limit) -> tuple[Pool, Rows, jax.
     return pool, rows, head, Plan(own=top, root=root, victim=victim, robbed=robbed, depth=depth)
 
 
-def take(pool: Pool, rows: Rows, todo: Plan, X, K: int) -> tuple[Pool, Work]:
+def take(pool: Pool, todo: Plan, X, K: int) -> tuple[Pool, Work]:
     """Take the planned nodes out of the stacks: each slot's own K, the
     roots of new rows, and the nodes thieves take from their victims."""
     pop = jax.vmap(stacks.pop, in_axes=(0, 0, None))
@@ -156,51 +156,45 @@ def take(pool: Pool, rows: Rows, todo: Plan, X, K: int) -> tuple[Pool, Work]:
     no_path = jnp.full(popped.path.shape[::2], -1, jnp.int32)  # [S, N]
     popped = Popped(x=pick(popped.x, root_x, given.x[v, 0]),
                     cost=pick(popped.cost, jnp.zeros_like(popped.cost[:, 0]), given.cost[v, 0]),
-                    key=pick(popped.key, jnp.zeros_like(popped.key[:, 0]),
-                             given.key[v, 0]),
+                    key=pick(popped.key, jnp.zeros_like(popped.key[:, 0]), given.key[v, 0]),
                     path=pick(popped.path, no_path, given.path[v, 0]))
-    alive = popped.key < incumbent(rows, pool.row)[:, None]
-    return pool._replace(stack=stack), Work(popped=popped, alive=alive, depth=todo.depth)
+    return pool._replace(stack=stack), Work(popped=popped, depth=todo.depth)
 
 
 def expand_and_store(problem: Problem, pool: Pool, rows: Rows, work: Work, params) -> tuple[Pool, Rows]:
-    """Expand every slot's nodes in one call of ``expand``; each slot's
-    cheapest feasible leaf may improve its row's incumbent; the other children
-    are pushed as the slot's batch one depth below (pruned lazily, when
-    popped)."""
-    N, M = problem.horizon, problem.num_controls
+    """Expand every slot's nodes in one call of ``expand`` (with their rows'
+    parameters), then each slot's step of ``fj.sdfs`` (``settle_children``,
+    vmapped over the slots) against its row's incumbent: its cheapest
+    feasible leaf may improve the row's incumbent, and the other children are
+    pushed as the slot's batch one depth below."""
+    N = problem.horizon
     (S, K, n), B = work.popped.x.shape, rows.cost.shape[0]
-    L, row, depth = K * M, pool.row, work.depth + 1  # depth of the children
+    row = pool.row
     p_nodes = jax.tree_util.tree_map(lambda a: jnp.repeat(a[jnp.minimum(row, B - 1)], K, axis=0), params)
     ch = expand(problem, work.popped.x.reshape(S * K, n), work.popped.cost.reshape(S * K), p_nodes,
-                steps_left=jnp.repeat(N - depth, K), check_terminal=problem.terminal is not None,
+                steps_left=jnp.repeat(N - work.depth - 1, K), check_terminal=problem.terminal is not None,
                 params_batched=True)
     ch = jax.tree_util.tree_map(lambda a: a.reshape((S, K) + a.shape[1:]), ch)  # [S, K, M, ...]
-    ok = (work.alive[..., None] & ~ch.bad).reshape(S, L)
-    cost, key = ch.cost.reshape(S, L), ch.key.reshape(S, L)
+    fresh = jax.vmap(lambda _: no_stats())(row)  # [S] fields: this iteration's counts per slot
+    step = jax.vmap(functools.partial(settle_children, problem))(work.popped, work.depth, ch, incumbent(rows, row),
+                                                                  fresh)
 
-    best = incumbent(rows, row)
-    cand, leaf, improve = best_leaf(cost, ch.terminal_ok.reshape(S, L), ok, (depth == N)[:, None], best)
-    new_cost = rows.cost.at[jnp.where(improve, row, B)].min(cand, mode="drop")
-    winner = improve & (cand == new_cost.at[row].get(mode="fill", fill_value=jnp.inf))
-    leaf_path = jax.vmap(stacks.child_path, in_axes=(0, 0, None, 0))(work.popped.path, work.depth, M, leaf)
-    path = rows.path.at[jnp.where(winner, row, B)].set(leaf_path, mode="drop")  # [S, N] each slot's leaf
-
-    keep = ok & (depth < N)[:, None]
-    put = jnp.where(work.depth >= 0, depth, N)  # idle slots write nothing live into the leaf row
-    stack = jax.vmap(stacks.push)(pool.stack, put, ch.x.reshape(S, L, n).astype(work.popped.x.dtype), cost,
-                                  jnp.where(keep, key, jnp.inf), work.popped.path)
-    slot = jax.vmap(lambda c, a: tally(no_stats(), c, a))(ch, work.alive)  # [S] fields
+    new_cost = rows.cost.at[jnp.where(step.improve, row, B)].min(step.leaf_cost, mode="drop")
+    winner = step.improve & (step.leaf_cost == new_cost.at[row].get(mode="fill", fill_value=jnp.inf))
+    path = rows.path.at[jnp.where(winner, row, B)].set(step.leaf_path, mode="drop")  # [S, N] each slot's leaf
+    put = jnp.where(work.depth >= 0, work.depth + 1, N)  # idle slots write nothing live into the leaf row
+    stack = jax.vmap(stacks.push)(pool.stack, put, step.x.astype(work.popped.x.dtype), step.cost, step.key,
+                                  work.popped.path)
     at = jnp.where(work.depth >= 0, row, B)
 
     def flag(old, met):  # or over the slots of each row (all of them set True: duplicates agree)
         return old.at[jnp.where(met, at, B)].set(True, mode="drop")
 
-    stats = SearchStats(nodes=rows.stats.nodes.at[at].add(slot.nodes, mode="drop"),
-                        iterations=rows.stats.iterations.at[at].add(slot.iterations, mode="drop"),
-                        negative=flag(rows.stats.negative, slot.negative),
-                        nonfinite=flag(rows.stats.nonfinite, slot.nonfinite),
-                        overflow=flag(rows.stats.overflow, slot.overflow))
+    stats = SearchStats(nodes=rows.stats.nodes.at[at].add(step.stats.nodes, mode="drop"),
+                        iterations=rows.stats.iterations.at[at].add(step.stats.iterations, mode="drop"),
+                        negative=flag(rows.stats.negative, step.stats.negative),
+                        nonfinite=flag(rows.stats.nonfinite, step.stats.nonfinite),
+                        overflow=flag(rows.stats.overflow, step.stats.overflow))
     return pool._replace(stack=stack), rows._replace(cost=new_cost, path=path, stats=stats)
 
 
@@ -222,7 +216,7 @@ def pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_wi
 
     def next_work(pool, rows, head):
         pool, rows, head, todo = plan(pool, rows, head, n_valid, limit)
-        pool, work = take(pool, rows, todo, X, K)
+        pool, work = take(pool, todo, X, K)
         return pool, rows, head, work
 
     def body(carry):
