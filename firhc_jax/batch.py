@@ -168,10 +168,12 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         benchmarks/RESULTS.md). A GPU wants far more.
       chunk_nodes: per-row ``chunk_nodes`` of ``"exhaustive"``.
       max_nodes: optional node budget per row (sDFS solvers): a row stops
-        expanding once its count could pass it and keeps its incumbent, with
-        ``complete=False``. In the pool, slots that share a stolen row check
-        the budget each iteration, so such a row may pass it by at most
-        ``(lanes - 1) * pop_width * M`` nodes.
+        expanding before an expansion could take its count above it (as
+        ``fj.sdfs``; a budget below ``pop_width * M`` expands nothing) and
+        keeps its incumbent, with ``complete=False``. In the pool, slots that
+        share a stolen row check the budget each iteration, so such a row may
+        pass it by at most ``(lanes - 1) * pop_width * M`` nodes; with
+        ``lanes=1`` it never passes it.
       max_memory: bytes the batch may use at once on each device (estimate,
         see ``row_memory``, ``pool_memory``); larger batches are solved in
         chunks of rows.

@@ -200,9 +200,9 @@ def expand_and_store(problem: Problem, pool: Pool, rows: Rows, work: Work, param
 
 def pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_width: int) -> SearchResult:
     """Exact sDFS of rows ``X[:n_valid]`` of ``[B, n]`` (with ``params[b]``
-    for row b) on a pool of ``lanes`` slots (see ``solve_batch``). A row whose
-    node count exceeds ``budget - K M`` is not expanded further. Returns a
-    batched result."""
+    for row b) on a pool of ``lanes`` slots. A row whose node count exceeds
+    ``budget - K M`` is not expanded further (no row starts when that is
+    negative). Returns a batched result."""
     N, M, K, S = problem.horizon, problem.num_controls, pop_width, lanes
     B = X.shape[0]
     dtype = cost_dtype(problem, X[0], params, batched_params=True)
@@ -211,8 +211,12 @@ def pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_wi
     pool = Pool(stack=jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (S,) + a.shape), one)._replace(
         low=jnp.full((S, N + 1), jnp.inf, dtype)), row=jnp.full((S,), B, jnp.int32))
     zeros = jnp.zeros((B,), jnp.int32)
+    # A budget below one expansion stops every row before its root, as fj.sdfs stops before an iteration
+    # could take the count above it: no nodes, complete=False.
+    short = limit < 0
     rows = Rows(cost=jnp.full((B,), jnp.inf, dtype), path=jnp.full((B, N), -1, jnp.int32),
-                stats=jax.vmap(lambda _: no_stats())(zeros), cut=zeros)
+                stats=jax.vmap(lambda _: no_stats())(zeros), cut=zeros + short)
+    n_valid = jnp.where(short, 0, n_valid)
 
     def next_work(pool, rows, head):
         pool, rows, head, todo = plan(pool, rows, head, n_valid, limit)

@@ -292,3 +292,32 @@ def test_pool_matches_brute_force_per_row(shape, seed, tightness):
         if np.isfinite(ref):  # the stored path (stolen subtrees included) really achieves the cost
             again = pp.sequence_cost(rows[b], X0[b], np.asarray(res.sequence[b]))
             assert pp.same_cost(again, float(res.cost[b])), (b, again, float(res.cost[b]))
+
+
+# ---------------------------------------------------------------- budgets
+@pytest.mark.parametrize("lanes", [1, 3])
+def test_a_budget_below_one_expansion_expands_nothing(lanes):
+    """As fj.sdfs, which stops before an iteration could take the count above max_nodes: a row whose budget
+    cannot cover one expansion (K M = 5 children) gets no nodes and complete=False (issue 24: the pool expanded
+    every row's root, 5 nodes per row with max_nodes=1)."""
+    p = make(4, 2, 1, 5, 3, "loose").problem()
+    X0 = states(4, 4, 2)
+    for max_nodes in (1, 4):
+        res = solve_batch(p, X0, lanes=lanes, max_nodes=max_nodes)
+        one = fj.sdfs(p, X0[0], max_nodes=max_nodes)
+        assert int(one.nodes) == 0 and not bool(one.complete)
+        np.testing.assert_array_equal(res.nodes, 0)
+        assert not np.any(res.complete) and not np.any(res.feasible)
+
+
+def test_one_lane_keeps_any_budget_exactly_as_fj_sdfs():
+    """One slot never shares a row, so the documented overshoot (lanes - 1) K M is 0: with any budget the pool
+    is fj.sdfs row by row (node counts, completeness, incumbents)."""
+    p = make(9, 3, 2, 4, 4, "loose").problem()
+    X0 = states(9, 5, 3)
+    for max_nodes in (3, 4, 7, 30, 90):
+        pool = solve_batch(p, X0, lanes=1, max_nodes=max_nodes)
+        plain = solve_batch(p, X0, solver="sdfs-vmap", max_nodes=max_nodes)
+        for field in ("nodes", "complete", "sequence", "feasible", "iterations"):
+            np.testing.assert_array_equal(getattr(pool, field), getattr(plain, field), err_msg=f"{max_nodes} {field}")
+        assert np.all(np.asarray(pool.nodes) <= max_nodes)
