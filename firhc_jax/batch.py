@@ -23,7 +23,7 @@ fit on its own is refused before anything is compiled. Where the rows run
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -39,7 +39,7 @@ from .problem import Problem, positive_int, refuse_differentiation
 from .result import SearchResult, raise_on_errors
 from .sdfs import _search as sdfs_search
 from .sdfs import DEFAULT_MAX_MEMORY, node_budget, stack_memory
-from .sharding import AXIS, _mesh, global_rows, replicated
+from .sharding import AXIS, _mesh, default_parts, global_rows, replicated, run_parts
 
 SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
 DEFAULT_LANES = 64
@@ -86,6 +86,37 @@ def _rows_per_chunk(need: int, batch: int, max_memory: int, what: str) -> int:
         raise ValueError(f"{what} needs about {need:,} bytes, more than max_memory={max_memory:,}; "
                          "raise max_memory (or lower chunk_nodes / pop_width)")
     return min(batch, max_memory // need)
+
+
+class _Plan(NamedTuple):
+    parts: int  # shares of the rows run at once (firhc_jax.sharding.run_parts)
+    lanes: int | None  # pool slots per device and part (None: no pool)
+    rows_per_chunk: int  # rows a device solves at once within a part
+
+
+def _plan(problem: Problem, solver: str, n: int, itemsize: int, B: int, devices: int, parts: int, lanes,
+          pop_width: int, chunk_nodes: int, param_bytes: int, max_memory: int) -> _Plan:
+    """How to run ``B`` rows within ``max_memory`` bytes per device: each of
+    the ``parts`` running at once gets an equal share of it; fewer parts when
+    one part's pool (or one row) would not fit its share."""
+    while True:
+        share, part_rows = max_memory // parts, -(-B // parts)
+        per_device = -(-part_rows // devices)
+        if solver == "sdfs":
+            slots = min(DEFAULT_LANES, per_device) if lanes is None else lanes
+            fixed = pool_memory(problem, n, itemsize, slots, pop_width, param_bytes)
+            need = fixed + pool_row_memory(problem, n, itemsize, param_bytes)
+        else:
+            slots, fixed = None, 0
+            need = row_memory(problem, n, itemsize, solver, pop_width, chunk_nodes) + param_bytes
+        if need <= share or parts == 1:
+            break
+        parts -= 1
+    if fixed >= share:
+        raise ValueError(f"the pool of {slots} lanes needs about {fixed:,} bytes, more than "
+                         f"max_memory={max_memory:,}; lower lanes or pop_width, or raise max_memory")
+    what = "one row" if solver == "sdfs" else f"one row of solver={solver!r}"
+    return _Plan(parts, slots, _rows_per_chunk(need - fixed, per_device, share - fixed, what))
 
 
 # ---------------------------------------------------------------------------
@@ -144,7 +175,7 @@ def _solve(problem: Problem, X, params, budget, *, mesh: Mesh, solver: str, pop_
 
 def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_width: int = 1,
                 lanes: int | None = None, chunk_nodes: int = DEFAULT_CHUNK_NODES, max_nodes=None,
-                max_memory: int = DEFAULT_MAX_MEMORY, devices=None) -> SearchResult:
+                max_memory: int = DEFAULT_MAX_MEMORY, devices=None, cores: int | None = None) -> SearchResult:
     """Solve ``problem`` from every row of ``X0``; exact per row.
 
     Args:
@@ -159,9 +190,10 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         recompile.
       pop_width: K of the sDFS solvers (nodes popped per row, or per pool
         slot, per iteration).
-      lanes: slots of the ``"sdfs"`` pool on each device: each iteration
-        expands up to ``lanes * pop_width * M`` children in one call.
-        Default: the rows per device, at most ``DEFAULT_LANES`` = 64. The
+      lanes: slots of the ``"sdfs"`` pool on each device (in each part, see
+        ``cores``): each iteration expands up to ``lanes * pop_width * M``
+        children in one call. Default: the rows per device and part, at most
+        ``DEFAULT_LANES`` = 64. The
         best count depends on the plant and on B (2-core CPU, N = 5: at
         B = 256 64 lanes beat 16 and 256 on the linear and tank plants; at
         B = 4096 the linear plant is fastest at 256 and the tanks at 1,024;
@@ -175,14 +207,25 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         pass it by at most ``(lanes - 1) * pop_width * M`` nodes; with
         ``lanes=1`` it never passes it.
       max_memory: bytes the batch may use at once on each device (estimate,
-        see ``row_memory``, ``pool_memory``); larger batches are solved in
-        chunks of rows.
+        see ``row_memory``, ``pool_memory``), shared equally by the parts
+        running at once; larger batches are solved in chunks of rows, and
+        fewer parts run at once where one part's pool would not fit.
       devices: the devices to split the rows over (default: every device of
         the job, ``jax.devices()``: the local devices in a single process, all
         processes' devices after ``jax.distributed.initialize``); one device
         runs everything. Over several processes, every process passes the
         same ``X0`` (and ``params``) and gets the whole result, replicated on
         every device.
+      cores: parts of the rows dispatched at once, each a separate execution
+        of the same compiled batch on its own share of the rows (row i in
+        part ``i % cores``), run side by side (``firhc_jax.sharding``).
+        Default: on CPU devices, every core this process may use
+        (``os.sched_getaffinity``) shared among the devices, so one device
+        keeps all cores busy without any flag; 1 elsewhere, inside
+        ``jax.jit`` and over several processes. ``cores=1`` is one
+        execution. Costs, sequences and flags do not depend on it; the
+        pool's node counts do (which rows share a pool), and so do the
+        incumbents of pool rows cut by ``max_nodes`` where slots share them.
 
     Returns a ``SearchResult`` with leading axis B on every field. Un-jitted, a
     negative stage cost in any row raises ``ValueError`` (as ``fj.sdfs``).
@@ -209,25 +252,27 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
     params = check_params(params, leading=B)
     check_state(problem, X[0], params, batched_params=True)
     mesh = _mesh(devices)
-    per_device, item = -(-B // mesh.devices.size), max(X.dtype.itemsize, 4)  # as fj.sdfs sizes its stack
-    param_bytes = sum(a.dtype.itemsize * math.prod(a.shape[1:]) for a in jax.tree_util.tree_leaves(params))
-    if solver == "sdfs":
-        lanes = min(DEFAULT_LANES, per_device) if lanes is None else positive_int("lanes", lanes)
-        fixed = pool_memory(problem, n, item, lanes, pop_width, param_bytes)
-        if fixed >= max_memory:
-            raise ValueError(f"the pool of {lanes} lanes needs about {fixed:,} bytes, more than "
-                             f"max_memory={max_memory:,}; lower lanes or pop_width, or raise max_memory")
-        rows = _rows_per_chunk(pool_row_memory(problem, n, item, param_bytes), per_device, max_memory - fixed,
-                               "one row")
+    traced = isinstance(X, jax.core.Tracer)
+    multi = mesh.is_multi_process and not traced
+    if cores is None:
+        parts = 1 if traced or multi else default_parts(mesh)
     else:
-        lanes = None  # unused: keep the compiled batch's cache key
-        need = row_memory(problem, n, item, solver, pop_width, chunk_nodes) + param_bytes
-        rows = _rows_per_chunk(need, per_device, max_memory, f"one row of solver={solver!r}")
-    multi = mesh.is_multi_process and not isinstance(X, jax.core.Tracer)
+        parts = positive_int("cores", cores)
+        if parts > 1 and (traced or multi):
+            raise ValueError(f"cores={parts} splits the rows of an un-jitted, single-process call into parts "
+                             "dispatched at once; inside jax.jit or over several processes pass cores=None")
+    item = max(X.dtype.itemsize, 4)  # as fj.sdfs sizes its stack
+    param_bytes = sum(a.dtype.itemsize * math.prod(a.shape[1:]) for a in jax.tree_util.tree_leaves(params))
+    lanes = None if lanes is None else positive_int("lanes", lanes)
+    plan = _plan(problem, solver, n, item, B, mesh.devices.size, min(parts, B), lanes, pop_width, chunk_nodes,
+                 param_bytes, max_memory)
     if multi:
         X = global_rows(X, mesh)
         params = jax.tree_util.tree_map(lambda a: global_rows(a, mesh), params)
     run = compiled(_solve, problem, mesh=mesh, solver=solver, pop_width=pop_width, chunk_nodes=chunk_nodes,
-                   rows_per_chunk=rows, lanes=lanes)
-    out = run(X, params, budget)
+                   rows_per_chunk=plan.rows_per_chunk, lanes=plan.lanes)
+    if plan.parts > 1:
+        out = run_parts(run, X, params, budget, plan.parts)
+    else:
+        out = run(X, params, budget)
     return raise_on_errors(replicated(out, mesh) if multi else out)

@@ -1,4 +1,4 @@
-"""Where the rows of a batch run: devices and processes.
+"""Where the rows of a batch run: devices, processes and CPU cores.
 
 Devices. The rows are split over a 1-D mesh of every device of the job
 (``jax.devices()``; over all processes after ``jax.distributed.initialize``)
@@ -7,15 +7,29 @@ communication inside the search. Over several processes the rows enter as one
 global array (laid out as a single process's jit would lay them out, checked
 first to be the same on every process) and the result is all-gathered at the
 end, so every process reads all of it.
+
+Cores. A CPU device runs one execution of a program on one thread (the
+pool's ``while`` loop is sequential), and executions dispatched on one
+execution stream of a device run one after another: each waits for the one
+enqueued before it. Executions on different streams run side by side on
+XLA's CPU client thread pool. So on CPU a batch is split into parts, one per
+core this process may use (``os.sched_getaffinity``) shared among the
+devices, and the same compiled batch is dispatched once per part, each on its
+own stream (``jaxlib.xla_client.execution_stream_id``: a setting of the
+dispatching thread, restored at once; no global flag and no ``XLA_FLAGS``),
+then the parts are put back in row order (``run_parts``).
 """
 from __future__ import annotations
 
 import functools
 import hashlib
+import os
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jaxlib import xla_client
 
 AXIS = "rows"
 
@@ -69,3 +83,44 @@ def replicated(tree, mesh: Mesh):
     """``tree`` replicated over every device of ``mesh`` (an all-gather across
     processes), so that each process can read the whole result."""
     return jax.lax.with_sharding_constraint(tree, NamedSharding(mesh, PartitionSpec()))
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the OS has
+    one, as under ``taskset`` or a container's CPU set; else all)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def default_parts(mesh: Mesh) -> int:
+    """Parts of a batch to run at once on ``mesh``: on CPU devices, the usable
+    cores shared among them (at least one each); 1 on other platforms."""
+    if mesh.devices.flat[0].platform != "cpu":
+        return 1
+    return max(1, usable_cores() // mesh.devices.size)
+
+
+def run_parts(run, X, params, budget, parts: int):
+    """``run(X, params, budget)`` (a compiled batch, result with leading axis
+    B) on ``parts`` shares of the rows at once: row i goes to part
+    ``i % parts`` (interleaved, so that a run of hard rows is shared out;
+    the last part's missing rows repeat row B - 1), each part is dispatched
+    on its own execution stream without waiting, and the results are put back
+    in row order. One compiled batch serves every part (equal shapes)."""
+    B = X.shape[0]
+    per_part = -(-B // parts)
+    take = np.minimum(np.arange(per_part * parts).reshape(per_part, parts).T, B - 1)  # [parts, per_part] rows
+    X, params = np.asarray(X), jax.tree_util.tree_map(np.asarray, params)
+    outs = []
+    for i in range(parts):
+        with xla_client.execution_stream_id(i + 1):
+            outs.append(run(X[take[i]], jax.tree_util.tree_map(lambda a, i=i: a[take[i]], params), budget))
+    return _interleave(outs, B)
+
+
+@functools.partial(jax.jit, static_argnames="rows")
+def _interleave(outs, rows: int):
+    """The parts' results ``[per_part, ...]`` each, back in row order: row
+    ``r * parts + i`` is row r of part i."""
+    return jax.tree_util.tree_map(lambda *a: jnp.stack(a, axis=1).reshape((-1,) + a[0].shape[1:])[:rows], *outs)
