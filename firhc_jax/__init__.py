@@ -20,10 +20,11 @@ from .controller import FIRHC, ClosedLoop, InfeasibleError, InputMemory, with_in
 from .diagnostics import check_lower_bound, check_problem
 from .exhaustive import exhaustive
 from .problem import Problem, quadratic_cost
+from .profile import profile
 from .result import SearchResult
 from .sdfs import sdfs
 
 __all__ = ["Problem", "quadratic_cost", "sdfs", "exhaustive", "SearchResult", "FIRHC", "ClosedLoop",
            "InfeasibleError", "InputMemory", "with_input_memory", "solve_batch", "clear_cache", "set_cache_size",
-           "cache_info", "check_problem", "check_lower_bound", "diagnostics"]
+           "cache_info", "check_problem", "check_lower_bound", "diagnostics", "profile"]
 __version__ = "0.2.0"
