@@ -257,9 +257,8 @@ def test_error_flags_reach_the_caller():
     assert np.all(r.nan_encountered) and not np.any(r.negative_cost)
 
 
-def test_docs_example_runs(monkeypatch):
+def test_docs_example_runs():
     """docs/batch.md's example runs as written and its results are exact."""
-    monkeypatch.setattr(fj, "solve_batch", solve_batch, raising=False)  # until fj re-exports it
     text = (Path(__file__).parent.parent / "docs" / "batch.md").read_text()
     namespace = {}
     exec(compile(re.search(r"```python\n(.*?)```", text, re.S).group(1), "docs/batch.md", "exec"), namespace)
