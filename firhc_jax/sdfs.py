@@ -143,9 +143,11 @@ def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int,
     stack = stacks.init(N + 1, K, M, N, x0, dtype)
     best_cost, best_path, stats = inf, jnp.full((N,), -1, jnp.int32), no_stats()
     if warm_start is not None:
-        best_cost, flags = rollout_cost(problem, x0, warm_start, dtype, params)
-        used = jnp.all((warm_start >= 0) & (warm_start < M))  # an all -1 warm start is no warm start
-        stats = no_stats(jnp.where(used, N, 0), flags)
+        cost, flags = rollout_cost(problem, x0, warm_start, dtype, params)
+        # An all -1 warm start is no warm start; one whose N nodes do not fit in the budget is not evaluated.
+        used = jnp.all((warm_start >= 0) & (warm_start < M)) & (N <= budget)
+        best_cost = jnp.where(used, cost, inf)
+        stats = no_stats(jnp.where(used, N, 0), jnp.where(used, flags, 0))
         best_path = jnp.where(best_cost < inf, warm_start, best_path)
     limit = budget - L  # an iteration computes at most L children
 
@@ -221,11 +223,13 @@ def sdfs(problem: Problem, x0, *, params=None, pop_width: int = 1, warm_start=No
       warm_start: optional ``[N]`` candidate sequence (e.g. the previous
         solution shifted by one step), evaluated first; if it meets the
         terminal test it is the initial incumbent. ``nodes`` counts its N
-        nodes. All ``-1`` means none (no nodes counted).
-      max_nodes: optional node budget (real-time use): the search stops before
-        an iteration could compute more than ``max_nodes`` nodes in all and
-        returns its incumbent with ``complete=False`` (infeasible if it has
-        none yet). A traced value: changing it does not recompile.
+        nodes. All ``-1`` means none (no nodes counted); so does a
+        ``max_nodes`` below N (its nodes would not fit in the budget).
+      max_nodes: optional node budget (real-time use): ``nodes <= max_nodes``
+        always (a warm start's N nodes included). The search stops before an
+        iteration could take the count above it and returns its incumbent
+        with ``complete=False`` (infeasible if it has none yet). A traced
+        value: changing it does not recompile.
       max_memory: bytes the stack may take (``stack_memory``); larger problems
         are refused before anything is allocated.
 
@@ -240,7 +244,9 @@ def exhaustive_dfs(problem: Problem, x0, *, params=None, pop_width: int = 1,
                    max_memory: int = DEFAULT_MAX_MEMORY) -> SearchResult:
     """Exhaustive search on the sDFS machinery with pruning switched off.
 
-    Visits every node (``nodes == problem.tree_size()``); compare its time with
-    ``sdfs`` to measure what pruning saves, like for like.
+    Visits every node (``nodes == problem.tree_size()``) whatever the problem's
+    ``lower_bound`` says (it is not used: a ``+inf`` bound would otherwise keep
+    nodes off the stack); compare its time with ``sdfs`` to measure what
+    pruning saves, like for like.
     """
-    return _run(problem, x0, params, None, None, pop_width, False, max_memory)
+    return _run(problem.replace(lower_bound=None), x0, params, None, None, pop_width, False, max_memory)
