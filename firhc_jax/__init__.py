@@ -29,6 +29,7 @@ from .exhaustive import exhaustive
 from .linear import (discretize, horizon_windows, input_change_cost, linear_dynamics, product_controls,
                      tracking_cost)
 from .problem import Problem, quadratic_cost
+from .profile import profile
 from .result import SearchResult
 from .sdfs import sdfs
 from .transforms import InputMemory, with_input_memory
@@ -36,5 +37,6 @@ from .transforms import InputMemory, with_input_memory
 __all__ = ["Problem", "quadratic_cost", "discretize", "linear_dynamics", "product_controls", "tracking_cost",
            "input_change_cost", "horizon_windows", "sdfs", "exhaustive", "SearchResult", "FIRHC", "ControllerState",
            "StepInfo", "ClosedLoop", "InfeasibleError", "InputMemory", "with_input_memory", "solve_batch",
-           "clear_cache", "set_cache_size", "cache_info", "check_problem", "check_lower_bound", "diagnostics"]
+           "clear_cache", "set_cache_size", "cache_info", "check_problem", "check_lower_bound", "diagnostics",
+           "profile"]
 __version__ = "0.2.0"
