@@ -152,23 +152,20 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def _die_with_parent():
-    """A ``preexec_fn`` (Linux; None elsewhere) after which the kernel sends the
-    launched process SIGKILL when the launcher dies, however it dies (``kill
-    -9`` included). ``prctl`` is looked up here, before the fork: the child
-    only calls it."""
+def _dying_with(parent: int) -> list[str]:
+    """Arguments before ``python``'s own that make a launched process die when
+    the launcher dies, however it dies (``kill -9`` included), on Linux: a
+    bootstrap sets the parent-death signal (kept across ``exec``) and execs
+    ``python`` with the real arguments. Done in the child, not in a
+    ``preexec_fn``: that would fork a multithreaded (JAX) process and run
+    Python code between fork and exec."""
     if not sys.platform.startswith("linux"):
-        return None
-    import ctypes
-
-    prctl, parent = ctypes.CDLL(None).prctl, os.getpid()
-
-    def preexec():
-        prctl(1, signal.SIGKILL)  # 1: PR_SET_DEATHSIG
-        if os.getppid() != parent:  # the launcher died before the line above
-            os._exit(1)
-
-    return preexec
+        return []
+    boot = ("import ctypes, os, signal, sys\n"
+            "ctypes.CDLL(None).prctl(1, signal.SIGKILL)\n"  # 1: PR_SET_DEATHSIG
+            f"if os.getppid() != {parent}:\n    os._exit(1)\n"  # the launcher died before the line above
+            "os.execv(sys.executable, [sys.executable, *sys.argv[1:]])")
+    return ["-c", boot]
 
 
 def _kill_group(proc: subprocess.Popen) -> None:
@@ -200,16 +197,16 @@ def launch_local(args, num_processes: int, *, timeout: float | None = DEFAULT_TI
     base = dict(os.environ if env is None else env)
     base.update({ENV_COORDINATOR: f"127.0.0.1:{free_port()}", ENV_NUM_PROCESSES: str(num_processes)})
     command = [sys.executable, *map(str, args)]
+    launch = [sys.executable, *_dying_with(os.getpid()), *map(str, args)]
     deadline = None if timeout is None else time.monotonic() + timeout
-    preexec = _die_with_parent()
     procs, logs = [], []
     try:
         for i in range(num_processes):
             out = tempfile.TemporaryFile("w+") if capture else None
             err = tempfile.TemporaryFile("w+") if capture else None
             logs.append((out, err))
-            procs.append(subprocess.Popen(command, env={**base, ENV_PROCESS_ID: str(i)}, stdout=out, stderr=err,
-                                          cwd=cwd, start_new_session=True, preexec_fn=preexec))
+            procs.append(subprocess.Popen(launch, env={**base, ENV_PROCESS_ID: str(i)}, stdout=out, stderr=err,
+                                          cwd=cwd, start_new_session=True))
         while True:
             codes = [p.poll() for p in procs]  # every process, not only up to the first still running
             if all(c is not None for c in codes):

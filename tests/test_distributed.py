@@ -20,7 +20,7 @@ from firhc_jax.models.synthetic import benchmark_state
 
 TESTS = Path(__file__).parent
 ROOT = TESTS.parent
-TIMEOUT = 120  # s for a whole job (a safety net: the job itself takes seconds)
+TIMEOUT = 300  # s for a whole job (a safety net: the job takes seconds, 2-3 min on a loaded 2-core machine)
 
 
 def child_env(devices: int) -> dict:
