@@ -35,7 +35,7 @@ from .checks import check_params, check_state, strong
 from .exhaustive import DEFAULT_CHUNK_NODES
 from .exhaustive import memory as exhaustive_memory
 from .pool import pool_memory, pool_row_memory, pool_search
-from .problem import Problem, positive_int, refuse_differentiation
+from .problem import Problem, is_tracer, positive_int, refuse_differentiation
 from .result import SearchResult, raise_on_errors
 from .sdfs import _search as sdfs_search
 from .sdfs import DEFAULT_MAX_MEMORY, node_budget, stack_memory
@@ -252,8 +252,8 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
     params = check_params(params, leading=B)
     check_state(problem, X[0], params, batched_params=True)
     mesh = _mesh(devices)
-    traced = isinstance(X, jax.core.Tracer)
-    multi = mesh.is_multi_process and not traced
+    traced = any(is_tracer(a) for a in (X, budget, *jax.tree_util.tree_leaves(params)))  # inside a jit
+    multi = mesh.is_multi_process and not isinstance(X, jax.core.Tracer)
     if cores is None:
         parts = 1 if traced or multi else default_parts(mesh)
     else:

@@ -1,4 +1,5 @@
 """fj.solve_batch: exactness per row, parameters, validation, memory, retracing."""
+import functools
 import os
 import re
 import subprocess
@@ -20,6 +21,12 @@ from random_problems import make
 from reference import brute_force, same_cost
 
 SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
+
+
+@functools.lru_cache(maxsize=None)
+def problem_of(*spec):
+    """``make(*spec).problem()``, one object per spec: the same callables, so tests share its compiled batches."""
+    return make(*spec).problem()
 
 
 def states(seed, B, n, scale=1.0):
@@ -59,7 +66,7 @@ def test_pool_exact_with_more_or_fewer_lanes_than_rows(lanes, pop_width):
     """Rows queue for slots (or slots outnumber rows); free slots steal nodes of the last rows' searches."""
     rp = make(8, 3, 1, 5, 5, "loose")
     X0 = states(8, 11, 3)
-    batch = solve_batch(rp.problem(), X0, lanes=lanes, pop_width=pop_width)
+    batch = solve_batch(problem_of(8, 3, 1, 5, 5, "loose"), X0, lanes=lanes, pop_width=pop_width)
     assert_exact(rp, np.asarray(X0), batch)
 
 
@@ -67,7 +74,7 @@ def test_one_lane_is_fj_sdfs_row_by_row():
     """One slot searches the rows one after another (nobody to steal from), in
     fj.sdfs's order: the same nodes, iterations and sequence as the plain vmap
     of fj.sdfs, row by row."""
-    p = make(9, 3, 2, 4, 4, "loose").problem()
+    p = problem_of(9, 3, 2, 4, 4, "loose")
     X0 = states(9, 7, 3)
     for pop_width in (1, 2):
         pool = solve_batch(p, X0, lanes=1, pop_width=pop_width)
@@ -182,6 +189,8 @@ def test_bad_params_are_refused_clearly():
         solve_batch(make(0, 2, 1, 3, 3).problem(), X0, params=good)  # callables without p
     with pytest.raises(ValueError, match="no array leaves"):
         solve_batch(prob, X0, params={})
+    with pytest.raises(ValueError, match="cores=2 splits the rows of an un-jitted"):  # traced params, concrete X0
+        jax.jit(lambda p: solve_batch(prob, X0, params=p, cores=2).cost)(good)
 
 
 # ---------------------------------------------------------------- memory
@@ -303,26 +312,23 @@ def test_pool_matches_brute_force_per_row(shape, seed, tightness):
 
 
 # ---------------------------------------------------------------- budgets
-@pytest.mark.parametrize("lanes", [1, 3])
-def test_a_budget_below_one_expansion_expands_nothing(lanes):
+def test_a_budget_below_one_expansion_expands_nothing():
     """As fj.sdfs, which stops before an iteration could take the count above max_nodes: a row whose budget
     cannot cover one expansion (K M = 5 children) gets no nodes and complete=False (issue 24: the pool expanded
-    every row's root, 5 nodes per row with max_nodes=1)."""
-    p = make(4, 2, 1, 5, 3, "loose").problem()
-    X0 = states(4, 4, 2)
+    every row's root, 5 nodes per row with max_nodes=1). The shapes of the lanes test above: no compile."""
+    X0 = states(8, 11, 3)
     for max_nodes in (1, 4):
-        res = solve_batch(p, X0, lanes=lanes, max_nodes=max_nodes)
-        one = fj.sdfs(p, X0[0], max_nodes=max_nodes)
-        assert int(one.nodes) == 0 and not bool(one.complete)
+        res = solve_batch(problem_of(8, 3, 1, 5, 5, "loose"), X0, lanes=3, max_nodes=max_nodes)
         np.testing.assert_array_equal(res.nodes, 0)
         assert not np.any(res.complete) and not np.any(res.feasible)
 
 
 def test_one_lane_keeps_any_budget_exactly_as_fj_sdfs():
     """One slot never shares a row, so the documented overshoot (lanes - 1) K M is 0: with any budget the pool
-    is fj.sdfs row by row (node counts, completeness, incumbents)."""
-    p = make(9, 3, 2, 4, 4, "loose").problem()
-    X0 = states(9, 5, 3)
+    is fj.sdfs row by row (node counts, completeness, incumbents), also below one expansion (K M = 4). The shapes
+    of test_one_lane_is_fj_sdfs_row_by_row: no compile."""
+    p = problem_of(9, 3, 2, 4, 4, "loose")
+    X0 = states(9, 7, 3)
     for max_nodes in (3, 4, 7, 30, 90):
         pool = solve_batch(p, X0, lanes=1, max_nodes=max_nodes)
         plain = solve_batch(p, X0, solver="sdfs-vmap", max_nodes=max_nodes)
