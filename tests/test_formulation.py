@@ -271,8 +271,8 @@ def test_closed_loop_with_references_along_the_horizon():
     run = ctrl.simulate(x0, T, params=params)
     for t in range(T):
         assert reference.same_cost(run.predicted_costs[t], brute_force(steps[t], np.asarray(run.states[t])))
-    u, res = ctrl(np.asarray(run.states[1]), steps[1])
-    assert reference.same_cost(res.cost, run.predicted_costs[1])
+    u, info = ctrl(np.asarray(run.states[1]), steps[1])
+    assert reference.same_cost(info.result.cost, run.predicted_costs[1])
 
 
 def test_check_problem_and_check_lower_bound_see_every_step_index():
@@ -307,9 +307,9 @@ def test_fallback_keeps_constraints_and_terminal_cost():
          "radius": 1e-9, "g": 2.0}  # the terminal set is (almost surely) out of reach
     x0 = np.array([0.3, -0.1])
     ctrl = fj.FIRHC(PROBLEM, fallback="unconstrained")
-    u, res = ctrl(x0, p)
+    u, info = ctrl(x0, p)
     relaxed = dict(p, radius=FAR)
-    assert reference.same_cost(res.cost, brute_force(relaxed, x0))
+    assert bool(info.used_fallback) and reference.same_cost(info.result.cost, brute_force(relaxed, x0))
 
 
 def test_the_documented_plants_run():
