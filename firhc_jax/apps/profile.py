@@ -85,6 +85,8 @@ def markdown(rows: list[dict]) -> str:
 
 def plot(rows: list[dict], path: Path, title: str) -> None:
     """Solves/s and nodes/s per setting, the fastest highlighted."""
+    from matplotlib.ticker import NullFormatter
+
     from ._plot import subplots
 
     fig, (ax1, ax2) = subplots(1, 2, figsize=(11, 0.45 * len(rows) + 1.8))
@@ -93,6 +95,7 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     for ax, key, label in ((ax1, "solves_per_second", "solves / s"), (ax2, "nodes_per_second", "nodes / s")):
         ax.barh(names, [r[key] for r in rows], color=colors)
         ax.set(xscale="log", xlabel=label)
+        ax.xaxis.set_minor_formatter(NullFormatter())  # decades only: minor labels overlap
         ax.invert_yaxis()
     ax2.set_yticklabels([])
     fig.suptitle(title, fontsize=10)
