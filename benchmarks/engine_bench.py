@@ -67,6 +67,7 @@ def main(argv=None):
 
     import firhc_jax as fj
     import numba_peer as peer
+    from batch_bench import cpu_use
     from firhc_jax.models import tanks
     from firhc_jax.models.synthetic import benchmark_state, synthetic_problem
 
@@ -146,12 +147,19 @@ def main(argv=None):
                     ("one core, fj.solve_batch(cores=1)", 1, peer.sdfs_batch, "Numba: one core, row after row"),
                     (f"{cores} cores, fj.solve_batch default", None, peer.sdfs_batch_parallel,
                      f"Numba: prange over the rows, {numba.get_num_threads()} threads")):
-                t_jax, ref = median_time(lambda problem=problem, X=X, c=cores_: fj.solve_batch(problem, X, cores=c),
-                                         max(1, reps // 2))
-                t_nb, (costs, seqs, nodes) = median_time(
-                    lambda children=children, params=params, X=X, f=peer_batch: f(children, params, X, M, N),
-                    max(1, reps // 2))
+                jax_call = lambda problem=problem, X=X, c=cores_: fj.solve_batch(problem, X, cores=c)  # noqa: E731
+                peer_call = lambda children=children, params=params, X=X, f=peer_batch: f(  # noqa: E731
+                    children, params, X, M, N)
+                t_jax, ref = median_time(jax_call, max(1, reps // 2))
+                t_nb, (costs, seqs, nodes) = median_time(peer_call, max(1, reps // 2))
                 check(f"{name} batch {B} {label}", ref.cost, ref.sequence, costs, seqs)
+                if cores_ is None:  # on a shared machine: what idle cores would take, from the threads' CPU time
+                    calls = [min(1000, max(reps // 2, int(0.5 / t))) for t in (t_jax, t_nb)]  # >= 0.5 s: ticks
+                    idle = [max(busiest, cpu / cores)
+                            for _, busiest, cpu in (cpu_use(jax_call, calls[0]), cpu_use(peer_call, calls[1]))]
+                    jax_nodes = int(np.asarray(ref.nodes).sum())
+                    note += (f"; idle cores (threads' CPU time): JAX {_ms(idle[0])}, Numba {_ms(idle[1])}, per node "
+                             f"{(idle[0] / jax_nodes) / (idle[1] / int(nodes.sum())):.1f}x")
                 add(f"batch {name} N={N}, B={B}, {label}", t_nb, t_jax, int(nodes.sum()),
                     int(np.asarray(ref.nodes).sum()), note=note)
 

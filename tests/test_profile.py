@@ -111,3 +111,11 @@ def test_profile_command_prints_writes_and_names_the_fastest(user, tmp_path, cap
 def test_profile_command_refuses_a_bad_case_with_a_message(user, tmp_path, case, message):
     with pytest.raises(SystemExit, match=message):
         main(["profile", case, "--out", str(tmp_path)])
+
+
+def test_profile_command_refuses_an_unwritable_out_before_importing(tmp_path, capsys):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    with pytest.raises(SystemExit) as e:
+        main(["profile", "no_such_module_xyz:case", "--out", str(a_file)])
+    assert e.value.code == 2 and "exists and is not a folder" in capsys.readouterr().err

@@ -19,7 +19,7 @@ import platform
 import sys
 from pathlib import Path
 
-from ._args import number
+from ._args import number, output_dir
 
 
 def register(subparsers) -> None:
@@ -32,7 +32,8 @@ def register(subparsers) -> None:
                     "counts, all states at once. Prints the table and the fastest setting; writes "
                     "profile.json and profile.png into --out.")
     p.add_argument("case", metavar="MODULE:FUNCTION", help="function returning (problem, states[, params])")
-    p.add_argument("--out", type=Path, default=Path("out/profile"), help="output folder (default out/profile)")
+    p.add_argument("--out", type=output_dir, default=Path("out/profile"),
+                   help="output folder (default out/profile), checked before any work")
     p.add_argument("--pop-widths", type=number(int, 1, 64), nargs="+", metavar="K", default=[1, 2, 4, 8],
                    help="fj.sdfs pop widths (default 1 2 4 8)")
     p.add_argument("--lanes", type=number(int, 1), nargs="+", metavar="L", default=[16, 64, 256],
@@ -85,6 +86,8 @@ def markdown(rows: list[dict]) -> str:
 
 def plot(rows: list[dict], path: Path, title: str) -> None:
     """Solves/s and nodes/s per setting, the fastest highlighted."""
+    from matplotlib.ticker import NullFormatter
+
     from ._plot import subplots
 
     fig, (ax1, ax2) = subplots(1, 2, figsize=(11, 0.45 * len(rows) + 1.8))
@@ -93,6 +96,7 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     for ax, key, label in ((ax1, "solves_per_second", "solves / s"), (ax2, "nodes_per_second", "nodes / s")):
         ax.barh(names, [r[key] for r in rows], color=colors)
         ax.set(xscale="log", xlabel=label)
+        ax.xaxis.set_minor_formatter(NullFormatter())  # decades only: minor labels overlap
         ax.invert_yaxis()
     ax2.set_yticklabels([])
     fig.suptitle(title, fontsize=10)
@@ -106,10 +110,7 @@ def run(args) -> int:
 
     jax.config.update("jax_enable_x64", not args.float32)
     problem, states, params = load_case(args.case)
-    try:
-        args.out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise SystemExit(f"profile: cannot create --out {args.out}: {e}") from None
+    args.out.mkdir(parents=True, exist_ok=True)  # writable: checked by output_dir when the arguments were parsed
     from ..profile import profile
     from ..sharding import usable_cores
 
