@@ -7,6 +7,8 @@ Public API (see each object's docstring; notation in ``firhc_jax.problem``):
 * ``exhaustive``: vectorised exhaustive search (the reference).
 * ``FIRHC``, ``ClosedLoop``, ``with_input_memory``: the receding horizon law
   (eq. 4), its closed loop, and the switching-penalty pattern.
+* ``LinearTracking``: exact tracking MPC of a linear plant at long horizons
+  (the sphere decoder as a lower bound of sDFS).
 * ``solve_batch``: many states (and parameter sets) at once, over all devices.
 * ``clear_cache``, ``set_cache_size``, ``cache_info``: the bounded cache of
   compiled searches.
@@ -19,11 +21,12 @@ from .cache import cache_info, clear_cache, set_cache_size
 from .controller import FIRHC, ClosedLoop, InfeasibleError, InputMemory, with_input_memory
 from .diagnostics import check_lower_bound, check_problem
 from .exhaustive import exhaustive
+from .linear_tracking import LinearTracking
 from .problem import Problem, quadratic_cost
 from .result import SearchResult
 from .sdfs import sdfs
 
 __all__ = ["Problem", "quadratic_cost", "sdfs", "exhaustive", "SearchResult", "FIRHC", "ClosedLoop",
-           "InfeasibleError", "InputMemory", "with_input_memory", "solve_batch", "clear_cache", "set_cache_size",
+           "InfeasibleError", "InputMemory", "with_input_memory", "LinearTracking", "solve_batch", "clear_cache", "set_cache_size",
            "cache_info", "check_problem", "check_lower_bound", "diagnostics"]
 __version__ = "0.2.0"
