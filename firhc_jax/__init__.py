@@ -2,7 +2,10 @@
 
 Public API (see each object's docstring; notation in ``firhc_jax.problem``):
 
-* ``Problem``, ``quadratic_cost``: describe the problem (eqs. 1-3).
+* ``Problem``, ``quadratic_cost``: describe the problem (eqs. 1-3), with step
+  indices along the horizon, a terminal cost and hard constraints.
+* ``discretize``, ``linear_dynamics``, ``product_controls``, ``tracking_cost``,
+  ``input_change_cost``: linear plants, switch-level products, tracking costs.
 * ``sdfs``: sorted depth-first search (Table 1), exact.
 * ``exhaustive``: vectorised exhaustive search (the reference).
 * ``FIRHC``, ``ClosedLoop``, ``with_input_memory``: the receding horizon law
@@ -21,12 +24,14 @@ from .cache import cache_info, clear_cache, set_cache_size
 from .controller import FIRHC, ClosedLoop, InfeasibleError, InputMemory, with_input_memory
 from .diagnostics import check_lower_bound, check_problem
 from .exhaustive import exhaustive
+from .linear import discretize, input_change_cost, linear_dynamics, product_controls, tracking_cost
 from .linear_tracking import LinearTracking
 from .problem import Problem, quadratic_cost
 from .result import SearchResult
 from .sdfs import sdfs
 
-__all__ = ["Problem", "quadratic_cost", "sdfs", "exhaustive", "SearchResult", "FIRHC", "ClosedLoop",
-           "InfeasibleError", "InputMemory", "with_input_memory", "LinearTracking", "solve_batch", "clear_cache", "set_cache_size",
+__all__ = ["Problem", "quadratic_cost", "discretize", "linear_dynamics", "product_controls", "tracking_cost",
+           "input_change_cost", "LinearTracking", "sdfs", "exhaustive", "SearchResult", "FIRHC", "ClosedLoop",
+           "InfeasibleError", "InputMemory", "with_input_memory", "solve_batch", "clear_cache", "set_cache_size",
            "cache_info", "check_problem", "check_lower_bound", "diagnostics"]
 __version__ = "0.2.0"

@@ -14,7 +14,15 @@ import numpy as np
 from .cache import cached
 from .problem import Problem, call, is_tracer
 
-CALLABLE_FORMS = "dynamics(x, u, p), stage_cost(x_next, u, p), terminal(x, p), lower_bound(x, steps_left, p)"
+def callable_forms(problem: Problem, with_params: bool) -> str:
+    """How this problem calls its callables, for error messages."""
+    k = ", k" if problem.step_index else ""
+    p = ", p" if with_params else ""
+    forms = [f"dynamics(x, u{k}{p})", f"stage_cost(x_next, u{k}{p})"]
+    if problem.constraint is not None:
+        forms.append(f"constraint(x_next, u{k}{p})")
+    forms += [f"terminal(x{p})", f"terminal_cost(x{p})", f"lower_bound(x, steps_left{p})"]
+    return ", ".join(forms)
 
 
 def strong(a):
@@ -117,13 +125,15 @@ def check_state(problem: Problem, x0, params=None, batched_params: bool = False)
     return x0
 
 
-def _call_shape(fn, name, signature, with_params, pspec, *args):
+def _call_shape(problem, fn, name, signature, with_params, pspec, *args):
     try:
         return jax.eval_shape(lambda p, *a: call(fn, p, *a), pspec if with_params else None, *args)
     except (TypeError, ValueError, KeyError, IndexError, AttributeError) as e:  # name the callable, keep the cause
         shapes = ", ".join(f"{tuple(a.shape)} {a.dtype}" for a in args)
-        hint = (f" (with params the callables are called as {CALLABLE_FORMS})" if with_params else
-                " (without params the callables take no p argument; pass params=... to give them one)")
+        hint = f" (this problem calls {callable_forms(problem, with_params)}"
+        hint += ("" if with_params else "; pass params=... to give the callables a p argument")
+        hint += ("; set step_index=False if they take no step index k)" if problem.step_index else
+                 "; set Problem(..., step_index=True) if they take the step index k)")
         cls = TypeError if isinstance(e, TypeError) else ValueError
         raise cls(f"{name}{signature} failed on inputs of shape/dtype ({shapes}): {e}{hint}") from e
 
@@ -131,35 +141,50 @@ def _call_shape(fn, name, signature, with_params, pspec, *args):
 def _check_callables(problem: Problem, x: jax.ShapeDtypeStruct, pspec, with_params: bool):
     u = jax.ShapeDtypeStruct(problem.controls.shape[1:], problem.controls.dtype)
     p = ", p" if with_params else ""
-    out = _call_shape(problem.dynamics, "dynamics", f"(x, u{p})", with_params, pspec, x, u)
+    k = (jax.ShapeDtypeStruct((), jnp.int32),) if problem.step_index else ()
+    ks = ", k" if problem.step_index else ""
+    out = _call_shape(problem, problem.dynamics, "dynamics", f"(x, u{ks}{p})", with_params, pspec, x, u, *k)
     if not isinstance(out, jax.ShapeDtypeStruct):
         raise TypeError(f"dynamics(x, u{p}) must return one array [n], got {type(out).__name__}")
     if out.shape != x.shape:
         raise ValueError(
-            f"dynamics(x, u{p}) returned shape {tuple(out.shape)} but x0 has shape {tuple(x.shape)}; "
+            f"dynamics(x, u{ks}{p}) returned shape {tuple(out.shape)} but x0 has shape {tuple(x.shape)}; "
             "x0 must have the shape of the state that dynamics returns")
     if out.dtype != x.dtype:
         raise TypeError(
-            f"dynamics(x, u{p}) changed the state dtype from {x.dtype} to {out.dtype}; "
+            f"dynamics(x, u{ks}{p}) changed the state dtype from {x.dtype} to {out.dtype}; "
             "cast x0 (or the constants/controls inside dynamics) so that the dtypes agree")
-    c = _call_shape(problem.stage_cost, "stage_cost", f"(x_next, u{p})", with_params, pspec, x, u)
-    if not isinstance(c, jax.ShapeDtypeStruct) or c.shape != ():
-        shape = getattr(c, "shape", type(c).__name__)
-        raise ValueError(f"stage_cost(x_next, u{p}) must return a scalar, got shape {shape}")
-    if not jnp.issubdtype(c.dtype, jnp.floating):
-        raise TypeError(f"stage_cost(x_next, u{p}) must return a real floating scalar, got dtype {c.dtype}")
+    c = _call_shape(problem, problem.stage_cost, "stage_cost", f"(x_next, u{ks}{p})", with_params, pspec, x, u, *k)
+    _real_scalar(c, f"stage_cost(x_next, u{ks}{p})")
+    if problem.terminal_cost is not None:
+        g = _call_shape(problem, problem.terminal_cost, "terminal_cost", f"(x{p})", with_params, pspec, x)
+        _real_scalar(g, f"terminal_cost(x{p})")
+    if problem.constraint is not None:
+        h = _call_shape(problem, problem.constraint, "constraint", f"(x_next, u{ks}{p})", with_params, pspec, x, u,
+                        *k)
+        _bool_scalar(h, f"constraint(x_next, u{ks}{p})")
     if problem.terminal is not None:
-        t = _call_shape(problem.terminal, "terminal", f"(x{p})", with_params, pspec, x)
-        if not isinstance(t, jax.ShapeDtypeStruct) or t.shape != () or t.dtype != jnp.bool_:
-            is_array = isinstance(t, jax.ShapeDtypeStruct)
-            desc = f"shape {tuple(t.shape)} dtype {t.dtype}" if is_array else type(t).__name__
-            raise TypeError(f"terminal(x{p}) must return a boolean scalar, got {desc}")
+        t = _call_shape(problem, problem.terminal, "terminal", f"(x{p})", with_params, pspec, x)
+        _bool_scalar(t, f"terminal(x{p})")
     if problem.lower_bound is not None:
         steps = jax.ShapeDtypeStruct((), jnp.int32)
-        b = _call_shape(problem.lower_bound, "lower_bound", f"(x, steps_left{p})", with_params, pspec, x, steps)
-        if not isinstance(b, jax.ShapeDtypeStruct) or b.shape != () or not jnp.issubdtype(b.dtype, jnp.floating):
-            desc = f"shape {tuple(b.shape)} dtype {b.dtype}" if isinstance(b, jax.ShapeDtypeStruct) else type(b)
-            raise TypeError(f"lower_bound(x, steps_left{p}) must return a floating scalar, got {desc}")
+        b = _call_shape(problem, problem.lower_bound, "lower_bound", f"(x, steps_left{p})", with_params, pspec, x,
+                        steps)
+        _real_scalar(b, f"lower_bound(x, steps_left{p})")
+
+
+def _real_scalar(c, what: str):
+    if not isinstance(c, jax.ShapeDtypeStruct) or c.shape != ():
+        shape = getattr(c, "shape", type(c).__name__)
+        raise ValueError(f"{what} must return a scalar, got shape {shape}")
+    if not jnp.issubdtype(c.dtype, jnp.floating):
+        raise TypeError(f"{what} must return a real floating scalar, got dtype {c.dtype}")
+
+
+def _bool_scalar(t, what: str):
+    if not isinstance(t, jax.ShapeDtypeStruct) or t.shape != () or t.dtype != jnp.bool_:
+        desc = f"shape {tuple(t.shape)} dtype {t.dtype}" if isinstance(t, jax.ShapeDtypeStruct) else type(t).__name__
+        raise TypeError(f"{what} must return a boolean scalar, got {desc}")
 
 
 def cost_dtype(problem: Problem, x0, params=None, batched_params: bool = False):
@@ -167,4 +192,4 @@ def cost_dtype(problem: Problem, x0, params=None, batched_params: bool = False):
     u = jax.ShapeDtypeStruct(problem.controls.shape[1:], problem.controls.dtype)
     _, pspec = params_spec(params, drop_leading=batched_params)
     x = jax.ShapeDtypeStruct(x0.shape[-1:], x0.dtype)
-    return jax.eval_shape(lambda p, a, b: call(problem.stage_cost, p, a, b), pspec, x, u).dtype
+    return jax.eval_shape(lambda p, a, b: problem.cost_of_step(a, b, 0, p), pspec, x, u).dtype

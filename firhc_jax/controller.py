@@ -79,7 +79,8 @@ class InputMemory(NamedTuple):
 def with_input_memory(problem: Problem, switching_cost: Callable) -> InputMemory:
     """Penalise input changes (do-mpc's ``rterm``, the FCS-MPC switching term).
 
-    ``switching_cost(u, u_prev[, p]) -> scalar >= 0`` is added to the stage cost
+    ``switching_cost(u, u_prev[, k][, p]) -> scalar >= 0`` (``k`` with
+    ``step_index``; ``fj.input_change_cost`` builds one) is added to the stage cost
     of every step, the first one included (``u_prev`` there is the input
     applied last). The returned problem's state is ``[x, u_prev, s]``: the
     dynamics store the input just applied and its switching cost ``s``, which
@@ -103,10 +104,16 @@ def with_input_memory(problem: Problem, switching_cost: Callable) -> InputMemory
         x_next, _, s = split(z_next)
         return problem.stage_cost(x_next, u, *p) + s
 
-    terminal = lower_bound = None
+    terminal = lower_bound = terminal_cost = constraint = None
     if problem.terminal is not None:
         def terminal(z, *p):
             return problem.terminal(split(z)[0], *p)
+    if problem.terminal_cost is not None:
+        def terminal_cost(z, *p):
+            return problem.terminal_cost(split(z)[0], *p)
+    if problem.constraint is not None:
+        def constraint(z_next, u, *p):
+            return problem.constraint(split(z_next)[0], u, *p)
     if problem.lower_bound is not None:
         def lower_bound(z, steps_left, *p):
             return problem.lower_bound(split(z)[0], steps_left, *p)
@@ -114,8 +121,8 @@ def with_input_memory(problem: Problem, switching_cost: Callable) -> InputMemory
     def observe(x, u_prev, *p):
         return jnp.concatenate([x, jnp.asarray(u_prev, x.dtype).reshape(m), jnp.zeros((1,), x.dtype)])
 
-    return InputMemory(Problem(dynamics, problem.controls, stage_cost, problem.horizon, terminal, lower_bound),
-                       observe)
+    return InputMemory(Problem(dynamics, problem.controls, stage_cost, problem.horizon, terminal, lower_bound,
+                               terminal_cost, constraint, problem.step_index), observe)
 
 
 class FIRHC:
@@ -265,7 +272,7 @@ class FIRHC:
         if u0.shape != (m,):
             raise ValueError(f"u0 must be one input of shape ({m},), got {tuple(u0.shape)}")
         default_plant = plant is None
-        plant = plant or self.problem.dynamics
+        plant = plant or self.problem.model_plant
         if not callable(plant):
             raise TypeError(f"plant must be callable, got {type(plant).__name__}")
         p0 = None if params is None else jax.tree_util.tree_map(lambda a: a[0], params)
@@ -328,7 +335,7 @@ class FIRHC:
         u_plant = call(self.actuate, p, x, u) if self.actuate else u
         idx = result.sequence[0]
         u_model = jnp.asarray(self.problem.controls)[jnp.maximum(idx, 0)]
-        stage = call(self.problem.stage_cost, p, call(self.problem.dynamics, p, xm, u_model), u_model)
+        stage = self.problem.cost_of_step(self.problem.next_state(xm, u_model, 0, p), u_model, 0, p)
         record = (u_plant, idx, jnp.where(idx >= 0, stage, jnp.nan), result.cost, nodes,
                   jnp.where(used, result.nodes, 0), result.feasible & ~used, used, result.complete)
         return u, u_plant, result.sequence, record

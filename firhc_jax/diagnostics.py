@@ -31,29 +31,39 @@ class Violation(NamedTuple):
 
 
 def check_problem(problem: Problem, states, params=None) -> list[Violation]:
-    """Stage costs of every input from every state ``[S, n]``; returns the
-    ``(state, 0, cost, 0)`` of each negative one (empty: none found).
+    """Stage costs of every input from every state ``[S, n]`` (at every step
+    index with ``step_index``) and the terminal cost of each state; returns
+    the ``(state, 0, cost, 0)`` of each state with a negative one (empty:
+    none found). Steps that break the ``constraint`` are never searched and
+    are skipped.
 
     ``params``: one parameter pytree for all states."""
     X = _states(states)
     params = check_params(params)
     check_state(problem, X[0], params)
     controls = jnp.asarray(problem.controls)
+    ks = jnp.arange(problem.horizon if problem.step_index else 1, dtype=jnp.int32)
 
-    def costs(x):
-        def one(u):
-            return call(problem.stage_cost, params, call(problem.dynamics, params, x, u), u)
-        return jax.vmap(one)(controls)
+    def lowest(x, params):
+        def one(u, k):
+            x_next = problem.next_state(x, u, k, params)
+            c = problem.cost_of_step(x_next, u, k, params)
+            return jnp.where(problem.allowed(x_next, u, k, params), c, jnp.inf)
+        c = jnp.min(jax.vmap(lambda k: jax.vmap(lambda u: one(u, k))(controls))(ks))
+        if problem.terminal_cost is not None:
+            c = jnp.minimum(c, call(problem.terminal_cost, params, x))
+        return c
 
-    c = np.asarray(jax.jit(jax.vmap(costs))(X))  # [S, M]
-    return [Violation(int(s), 0, float(c[s].min()), 0.0) for s in np.flatnonzero(np.any(c < 0, axis=1))]
+    c = np.asarray(jax.jit(jax.vmap(lowest, in_axes=(0, None)))(X, params))  # [S]
+    return [Violation(int(s), 0, float(c[s]), 0.0) for s in np.flatnonzero(c < 0)]
 
 
 def check_lower_bound(problem: Problem, states, params=None, max_steps: int | None = None,
                       rtol: float = 1e-9) -> list[Violation]:
     """Compare ``problem.lower_bound(x, s)`` with the exact optimal cost of the
     remaining ``s`` steps (an exhaustive search of horizon ``s`` from ``x``,
-    with the problem's terminal set) for every sample state ``[S, n]`` and
+    with the problem's terminal set, terminal cost and constraint, and with
+    ``step_index`` the last ``s`` step indices) for every sample state ``[S, n]`` and
     every ``s`` in ``1..max_steps`` (default: the horizon). Returns every
     ``(state, s, bound, exact)`` where the bound exceeds the exact cost by more
     than ``rtol`` relative, or is NaN (empty: admissible on these samples). An
@@ -69,7 +79,7 @@ def check_lower_bound(problem: Problem, states, params=None, max_steps: int | No
     bounds = np.asarray(_bound_table(problem)(X, params, steps))  # [S, max_steps]
     out = []
     for s in range(1, max_steps + 1):
-        short = problem.replace(horizon=s, lower_bound=None)
+        short = _remaining(problem, s)
         exact = np.asarray(jax.vmap(lambda x, short=short: exhaustive(short, x, params=params).cost)(X))
         bound = bounds[:, s - 1]
         bad = (bound > exact + rtol * np.abs(np.where(np.isfinite(exact), exact, 0))) & ~(np.isinf(bound)
@@ -77,6 +87,23 @@ def check_lower_bound(problem: Problem, states, params=None, max_steps: int | No
         bad |= np.isnan(bound)  # a NaN bound prunes nothing in the searches, but it is a bug to report
         out += [Violation(int(i), s, float(bound[i]), float(exact[i])) for i in np.flatnonzero(bad)]
     return out
+
+
+def _remaining(problem: Problem, s: int) -> Problem:
+    """The problem of the last ``s`` steps: horizon ``s``, no bound, and with
+    ``step_index`` the indices ``N - s .. N - 1`` (wrappers cached per problem
+    and ``s``, so that repeated checks reuse their compiled searches)."""
+    if not problem.step_index:
+        return problem.replace(horizon=s, lower_bound=None)
+    shift = problem.horizon - s
+
+    def build():
+        def shifted(fn):
+            return None if fn is None else (lambda a, u, k, *p: fn(a, u, k + shift, *p))
+        return problem.replace(horizon=s, lower_bound=None, dynamics=shifted(problem.dynamics),
+                               stage_cost=shifted(problem.stage_cost), constraint=shifted(problem.constraint))
+
+    return cached(("remaining problem", problem.key, s), build)
 
 
 def _bound_table(problem: Problem):

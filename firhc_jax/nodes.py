@@ -2,8 +2,9 @@
 one vmapped call of ``dynamics`` and ``stage_cost``, and the two rules every
 search applies to them.
 
-A child's cost is ``parent_cost + stage_cost(x_child, u)``, always accumulated
-in this one place (``expand`` and ``rollout_cost``), so a sequence gets the same
+A child's cost is ``parent_cost + stage_cost(x_child, u[, k])``, plus
+``terminal_cost(x_child)`` at depth N, always accumulated in this one place
+(``expand`` and ``rollout_cost``), so a sequence gets the same
 cost in every search as long as ``dynamics`` and ``stage_cost`` evaluate the
 same way at every batch size (elementwise code does; a batched matmul may
 round differently in the last bit, see README).
@@ -25,14 +26,24 @@ class Children(NamedTuple):
     x: jax.Array  # [B, M, n] child states
     cost: jax.Array  # [B, M] accumulated costs
     key: jax.Array  # [B, M] cost + lower bound of the rest (= cost without a bound): the order and the pruning test
-    bad: jax.Array  # [B, M] bool non-finite state or NaN cost: never expanded, never a solution
+    bad: jax.Array  # [B, M] bool non-finite state, NaN cost or constraint violated: never expanded, never a solution
     flags: jax.Array  # [B, M] int32 error flags (NEGATIVE | NONFINITE | OVERFLOW)
     terminal_ok: jax.Array  # [B, M] bool terminal(x_child) (True if unconstrained)
 
 
-def _one_child(problem: Problem, x, u, p):
-    x_next = call(problem.dynamics, p, x, u)
-    return x_next, call(problem.stage_cost, p, x_next, u)
+def _one_child(problem: Problem, x, u, k, p):
+    """``(x_next, stage cost, constraint met)`` of input ``u`` at step ``k``."""
+    x_next = problem.next_state(x, u, k, p)
+    return x_next, problem.cost_of_step(x_next, u, k, p), problem.allowed(x_next, u, k, p)
+
+
+def _terminal_cost(problem: Problem, xs, at_leaf, p_axis, params):
+    """``terminal_cost`` of the children ``[B, M, n]`` where ``at_leaf`` ``[B]``, else 0."""
+    if problem.terminal_cost is None:
+        return 0
+    g = jax.vmap(jax.vmap(lambda xi, p: call(problem.terminal_cost, p, xi), in_axes=(0, None)),
+                 in_axes=(0, p_axis))(xs, params)
+    return jnp.where(at_leaf[:, None], g, 0)
 
 
 def expand(problem: Problem, x, cost, params, *, steps_left, check_terminal: bool,
@@ -41,18 +52,26 @@ def expand(problem: Problem, x, cost, params, *, steps_left, check_terminal: boo
 
     ``params``: one parameter pytree for all nodes, or (``params_batched``) one
     per node (leading axis B). ``steps_left`` (int, or int32 ``[B]``): steps
-    still to come after the children, for the lower bound. ``check_terminal``
-    evaluates the terminal test (only needed at depth N).
+    still to come after the children, for the lower bound; the children's
+    input has step index ``N - 1 - steps_left`` and at ``steps_left == 0`` they
+    are leaves, which pay the terminal cost. ``check_terminal`` evaluates the
+    terminal test (only needed at depth N).
     """
+    N, B = problem.horizon, x.shape[0]
     p_axis = 0 if params_batched else None
-    per_input = jax.vmap(_one_child, in_axes=(None, None, 0, None))
-    xs, stage = jax.vmap(per_input, in_axes=(None, 0, None, p_axis))(problem, x, jnp.asarray(problem.controls),
-                                                                     params)
-    stage = stage.astype(cost.dtype)
+    steps = jnp.broadcast_to(jnp.asarray(steps_left, jnp.int32), (B,))
+    k = jnp.clip(N - 1 - steps, 0, N - 1)  # [B] (idle pool slots ask for depth 0: clipped, their work is dropped)
+    per_input = jax.vmap(_one_child, in_axes=(None, None, 0, None, None))
+    xs, stage, allowed = jax.vmap(per_input, in_axes=(None, 0, None, 0, p_axis))(
+        problem, x, jnp.asarray(problem.controls), k, params)
+    stage = stage.astype(cost.dtype) + _terminal_cost(problem, xs, steps == 0, p_axis, params)
     child_cost = cost[:, None] + stage
-    bad = jnp.isnan(child_cost) | jnp.any(~jnp.isfinite(xs), axis=-1)
+    nonfinite = jnp.isnan(child_cost) | jnp.any(~jnp.isfinite(xs), axis=-1)
     overflow = jnp.isinf(child_cost) & jnp.isfinite(cost)[:, None] & jnp.isfinite(stage)
-    flags = ((stage < 0) * NEGATIVE | bad * NONFINITE | overflow * OVERFLOW).astype(jnp.int32)
+    flags = ((stage < 0) * NEGATIVE | nonfinite * NONFINITE | overflow * OVERFLOW).astype(jnp.int32)
+    bad = nonfinite
+    if problem.constraint is not None:  # discarded children raise no flag: a constraint may guard a model's domain
+        bad, flags = nonfinite | ~allowed, jnp.where(allowed, flags, 0)
     if check_terminal and problem.terminal is not None:
         ok = jax.vmap(jax.vmap(lambda xi, p: call(problem.terminal, p, xi), in_axes=(0, None)),
                       in_axes=(0, p_axis))(xs, params)
@@ -60,7 +79,6 @@ def expand(problem: Problem, x, cost, params, *, steps_left, check_terminal: boo
         ok = jnp.ones(child_cost.shape, bool)
     key = child_cost
     if problem.lower_bound is not None:
-        steps = jnp.broadcast_to(jnp.asarray(steps_left, jnp.int32), x.shape[:1])
         bound = jax.vmap(jax.vmap(lambda xi, s, p: call(problem.lower_bound, p, xi, s), in_axes=(0, None, None)),
                          in_axes=(0, 0, p_axis))(xs, steps, params)
         bound = jnp.where(jnp.isnan(bound), 0, bound)  # a NaN bound (a user bug) prunes nothing: stays exact
@@ -124,8 +142,9 @@ def best_leaf(cost, terminal_ok, usable, is_leaf, incumbent):
 
 
 def rollout_cost(problem: Problem, x0, sequence, cost_dtype, params=None):
-    """Cost of one input sequence ``[N]`` from ``x0``, +inf if it fails the
-    terminal test, contains an out-of-range index, or meets a non-finite state.
+    """Cost of one input sequence ``[N]`` from ``x0`` (stage costs and the
+    terminal cost), +inf if it fails the terminal test or a constraint,
+    contains an out-of-range index, or meets a non-finite state.
 
     Returns ``(cost, flags)``; accumulates exactly as ``expand`` does. This is
     also the differentiable evaluation of a found sequence (``jax.grad`` with
@@ -134,19 +153,25 @@ def rollout_cost(problem: Problem, x0, sequence, cost_dtype, params=None):
     M = problem.num_controls
     in_range = jnp.all((sequence >= 0) & (sequence < M))
 
-    def step(carry, idx):
-        x, c, flags = carry
+    N = problem.horizon
+
+    def step(carry, inp):
+        x, c, flags, met = carry
+        k, idx = inp
         u = jnp.asarray(problem.controls)[jnp.clip(idx, 0, M - 1)]
-        x_next, s = _one_child(problem, x, u, params)
+        x_next, s, allowed = _one_child(problem, x, u, k, params)
         s = s.astype(cost_dtype)
+        if problem.terminal_cost is not None:
+            s = s + jnp.where(k == N - 1, call(problem.terminal_cost, params, x_next), 0).astype(cost_dtype)
         c_next = c + s
         bad = jnp.isnan(c_next) | jnp.any(~jnp.isfinite(x_next))
         overflow = jnp.isinf(c_next) & jnp.isfinite(c) & jnp.isfinite(s)
-        return (x_next, c_next, flags | ((s < 0) * NEGATIVE | bad * NONFINITE | overflow * OVERFLOW)), None
+        new = jnp.where(met & allowed, (s < 0) * NEGATIVE | bad * NONFINITE | overflow * OVERFLOW, 0)
+        return (x_next, c_next, flags | new, met & allowed), None
 
-    init = (x0, jnp.zeros((), cost_dtype), jnp.zeros((), jnp.int32))
-    (x_n, cost, flags), _ = jax.lax.scan(step, init, sequence)
-    ok = in_range & ((flags & NONFINITE) == 0)
+    init = (x0, jnp.zeros((), cost_dtype), jnp.zeros((), jnp.int32), jnp.ones((), bool))
+    (x_n, cost, flags, met), _ = jax.lax.scan(step, init, (jnp.arange(N, dtype=jnp.int32), sequence))
+    ok = in_range & met & ((flags & NONFINITE) == 0)
     if problem.terminal is not None:
         ok = ok & call(problem.terminal, params, x_n)
     return jnp.where(ok, cost, jnp.inf).astype(cost_dtype), jnp.where(in_range, flags, 0)

@@ -6,24 +6,38 @@ Notation used throughout the package:
 * ``u`` ``[m]``   one control input, a row of the finite control set.
 * ``controls`` ``[M, m]``  the finite control set S, ``M`` inputs.
 * ``N``           prediction horizon (``Problem.horizon``).
+* ``k``           with ``step_index=True``: the int32 index of ``u`` in the
+  predicted sequence (0: the input applied now, ``N - 1``: the last). Traced,
+  so it never recompiles; use it to read references and disturbances along
+  the horizon from ``p`` (``p["ref"][k]``).
 * ``p``           parameters: any pytree of arrays (a reference, weights, a
   set point), passed to the solvers as ``params=``. Values change without
   recompiling; only their shapes and dtypes are compiled in.
 
 Callable contracts (all must be traceable by ``jax.jit`` and ``jax.vmap``).
 Without ``params`` they are called without ``p``; with ``params`` (not None)
-every callable takes ``p`` as its last argument:
+every callable takes ``p`` as its last argument. With ``step_index=True`` the
+three per-step callables take ``k`` after their usual arguments:
 
-* ``dynamics(x, u[, p]) -> x_next``  ``[n] x [m] -> [n]``, same dtype as ``x``.
-* ``stage_cost(x_next, u[, p]) -> c`` scalar, ``c >= 0``: the cost of the step
-  that produced ``x_next`` with input ``u``. Non-negativity is what makes
-  pruning in sDFS exact.
+* ``dynamics(x, u[, k][, p]) -> x_next``  ``[n] x [m] -> [n]``, same dtype as ``x``.
+* ``stage_cost(x_next, u[, k][, p]) -> c`` scalar, ``c >= 0``: the cost of the
+  step that produced ``x_next`` with input ``u``. Non-negativity is what makes
+  pruning in sDFS exact. ``+inf`` makes a sequence infeasible (prefer
+  ``constraint``, which also says so in the node count).
+* ``constraint(x_next, u[, k][, p]) -> bool`` scalar: optional hard constraint
+  on every step (current limits, forbidden transitions). A child where it is
+  False is discarded: never expanded, never a solution, never counted as cheap.
 * ``terminal(x[, p]) -> bool`` scalar, tested on ``x(k+N)``: the terminal
   constraint (eq. 3), in practice a tolerance set. ``None``: unconstrained.
+* ``terminal_cost(x[, p]) -> scalar >= 0``: optional cost of the last predicted
+  state ``x(k+N)`` (do-mpc's ``mterm``), added to every complete sequence.
+  Costs still only grow along a path, so pruning stays exact.
 * ``lower_bound(x, steps_left[, p]) -> scalar``: optional admissible bound on
-  the cost of the ``steps_left`` (traced int32) steps still to come from ``x``,
-  ``+inf`` where the terminal set cannot be reached in that many steps. With it
+  the cost still to come from ``x`` after ``steps_left`` (traced int32, >= 1)
+  more inputs: their stage costs plus the terminal cost, ``+inf`` where the
+  terminal set or the constraints cannot be met in that many steps. With it
   every search prunes a node when ``cost + bound`` is not below the incumbent.
+  (The step index of the next input is ``N - steps_left``.)
 
 Nothing in a search is differentiable (it is a discrete argmin); the cost of
 a returned sequence can be re-evaluated differentiably with
@@ -74,6 +88,9 @@ class Problem:
       terminal: optional ``terminal(x[, p]) -> bool`` tested on the last
         predicted state; ``None`` means no terminal constraint.
       lower_bound: optional admissible ``lower_bound(x, steps_left[, p])``.
+      terminal_cost: optional ``terminal_cost(x_N[, p]) -> scalar >= 0``.
+      constraint: optional ``constraint(x_next, u[, k][, p]) -> bool``.
+      step_index: pass ``k`` to ``dynamics``, ``stage_cost`` and ``constraint``.
 
     A ``Problem`` is a pytree with no array leaves: the callables, the horizon
     and the control set are static, compiled into the search as constants.
@@ -89,23 +106,29 @@ class Problem:
     horizon: int
     terminal: Optional[Callable] = None
     lower_bound: Optional[Callable] = None
+    terminal_cost: Optional[Callable] = None
+    constraint: Optional[Callable] = None
+    step_index: bool = False
 
     def __post_init__(self):
         for name in ("dynamics", "stage_cost"):
             if not callable(getattr(self, name)):
                 raise TypeError(f"Problem.{name} must be callable, got {type(getattr(self, name)).__name__}")
-        for name in ("terminal", "lower_bound"):
+        for name in ("terminal", "lower_bound", "terminal_cost", "constraint"):
             value = getattr(self, name)
             if value is not None and not callable(value):
                 raise TypeError(f"Problem.{name} must be callable or None, got {type(value).__name__}")
+        if not isinstance(self.step_index, (bool, np.bool_)):
+            raise TypeError(f"Problem.step_index must be True or False, got {self.step_index!r}")
+        object.__setattr__(self, "step_index", bool(self.step_index))
         horizon = positive_int("horizon", self.horizon)
         if horizon > _MAX_HORIZON:
             raise ValueError(f"horizon {horizon} is larger than {_MAX_HORIZON:,}: the search's node paths and "
                              "stack grow with N and N^2")
         object.__setattr__(self, "horizon", horizon)
         object.__setattr__(self, "controls", _check_controls(self.controls))
-        object.__setattr__(self, "_key", (self.dynamics, self.stage_cost, self.horizon, self.terminal,
-                                          self.lower_bound, _ControlsKey(self.controls)))
+        object.__setattr__(self, "_key", tuple(getattr(self, f) for f in _CALLABLE_FIELDS)
+                           + (self.horizon, self.step_index, _ControlsKey(self.controls)))
 
     # -- sizes -------------------------------------------------------------
     @property
@@ -140,14 +163,38 @@ class Problem:
     @classmethod
     def tree_unflatten(cls, aux, leaves):
         obj = object.__new__(cls)  # already validated
-        dynamics, stage_cost, horizon, terminal, lower_bound, key = aux
-        for name, value in (("dynamics", dynamics), ("controls", key.array), ("stage_cost", stage_cost),
-                            ("horizon", horizon), ("terminal", terminal), ("lower_bound", lower_bound),
+        *fns, horizon, step_index, controls = aux
+        for name, value in zip(_CALLABLE_FIELDS, fns):
+            object.__setattr__(obj, name, value)
+        for name, value in (("horizon", horizon), ("step_index", step_index), ("controls", controls.array),
                             ("_key", aux)):
             object.__setattr__(obj, name, value)
         return obj
 
+    # -- the callables, with the step index and parameters as the problem takes them --
+    def next_state(self, x, u, k, params=None):
+        """``dynamics(x, u[, k][, p])``."""
+        return call(self.dynamics, params, x, u, *self._k(k))
 
+    def cost_of_step(self, x_next, u, k, params=None):
+        """``stage_cost(x_next, u[, k][, p])``."""
+        return call(self.stage_cost, params, x_next, u, *self._k(k))
+
+    def allowed(self, x_next, u, k, params=None):
+        """``constraint(x_next, u[, k][, p])``, True without a constraint."""
+        if self.constraint is None:
+            return jnp.ones((), bool)
+        return call(self.constraint, params, x_next, u, *self._k(k))
+
+    def model_plant(self, x, u, params=None):
+        """The model as a plant of the closed loop: ``dynamics`` at step index 0."""
+        return self.next_state(x, u, 0, params)
+
+    def _k(self, k):
+        return (jnp.asarray(k, jnp.int32),) if self.step_index else ()
+
+
+_CALLABLE_FIELDS = ("dynamics", "stage_cost", "terminal", "lower_bound", "terminal_cost", "constraint")
 _MAX_HORIZON = 100_000
 
 
@@ -224,28 +271,66 @@ def input_dtype(problem: Problem):
 
 
 def quadratic_cost(lam, x_s, beta=0.0, u_e=None) -> Callable:
-    """Stage cost of eq. (2): ``sum(lam * (x - x_s)^2) + sum(beta * (u - u_e)^2)``.
+    """Stage cost of eq. (2): ``dx' Q dx + du' R du`` with ``dx = x_next - x_s``
+    and ``du = u - u_e`` (``u_e`` defaults to 0).
 
-    ``lam`` and ``beta`` are scalars or per-component weights (the paper's
-    vectors of preferences); they must be finite and non-negative. ``u_e``
-    defaults to 0. Inputs are promoted to the state's floating dtype before
-    ``u_e`` is subtracted, so integer or boolean controls keep real targets.
+    ``lam`` (Q) and ``beta`` (R) are each a scalar, a vector of per-component
+    weights (the paper's vectors of preferences: ``sum(lam * dx**2)``) or a
+    full matrix (``dx' Q dx``), which must be symmetric positive semidefinite.
+    Weights must be finite and non-negative. Inputs are promoted to the
+    state's floating dtype before ``u_e`` is subtracted, so integer or
+    boolean controls keep real targets. The returned callable ignores any
+    further arguments, so it serves problems with ``step_index`` and
+    ``params`` alike.
     """
-    for name, w in (("lam", lam), ("beta", beta)):
-        w_np = np.asarray(w, dtype=float)
-        if not np.all(np.isfinite(w_np)) or np.any(w_np < 0):
-            raise ValueError(f"quadratic_cost weight {name} must be finite and non-negative, got {w!r}")
+    Q, R = weight("lam", lam), weight("beta", beta)
     for name, v in (("x_s", x_s), ("u_e", u_e)):
         if v is not None and not np.all(np.isfinite(np.asarray(v, dtype=float))):
             raise ValueError(f"quadratic_cost target {name} must be finite, got {v!r}")
 
-    def stage_cost(x_next, u):
+    def stage_cost(x_next, u, *_):
         dtype = x_next.dtype
         dx = x_next - jnp.asarray(x_s, dtype=dtype)
         du = u.astype(dtype) - (0.0 if u_e is None else jnp.asarray(u_e, dtype=dtype))
-        return jnp.sum(jnp.asarray(lam, dtype=dtype) * dx**2) + jnp.sum(jnp.asarray(beta, dtype=dtype) * du**2)
+        return weighted_square(Q, dx) + weighted_square(R, du)
 
     return stage_cost
+
+
+def weight(name: str, w) -> np.ndarray:
+    """A quadratic weight checked: finite, and a non-negative scalar or vector,
+    or a symmetric positive semidefinite matrix; else a ``ValueError`` naming
+    ``name``. Returned as a read-only float64 NumPy array (cast to the state's
+    dtype where it is used)."""
+    try:
+        w_np = np.array(w, dtype=float)
+    except (TypeError, ValueError):
+        raise TypeError(f"weight {name} must be a real scalar, vector or matrix, got {w!r}") from None
+    if not np.all(np.isfinite(w_np)):
+        raise ValueError(f"weight {name} must be finite, got {w!r}")
+    if w_np.ndim > 2:
+        raise ValueError(f"weight {name} must be a scalar, a vector or a matrix, got shape {w_np.shape}")
+    if w_np.ndim < 2 and np.any(w_np < 0):
+        raise ValueError(f"weight {name} must be non-negative, got {w!r}")
+    if w_np.ndim == 2:
+        if w_np.shape[0] != w_np.shape[1]:
+            raise ValueError(f"weight {name} must be a square matrix, got shape {w_np.shape}")
+        scale = max(1.0, float(np.max(np.abs(w_np)))) if w_np.size else 1.0
+        if not np.allclose(w_np, w_np.T, rtol=0, atol=1e-12 * scale):
+            raise ValueError(f"weight {name} must be a symmetric matrix, got {w_np.tolist()}")
+        low = float(np.min(np.linalg.eigvalsh(w_np))) if w_np.size else 0.0
+        if low < -1e-10 * scale:
+            raise ValueError(f"weight {name} must be positive semidefinite; its smallest eigenvalue is {low:.3g}")
+    w_np.flags.writeable = False
+    return w_np
+
+
+def weighted_square(w: np.ndarray, v):
+    """``v' W v`` for a matrix weight (clamped at 0: rounding can take a
+    semidefinite form a few ulps below it, which the searches would report as
+    a negative cost), ``sum(w * v**2)`` for a scalar or vector."""
+    W = jnp.asarray(w, dtype=v.dtype)
+    return jnp.maximum(v @ (W @ v), 0) if w.ndim == 2 else jnp.sum(W * v**2)
 
 
 def call(fn: Callable, params, *args):

@@ -1,0 +1,174 @@
+"""Building blocks for the common case: linear plants, switch-level products and
+tracking costs along the horizon.
+
+* ``discretize(A, B, Ts)``: exact zero-order-hold discretisation of
+  ``dx/dt = A x + B u``.
+* ``linear_dynamics(A, B, d=None)``: ``dynamics(x, u, ...) = A x + B u (+ d)``.
+* ``product_controls(*levels, repeat=1)``: every combination of per-component
+  levels, the finite control set of m switches or legs.
+* ``tracking_cost(C, Q, R, u_ref)``: ``||C x(k+1) - r(k)||_Q^2 + ||u(k) - u_ref||_R^2``
+  with the reference ``r`` read from the parameters along the horizon.
+* ``input_change_cost(lambda_u)``: the switching penalty
+  ``lambda_u ||u(k) - u(k-1)||^2`` for ``fj.with_input_memory``.
+
+Each callable returned here ignores arguments it does not use, so it fits a
+problem with or without ``step_index`` and ``params``. Matrices are checked and
+kept as float64 NumPy arrays; they are cast to the state's dtype where they are
+used, so float32 and float64 problems share one definition.
+"""
+from __future__ import annotations
+
+import itertools
+from typing import Callable
+
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg
+
+from .problem import positive_int, weight, weighted_square
+
+
+def _matrix(name: str, a, shape=None) -> np.ndarray:
+    try:
+        arr = np.array(a, dtype=float)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a real matrix, got {a!r}") from None
+    if arr.ndim != 2:
+        raise ValueError(f"{name} must be a 2-D matrix, got shape {arr.shape}")
+    if shape is not None and arr.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf")
+    arr.flags.writeable = False
+    return arr
+
+
+def _state_input(A, B) -> tuple[np.ndarray, np.ndarray]:
+    A = _matrix("A", A)
+    if A.shape[0] != A.shape[1]:
+        raise ValueError(f"A must be square [n, n], got shape {A.shape}")
+    B = _matrix("B", np.reshape(B, (-1, 1)) if np.ndim(B) == 1 else B)
+    if B.shape[0] != A.shape[0]:
+        raise ValueError(f"B must have n = {A.shape[0]} rows like A, got shape {B.shape}")
+    return A, B
+
+
+def discretize(A, B, Ts: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact zero-order-hold discretisation of ``dx/dt = A x + B u`` with
+    sampling period ``Ts``: ``(Ad, Bd)`` with ``Ad = exp(A Ts)`` and
+    ``Bd = int_0^Ts exp(A s) ds B``, both from one matrix exponential of
+    ``[[A, B], [0, 0]] Ts`` (float64 NumPy arrays)."""
+    A, B = _state_input(A, B)
+    Ts = float(Ts)
+    if not np.isfinite(Ts) or Ts <= 0:
+        raise ValueError(f"Ts must be a finite sampling period > 0, got {Ts!r}")
+    n, m = B.shape
+    block = np.zeros((n + m, n + m))
+    block[:n, :n], block[:n, n:] = A, B
+    E = scipy.linalg.expm(block * Ts)
+    return E[:n, :n], E[:n, n:]
+
+
+def linear_dynamics(A, B, d=None) -> Callable:
+    """``dynamics(x, u, ...) -> A x + B u (+ d)`` for discrete-time ``A``
+    ``[n, n]``, ``B`` ``[n, m]`` (a vector: m = 1) and an optional constant
+    ``d`` ``[n]``. Inputs are promoted to the state's dtype. Disturbances that
+    change along the horizon belong in the parameters: wrap it,
+    ``lambda x, u, k, p: f(x, u) + p["d"][k]``."""
+    A, B = _state_input(A, B)
+    if d is not None:
+        d = np.asarray(d, dtype=float)
+        if d.shape != (A.shape[0],) or not np.all(np.isfinite(d)):
+            raise ValueError(f"d must be a finite vector of shape ({A.shape[0]},), got {d!r}")
+
+    def dynamics(x, u, *_):
+        out = jnp.asarray(A, x.dtype) @ x + jnp.asarray(B, x.dtype) @ u.astype(x.dtype)
+        return out if d is None else out + jnp.asarray(d, x.dtype)
+
+    return dynamics
+
+
+def product_controls(*levels, repeat: int = 1) -> np.ndarray:
+    """``[M, m]`` control set of every combination of the given per-component
+    levels, in ``itertools.product`` order: ``product_controls([-1, 0, 1],
+    repeat=3)`` is the 27 switch states of a three-level three-phase inverter,
+    ``product_controls([0, 1], [0, 1, 2])`` an on/off valve and a three-speed
+    pump."""
+    if not levels:
+        raise ValueError("product_controls needs at least one list of levels")
+    repeat = positive_int("repeat", repeat)
+    sets = []
+    for i, lv in enumerate(levels):
+        arr = np.asarray(lv)
+        if arr.ndim != 1 or arr.size == 0:
+            raise ValueError(f"levels[{i}] must be a non-empty 1-D list of values, got {lv!r}")
+        sets.append(arr.tolist())
+    return np.array(list(itertools.product(*sets, repeat=repeat)))
+
+
+def tracking_cost(C=None, Q=None, R=None, u_ref=None, ref: str = "ref") -> Callable:
+    """Stage cost ``||C x(k+1) - r(k)||_Q^2 + ||u(k) - u_ref||_R^2`` of tracking MPC.
+
+    The reference is read from the parameters: with ``step_index`` it is
+    ``p[ref]`` ``[N, p]``, the output reference at every predicted step
+    (``r(k)`` is the target of ``x(k+1)``); without ``step_index``
+    ``p[ref]`` ``[p]`` is a set point for the whole horizon. ``C`` defaults to
+    the identity (``y = x``), ``Q`` to the identity, ``R`` to no input weight;
+    ``Q`` and ``R`` are scalars, vectors or symmetric positive semidefinite
+    matrices (``fj.quadratic_cost``'s rules). A step index beyond the
+    reference's length reads NaN, so a reference shorter than the horizon is
+    reported (``nan_encountered``) instead of silently clamped.
+
+    Input changes are penalised with ``fj.with_input_memory(problem,
+    fj.input_change_cost(lambda_u))``.
+    """
+    C = None if C is None else _matrix("C", np.atleast_2d(C))
+    Qw = weight("Q", 1.0 if Q is None else Q)
+    Rw = None if R is None else weight("R", R)
+    if u_ref is not None and not np.all(np.isfinite(np.asarray(u_ref, dtype=float))):
+        raise ValueError(f"u_ref must be finite, got {u_ref!r}")
+
+    def stage_cost(x_next, u, *rest):
+        if not rest or not hasattr(rest[-1], "__getitem__") or isinstance(rest[-1], (jnp.ndarray, np.ndarray)):
+            raise TypeError("tracking_cost reads the reference from the parameters: solve with "
+                            f"params={{'{ref}': ...}} (a [N, p] array with step_index=True, else [p])")
+        p = rest[-1]
+        r = p[ref]
+        if len(rest) == 2:  # step_index: (k, p)
+            r = r.at[rest[0]].get(mode="fill", fill_value=jnp.nan)
+        dtype = x_next.dtype
+        y = x_next if C is None else jnp.asarray(C, dtype) @ x_next
+        cost = weighted_square(Qw, y - jnp.asarray(r, dtype))
+        if Rw is not None:
+            du = u.astype(dtype) - (0.0 if u_ref is None else jnp.asarray(u_ref, dtype))
+            cost = cost + weighted_square(Rw, du)
+        return cost
+
+    return stage_cost
+
+
+def input_change_cost(lambda_u, norm: str = "squared") -> Callable:
+    """Switching penalty for ``fj.with_input_memory``:
+    ``lambda_u * ||u - u_prev||_2^2`` (``norm="squared"``) or
+    ``lambda_u * ||u - u_prev||_1`` (``norm="abs"``, the FCS-MPC count of leg
+    changes for unit steps). ``lambda_u`` is a number >= 0, or the name of a
+    parameter (``p[lambda_u]``) so that it can change between solves."""
+    if norm not in ("squared", "abs"):
+        raise ValueError(f"norm must be 'squared' or 'abs', got {norm!r}")
+    if not isinstance(lambda_u, str):
+        lam = float(np.asarray(lambda_u, dtype=float))
+        if not np.isfinite(lam) or lam < 0:
+            raise ValueError(f"lambda_u must be a finite number >= 0 or a parameter name, got {lambda_u!r}")
+
+    def switching_cost(u, u_prev, *rest):
+        if isinstance(lambda_u, str):
+            if not rest:
+                raise TypeError(f"input_change_cost reads lambda_u from p[{lambda_u!r}]: solve with params")
+            w = rest[-1][lambda_u]
+        else:
+            w = lam
+        du = u - u_prev
+        change = jnp.sum(du * du) if norm == "squared" else jnp.sum(jnp.abs(du))
+        return jnp.asarray(w, du.dtype) * change
+
+    return switching_cost

@@ -1,0 +1,285 @@
+"""The MPC formulation (issue 20): step indices along the horizon, terminal cost,
+hard constraints, matrix weights, in every solver, against a brute force
+written here.
+
+One problem family covers every feature: its random numbers are parameters,
+so each solver compiles once for all hypothesis examples, and each feature is
+switched off by parameter values (zero reference and disturbance, zero
+terminal weight, a constraint far away, a terminal set that holds everywhere).
+"""
+from __future__ import annotations
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import firhc_jax as fj
+import reference
+
+N, M, n = 3, 3, 2
+CONTROLS = np.array([-1.0, 0.0, 1.0])
+FAR = 1e6  # a constraint or terminal radius that never binds (params must be finite)
+
+
+# --- the problem, in JAX and in NumPy -------------------------------------------------
+def dynamics(x, u, k, p):  # a disturbance along the horizon
+    z = p["W"] @ x + p["V"] * u[0]
+    return jnp.tanh(z) * p["a"] + p["d"][k]
+
+
+def stage_cost(x_next, u, k, p):  # a reference along the horizon, a full weight matrix
+    e = x_next - p["ref"][k]
+    return e @ p["Q"] @ e + p["r"] * u[0] ** 2 + p["w"][k]
+
+
+def constraint(x_next, u, k, p):  # a limit that may change along the horizon
+    return x_next[0] <= p["xmax"][k]
+
+
+def terminal(x, p):
+    return jnp.sum(x**2) < p["radius"]
+
+
+def terminal_cost(x, p):
+    return p["g"] * jnp.sum((x - p["ref"][-1]) ** 2)
+
+
+PROBLEM = fj.Problem(dynamics, CONTROLS, stage_cost, N, terminal, terminal_cost=terminal_cost,
+                     constraint=constraint, step_index=True)
+
+
+def np_cost(p, x0, seq):
+    """Cost of one index sequence in plain NumPy: +inf if a constraint or the terminal set fails."""
+    x, total = np.asarray(x0, float), 0.0
+    for k, i in enumerate(seq):
+        u = CONTROLS[i]
+        x = np.tanh(p["W"] @ x + p["V"] * u) * p["a"] + p["d"][k]
+        if not x[0] <= p["xmax"][k]:
+            return np.inf
+        e = x - p["ref"][k]
+        total += e @ p["Q"] @ e + p["r"] * u**2 + p["w"][k]
+    if not np.sum(x**2) < p["radius"]:
+        return np.inf
+    return total + p["g"] * np.sum((x - p["ref"][-1]) ** 2)
+
+
+def brute_force(p, x0):
+    costs = [np_cost(p, x0, s) for s in itertools.product(range(M), repeat=N)]
+    return min(costs)
+
+
+@st.composite
+def instances(draw):
+    """(x0, params) with each feature on or off."""
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    L = rng.normal(size=(n, n)) * draw(st.sampled_from([0.0, 1.0]))  # Q = diag + L L': full or diagonal
+    p = {"W": rng.normal(0, 0.8, (n, n)), "V": rng.normal(0, 1.0, n), "a": rng.uniform(0.5, 1.5, n),
+         "d": rng.normal(0, 0.3, (N, n)) * draw(st.sampled_from([0.0, 1.0])),
+         "ref": rng.normal(0, 0.5, (N, n)) * draw(st.sampled_from([0.0, 1.0])),
+         "Q": np.diag(rng.uniform(0, 2, n)) + L @ L.T, "r": rng.uniform(0, 0.5),
+         "w": rng.uniform(0, 0.2, N),
+         "xmax": np.full(N, FAR) if draw(st.booleans()) else rng.normal(draw(st.sampled_from([0.3, -3.0])), 0.3, N),
+         "radius": FAR if draw(st.booleans()) else rng.uniform(0.05, 1.0),
+         "g": rng.uniform(0, 3) * draw(st.sampled_from([0.0, 1.0]))}
+    return rng.normal(0, 0.7, n), p
+
+
+def check(result, p, x0, expected):
+    assert reference.same_cost(result.cost, expected), (float(result.cost), expected)
+    assert bool(result.feasible) == np.isfinite(expected)
+    if np.isfinite(expected):
+        assert reference.same_cost(np_cost(p, x0, np.asarray(result.sequence)), expected)  # it achieves it
+    else:
+        assert np.all(np.asarray(result.sequence) == -1) and np.all(np.isnan(result.first_input))
+
+
+SINGLE = {
+    "sdfs": lambda x, p: fj.sdfs(PROBLEM, x, params=p),
+    "sdfs K=2": lambda x, p: fj.sdfs(PROBLEM, x, params=p, pop_width=2),
+    "exhaustive": lambda x, p: fj.exhaustive(PROBLEM, x, params=p),
+    "exhaustive dfs": lambda x, p: fj.exhaustive(PROBLEM, x, params=p, method="dfs"),
+}
+
+
+@pytest.mark.parametrize("solver", sorted(SINGLE))
+@settings(max_examples=30, deadline=None)
+@given(instances())
+def test_single_solvers_match_brute_force(solver, inst):
+    x0, p = inst
+    check(SINGLE[solver](x0, p), p, x0, brute_force(p, x0))
+
+
+@pytest.mark.parametrize("solver", ["sdfs", "sdfs-vmap", "exhaustive"])
+@settings(max_examples=10, deadline=None)
+@given(instances(), instances())
+def test_solve_batch_matches_brute_force(solver, a, b):
+    X0 = np.stack([a[0], b[0]])
+    params = jax.tree_util.tree_map(lambda u, v: np.stack([u, v]), a[1], b[1])
+    out = fj.solve_batch(PROBLEM, X0, params=params, solver=solver)
+    for i, (x0, p) in enumerate((a, b)):
+        check(jax.tree_util.tree_map(lambda f, i=i: f[i], out), p, x0, brute_force(p, x0))
+
+
+@settings(max_examples=15, deadline=None)
+@given(instances(), st.lists(st.integers(0, M - 1), min_size=N, max_size=N))
+def test_warm_start_and_rollout_cost_include_every_term(inst, seq):
+    x0, p = inst
+    cost, _ = fj.nodes.rollout_cost(PROBLEM, jnp.asarray(x0), jnp.asarray(seq, jnp.int32), jnp.float64,
+                                      jax.tree_util.tree_map(jnp.asarray, p))
+    assert reference.same_cost(cost, np_cost(p, x0, seq))
+    check(fj.sdfs(PROBLEM, x0, params=p, warm_start=np.array(seq)), p, x0, brute_force(p, x0))
+
+
+def test_every_child_discarded_is_infeasible_never_a_made_up_input():
+    x0, rng = np.zeros(n), np.random.default_rng(0)
+    p = {"W": rng.normal(0, 0.8, (n, n)), "V": rng.normal(0, 1.0, n), "a": np.ones(n), "d": np.zeros((N, n)),
+         "ref": np.zeros((N, n)), "Q": np.eye(n), "r": 0.1, "w": np.zeros(N), "xmax": np.full(N, -5.0),
+         "radius": FAR, "g": 0.0}  # tanh * 1 >= -1 > -5: every child breaks the constraint
+    for name, solve in SINGLE.items():
+        r = solve(x0, p)
+        assert not bool(r.feasible) and np.isinf(r.cost) and np.all(np.isnan(r.first_input)), name
+        assert not bool(r.nan_encountered), name  # a discarded child is no numerical error
+    assert int(fj.sdfs(PROBLEM, x0, params=p).nodes) == M  # the root's children, none expanded
+
+
+def test_matrix_weights_are_quadratic_forms():
+    Q = np.array([[2.0, 1.0], [1.0, 2.0]])
+    cost = fj.quadratic_cost(lam=Q, x_s=np.zeros(2))
+    assert float(cost(jnp.array([1.0, -1.0]), jnp.zeros(1))) == pytest.approx(2.0)  # dx' Q dx, not 6
+    R = np.array([[1.0, 0.5], [0.5, 1.0]])
+    cost = fj.quadratic_cost(lam=1.0, x_s=np.zeros(1), beta=R, u_e=np.array([0.5, 0.0]))
+    du = np.array([1.0, 2.0]) - [0.5, 0.0]
+    assert float(cost(jnp.zeros(1), jnp.array([1.0, 2.0]))) == pytest.approx(du @ R @ du)
+    vec = fj.quadratic_cost(lam=np.array([2.0, 3.0]), x_s=np.zeros(2))  # vectors keep their meaning
+    assert float(vec(jnp.array([1.0, -1.0]), jnp.zeros(1))) == pytest.approx(5.0)
+
+
+@settings(max_examples=5, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_quadratic_cost_with_random_psd_matrix_in_a_search(seed):
+    rng = np.random.default_rng(seed)
+    L = rng.normal(size=(n, 1))
+    Q = L @ L.T  # rank one: semidefinite, not definite
+    x_s = rng.normal(0, 0.5, n)
+    A = rng.normal(0, 0.6, (n, n))
+    B = rng.normal(0, 1.0, (n, 1))
+    problem = fj.Problem(fj.linear_dynamics(A, B), CONTROLS, fj.quadratic_cost(Q, x_s, beta=0.1), 3)
+    x0 = rng.normal(0, 1.0, n)
+
+    def step(x, u, t):
+        x = x @ A.T + u @ B.T
+        dx = x - x_s
+        return x, np.einsum("...i,ij,...j->...", dx, Q, dx) + 0.1 * np.sum(u**2, -1)
+
+    best, _ = reference.brute_force(step, CONTROLS, x0, 3)
+    assert reference.same_cost(fj.sdfs(problem, x0).cost, best)
+    assert reference.same_cost(fj.exhaustive(problem, x0).cost, best)
+
+
+@pytest.mark.parametrize("bad", [[[1.0, 2.0], [0.0, 1.0]], [[1.0, 2.0], [2.0, 1.0]], [[1.0, 0.0, 0.0]]])
+@pytest.mark.parametrize("name", ["lam", "beta"])
+def test_non_symmetric_or_indefinite_weights_are_refused(bad, name):
+    kwargs = {"lam": 1.0, "x_s": np.zeros(2), "beta": 0.0, name: np.array(bad)}
+    with pytest.raises(ValueError, match=name):
+        fj.quadratic_cost(**kwargs)
+    with pytest.raises(ValueError, match="Q"):
+        fj.tracking_cost(Q=np.array(bad))
+
+
+def test_a_step_index_the_problem_does_not_pass_is_refused_clearly():
+    takes_k = fj.Problem(lambda x, u, k: x + u, CONTROLS, lambda x, u, k: jnp.sum(x**2), 2)
+    with pytest.raises(TypeError, match="step_index=True"):
+        fj.sdfs(takes_k, np.zeros(1))
+    no_k = fj.Problem(lambda x, u: x + u, CONTROLS, lambda x, u: jnp.sum(x**2), 2, step_index=True)
+    with pytest.raises(TypeError, match=r"dynamics\(x, u, k\)"):
+        fj.sdfs(no_k, np.zeros(1))
+    with pytest.raises(TypeError, match="step_index"):
+        fj.Problem(lambda x, u: x + u, CONTROLS, lambda x, u: jnp.sum(x**2), 2, step_index=1)
+
+
+def test_constraint_and_terminal_cost_must_return_the_right_kind():
+    base = fj.Problem(lambda x, u: x + u, CONTROLS, lambda x, u: jnp.sum(x**2), 2)
+    with pytest.raises(TypeError, match="constraint.*boolean scalar"):
+        fj.sdfs(base.replace(constraint=lambda x, u: x[0] - 1.0), np.zeros(1))
+    with pytest.raises(ValueError, match="terminal_cost.*scalar"):
+        fj.sdfs(base.replace(terminal_cost=lambda x: x), np.zeros(1) + [0.5])
+
+
+def test_new_reference_values_never_retrace():
+    traces = {"n": 0}
+
+    def counted(x, u, k, p):
+        traces["n"] += 1
+        return dynamics(x, u, k, p)
+
+    problem = PROBLEM.replace(dynamics=counted)
+    rng = np.random.default_rng(1)
+    x0 = np.zeros(n)
+    for i in range(3):
+        p = {"W": rng.normal(0, 0.8, (n, n)), "V": rng.normal(0, 1, n), "a": np.ones(n), "d": rng.normal(0, .3, (N, n)),
+             "ref": rng.normal(0, 1, (N, n)), "Q": np.eye(n), "r": 0.1, "w": np.zeros(N), "xmax": np.full(N, FAR),
+             "radius": FAR, "g": 1.0}
+        fj.sdfs(problem, x0 + i, params=p)
+        if i == 0:
+            after_first = traces["n"]
+    assert traces["n"] == after_first > 0
+
+
+def test_closed_loop_with_references_along_the_horizon():
+    """FIRHC and simulate with per-step parameters of leading axis T, each [N, ...] along the horizon."""
+    rng = np.random.default_rng(3)
+    T = 4
+    base = {"W": rng.normal(0, 0.5, (n, n)), "V": rng.normal(0, 1, n), "a": np.full(n, 0.9),
+            "Q": np.eye(n), "r": 0.05, "w": np.zeros(N), "xmax": np.full(N, 0.8), "radius": FAR, "g": 0.5}
+    ref = 0.5 * np.sin(0.7 * np.arange(T + N))[:, None] * np.ones(n)
+    steps = [dict(base, ref=ref[t + 1:t + 1 + N], d=np.zeros((N, n))) for t in range(T)]
+    params = jax.tree_util.tree_map(lambda *a: np.stack(a), *steps)
+    ctrl = fj.FIRHC(PROBLEM)
+    x0 = np.array([0.1, -0.2])
+    run = ctrl.simulate(x0, T, params=params)
+    for t in range(T):
+        assert reference.same_cost(run.predicted_costs[t], brute_force(steps[t], np.asarray(run.states[t])))
+    u, res = ctrl(np.asarray(run.states[1]), steps[1])
+    assert reference.same_cost(res.cost, run.predicted_costs[1])
+
+
+def test_check_problem_and_check_lower_bound_see_every_step_index():
+    w = np.array([0.0, 0.0, 5.0])
+
+    def cost(x_next, u, k, p):
+        return p["w"][k] + 0.0 * x_next[0]
+
+    problem = fj.Problem(lambda x, u, k, p: x + u, CONTROLS, cost, N, step_index=True,
+                         lower_bound=lambda x, s, p: jnp.where(s >= 1, 5.0, 0.0))
+    X = np.zeros((2, 1))
+    # The exact cost of the last s steps is 5 for every s (w[N - s:] always holds the 5): the bound is exact.
+    assert fj.check_lower_bound(problem, X, params={"w": w}) == []
+    too_high = problem.replace(lower_bound=lambda x, s, p: jnp.where(s >= 1, 5.5, 0.0))
+    assert len(fj.check_lower_bound(too_high, X, params={"w": w})) == 2 * N
+    negative_last = {"w": np.array([0.0, 0.0, -1.0])}
+    assert [v.state for v in fj.check_problem(problem, X, params=negative_last)] == [0, 1]
+
+
+def test_exhaustive_dfs_visits_every_node_whatever_the_bound():
+    problem = fj.Problem(lambda x, u: x + u, CONTROLS, lambda x, u: jnp.sum(x**2), 4,
+                         lower_bound=lambda x, s: jnp.inf)
+    out = fj.exhaustive(problem, np.zeros(1), method="dfs")
+    assert int(out.nodes) == problem.tree_size() == 120
+
+
+def test_fallback_keeps_constraints_and_terminal_cost():
+    """The unconstrained fallback drops the terminal set only: hard constraints and the terminal cost stay."""
+    rng = np.random.default_rng(5)
+    p = {"W": rng.normal(0, 0.8, (n, n)), "V": rng.normal(0, 1, n), "a": np.ones(n), "d": np.zeros((N, n)),
+         "ref": np.zeros((N, n)), "Q": np.eye(n), "r": 0.1, "w": np.zeros(N), "xmax": np.full(N, 0.2),
+         "radius": 1e-9, "g": 2.0}  # the terminal set is (almost surely) out of reach
+    x0 = np.array([0.3, -0.1])
+    ctrl = fj.FIRHC(PROBLEM, fallback="unconstrained")
+    u, res = ctrl(x0, p)
+    relaxed = dict(p, radius=FAR)
+    assert reference.same_cost(res.cost, brute_force(relaxed, x0))
