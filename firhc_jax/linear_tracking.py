@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 
 from .checks import as_state
-from .problem import Problem, is_tracer, positive_int
+from .problem import Problem, is_tracer, positive_int, weight
 from .result import SearchResult
 from .sdfs import sdfs
 
@@ -293,13 +293,8 @@ def _norm2_below(v, err):
 
 def psd_factor(name: str, Q) -> np.ndarray:
     """``L`` ``[p, p]`` with L^T L = Q, for a symmetric positive semidefinite
-    ``Q`` (else a ``ValueError`` naming ``name``)."""
-    scale = max(float(np.max(np.abs(Q))), np.finfo(float).tiny)
-    if not np.allclose(Q, Q.T, rtol=0, atol=1e-12 * scale):
-        raise ValueError(f"{name} must be symmetric, got {Q.tolist()}")
-    w, vecs = np.linalg.eigh((Q + Q.T) / 2)
-    if w.min() < -1e-10 * scale:
-        raise ValueError(f"{name} must be positive semidefinite, got smallest eigenvalue {w.min():.3g}")
+    ``Q`` (checked by ``fj.problem.weight``: else a ``ValueError`` naming ``name``)."""
+    w, vecs = np.linalg.eigh(weight(name, Q))
     return np.sqrt(np.clip(w, 0, None))[:, None] * vecs.T
 
 
