@@ -1,0 +1,295 @@
+"""fj.LinearTracking (the sphere decoder as sDFS with the cost-to-go bound) against the plain sDFS (issue 21).
+
+Sections (each prints a table; every search is exact unless a row says "capped"):
+
+* inverter: the three-level inverter closed loop (``firhc_jax.models.three_level``,
+  lambda_u = 0.1, max_step = 1) for each N: nodes and time per decision of
+  LinearTracking, then the plain sDFS (the same problem without the bound,
+  the same warm start) on the same decisions, capped at ``--plain-max-nodes``.
+* granularity: one node per step (M = 27 children) against one node per leg
+  (3 levels each), both in the decoder's own coordinates (state: the N m
+  partial sums of V U - h), against LinearTracking's form (state [x, u, du]).
+* thermal: four rooms, N = 10, calm states near the set point
+  (``firhc_jax.models.thermal``), LinearTracking against the plain sDFS (capped).
+* batch: ``fj.solve_batch`` over B inverter states at N = 10: states/s and nodes/s.
+
+    python benchmarks/sphere_bench.py [--sections inverter granularity thermal batch] [--horizons 1 2 3 5 8 10]
+"""
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import firhc_jax as fj
+from firhc_jax.linear_tracking import psd_factor
+from firhc_jax.models import inverter, thermal, three_level
+
+
+def timed(fn, *args):
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    return out, time.perf_counter() - t0
+
+
+def shifted(seq):
+    """The previous optimum shifted by one step, last input repeated (all -1 stays none)."""
+    return np.where(seq[0] >= 0, np.concatenate([seq[1:], seq[-1:]]), -1)
+
+
+def inverter_loop(N, steps, lambda_u):
+    """The LinearTracking closed loop from the reference at t = 0: per decision its
+    search state, params, warm start, nodes and seconds (the decision jitted, compiled first)."""
+    lt = three_level.tracking(N, lambda_u)
+    A, B = three_level.model()
+    refs = inverter.horizon_references(three_level.PARAMS, steps, N)  # [T, N, 2]
+    decide = jax.jit(lambda z, p, ws: fj.sdfs(lt.problem, z, params=p, warm_start=ws))
+    x, u = inverter.reference(three_level.PARAMS, 0.0), np.zeros(3)
+    seq = np.full(N, -1, np.int32)
+    rec = {"z": [], "p": [], "ws": [], "nodes": [], "s": [], "seq": [], "cost": []}
+    for k in range(steps):
+        z, p, ws = lt.observe(jnp.asarray(x), u), lt.params(jnp.asarray(refs[k])), jnp.asarray(shifted(seq))
+        if k == 0:
+            timed(decide, z, p, ws)  # compile
+        res, s = timed(decide, z, p, ws)
+        seq = np.asarray(res.sequence)
+        for key, v in (("z", z), ("p", p), ("ws", ws), ("nodes", int(res.nodes)), ("s", s), ("seq", seq),
+                       ("cost", float(res.cost))):
+            rec[key].append(v)
+        u = three_level.SWITCH_STATES[seq[0]]
+        x = A @ x + B @ u
+    return lt, rec
+
+
+def plain_on(lt, rec, cap, every=1):
+    """The plain sDFS (no bound) on the recorded decisions: nodes, seconds, complete, costs."""
+    plain = lt.problem.replace(lower_bound=None)
+    decide = jax.jit(lambda z, p, ws, cap: fj.sdfs(plain, z, params=p, warm_start=ws, max_nodes=cap))
+    out = {"nodes": [], "s": [], "complete": [], "index": []}
+    for k in range(0, len(rec["z"]), every):
+        if not out["index"]:
+            timed(decide, rec["z"][k], rec["p"][k], rec["ws"][k], cap)
+        res, s = timed(decide, rec["z"][k], rec["p"][k], rec["ws"][k], cap)
+        out["nodes"].append(int(res.nodes))
+        out["s"].append(s)
+        out["complete"].append(bool(res.complete))
+        out["index"].append(k)
+        if bool(res.complete):  # both exact: the same optimal cost
+            assert np.isclose(float(res.cost), rec["cost"][k], rtol=1e-9), (k, float(res.cost), rec["cost"][k])
+    return out
+
+
+def stats(nodes, seconds):
+    nodes, ms = np.asarray(nodes), np.asarray(seconds) * 1e3
+    return f"{nodes.mean():>11,.0f} {nodes.max():>11,d} {np.median(ms):>9.3f} {ms.max():>9.2f}"
+
+
+def section_inverter(args):
+    print(f"\n## Three-level inverter closed loop, lambda_u = {args.lambda_u}, max_step = 1 "
+          f"({args.steps} decisions; plain sDFS capped at {args.plain_max_nodes:,} nodes)")
+    print(f"{'N':>3} {'search':<14} {'nodes mean':>11} {'nodes max':>11} {'ms median':>9} {'ms max':>9}  note")
+    for N in args.horizons:
+        steps = args.steps if N <= args.full_until else args.long_steps
+        lt, rec = inverter_loop(N, steps, args.lambda_u)
+        print(f"{N:>3} {'LinearTracking':<14} {stats(rec['nodes'], rec['s'])}  {steps} decisions")
+        if N > args.plain_until:
+            continue
+        every = 1 if N <= args.full_until else max(1, steps // 50)
+        pl = plain_on(lt, rec, args.plain_max_nodes, every)
+        capped = len(pl["complete"]) - sum(pl["complete"])
+        ours = np.asarray(rec["nodes"])[pl["index"]]
+        note = f"{len(pl['index'])} decisions" + (f", {capped} capped (lower bounds)" if capped else "")
+        print(f"{N:>3} {'plain sDFS':<14} {stats(pl['nodes'], pl['s'])}  {note}; "
+              f"nodes ratio {np.sum(pl['nodes']) / np.sum(ours):.1f}x, "
+              f"time ratio {np.sum(pl['s']) / np.sum(np.asarray(rec['s'])[pl['index']]):.1f}x")
+
+
+# -- granularity: the decoder's own coordinates ---------------------------------------------------------------------
+
+def decoder_factor(lt):
+    """``(V [Nm, Nm] lower triangular, G [R, n+m+N(p+n)])`` with J = c + ||V U - h||^2,
+    h = (Qf^T G data)[::-1], c = ||Qperp^T G data||^2 (QR of F with its columns reversed)."""
+    A, B, C, N = lt.A, lt.B, lt.C, lt.horizon
+    n, m, p = lt.n, lt.m, lt.p
+    sq = psd_factor("Q", lt.Q)
+    powers = [np.linalg.matrix_power(A, i) for i in range(N + 1)]
+    R = N * (p + m)
+    F, G = np.zeros((R, N * m)), np.zeros((R, n + m + N * (p + n)))
+    for k in range(N):
+        r = slice(k * p, (k + 1) * p)
+        for j in range(k + 1):
+            F[r, j * m:(j + 1) * m] = sq @ C @ powers[k - j] @ B
+            G[r, n + m + N * p + j * n:n + m + N * p + (j + 1) * n] = -sq @ C @ powers[k - j]
+        G[r, :n] = -sq @ C @ powers[k + 1]
+        G[r, n + m + k * p:n + m + (k + 1) * p] = sq
+        r = slice(N * p + k * m, N * p + (k + 1) * m)
+        F[r, k * m:(k + 1) * m] = np.sqrt(lt.lambda_u) * np.eye(m)
+        if k:
+            F[r, (k - 1) * m:k * m] = -np.sqrt(lt.lambda_u) * np.eye(m)
+        else:
+            G[r, n:n + m] = np.sqrt(lt.lambda_u) * np.eye(m)
+    Qf, Rf = np.linalg.qr(F[:, ::-1], mode="complete")
+    Nm = N * m
+    return Rf[:Nm][::-1, ::-1], (Qf[:, :Nm].T @ G)[::-1], Qf[:, Nm:].T @ G
+
+
+def decoder_problem(lt, per_component):
+    """The decoder's search: state [r (Nm: V U - h so far), c, last input (m), its change (m)];
+    one node per step (controls [27, 3]) or per leg (levels [3, 1], depth N m)."""
+    V, _, _ = decoder_factor(lt)
+    N, m = lt.horizon, lt.m
+    Nm = N * m
+
+    def dynamics(z, u, k, prm):
+        u = u.astype(z.dtype)
+        if per_component:
+            comp = k % m
+            last = z[Nm + 1:Nm + 1 + m]
+            r = z[:Nm] + jnp.asarray(V, z.dtype)[:, k] * u[0]
+            return jnp.concatenate([r, z[Nm:Nm + 1], last.at[comp].set(u[0]), (u[0] - last[comp]) * jnp.ones(m)])
+        r = z[:Nm] + jax.lax.dynamic_slice(jnp.asarray(V, z.dtype), (0, k * m), (Nm, m)) @ u
+        return jnp.concatenate([r, z[Nm:Nm + 1], u, u - z[Nm + 1:Nm + 1 + m]])
+
+    def stage_cost(z, u, k, prm):
+        rows = z[:Nm][k] ** 2 if per_component else jnp.sum(jax.lax.dynamic_slice(z[:Nm], (k * m,), (m,)) ** 2)
+        return rows + jnp.where(k == 0, z[Nm], 0.0)
+
+    def constraint(z, u, k, prm):
+        return jnp.all(jnp.abs(z[Nm + 1 + m:]) <= lt.max_step)
+
+    controls = np.array([[-1.0], [0.0], [1.0]]) if per_component else lt.controls
+    return fj.Problem(dynamics, controls, stage_cost, Nm if per_component else N, constraint=constraint,
+                      step_index=True)
+
+
+def section_granularity(args):
+    print(f"\n## Granularity and state, three-level inverter, lambda_u = {args.lambda_u}, "
+          f"the first {args.granularity_steps} decisions of the closed loop")
+    print(f"{'N':>3} {'form':<28} {'nodes mean':>11} {'nodes max':>11} {'ms median':>9} {'ms max':>9} "
+          f"{'iterations':>10}")
+    for N in args.granularity_horizons:
+        lt, rec = inverter_loop(N, args.granularity_steps, args.lambda_u)
+        V, Wh, We = decoder_factor(lt)
+        for per_component in (False, True):
+            prob = decoder_problem(lt, per_component)
+
+            def decide(z, p, ws, prob=prob, Wh=Wh, We=We, per_component=per_component):
+                data = jnp.concatenate([z[:lt.n + lt.m], p["y_ref"].ravel(), p["d"].ravel()])
+                e = jnp.asarray(We) @ data
+                z0 = jnp.concatenate([-jnp.asarray(Wh) @ data, (e @ e)[None], z[lt.n:lt.n + lt.m],
+                                      jnp.zeros(lt.m)])
+                # the per-leg search takes the same warm start, leg by leg (index = digits of the product order)
+                if per_component:
+                    legs = jnp.stack([ws // 9, ws // 3 % 3, ws % 3], axis=1).reshape(-1)
+                    ws = jnp.where(jnp.repeat(ws, 3) >= 0, legs, -1)
+                r = fj.sdfs(prob, z0, warm_start=ws)
+                return r.nodes, r.iterations, r.cost
+
+            decide = jax.jit(decide)
+            nodes, secs, its = [], [], []
+            for k in range(len(rec["z"])):
+                if k == 0:
+                    timed(decide, rec["z"][0], rec["p"][0], rec["ws"][0])
+                (nd, it, _), s = timed(decide, rec["z"][k], rec["p"][k], rec["ws"][k])
+                nodes.append(int(nd))
+                secs.append(s)
+                its.append(int(it))
+            name = "decoder form, node per leg" if per_component else "decoder form, node per step"
+            print(f"{N:>3} {name:<28} {stats(nodes, secs)} {np.mean(its):>10.1f}")
+        print(f"{N:>3} {'LinearTracking (per step)':<28} {stats(rec['nodes'], rec['s'])} "
+              f"{np.mean(np.asarray(rec['nodes']) / 27):>10.1f}")
+
+
+def section_thermal(args):
+    N = args.thermal_horizon
+    lt = thermal.tracking(N, args.thermal_lambda_u)
+    X, U = thermal.calm_states(args.thermal_states, np.random.default_rng(0))
+    _, _, d = thermal.model()
+    p = lt.params(np.broadcast_to(thermal.ThermalParams().set_point, (N, 2)), np.broadcast_to(d, (N, 4)))
+    plain = lt.problem.replace(lower_bound=None)
+    ours = jax.jit(lambda z: fj.sdfs(lt.problem, z, params=p))
+    base = jax.jit(lambda z, cap: fj.sdfs(plain, z, params=p, max_nodes=cap))
+    print(f"\n## Thermal process, N = {N}, lambda_u = {args.thermal_lambda_u}, {args.thermal_states} calm states "
+          f"(within 0.05 K of the steady state at the set point; plain sDFS capped at {args.thermal_max_nodes:,})")
+    print(f"{'search':<14} {'nodes mean':>11} {'nodes max':>11} {'ms median':>9} {'ms max':>9}  note")
+    rows = {"LinearTracking": ([], [], []), "plain sDFS": ([], [], [])}
+    for i, (x, u) in enumerate(zip(X, U, strict=True)):
+        z = lt.observe(jnp.asarray(x), u)
+        if i == 0:
+            timed(ours, z)
+            timed(base, z, args.thermal_max_nodes)
+        r1, s1 = timed(ours, z)
+        r2, s2 = timed(base, z, args.thermal_max_nodes)
+        if bool(r2.complete):
+            assert np.isclose(float(r1.cost), float(r2.cost), rtol=1e-9), i
+        for name, r, s in (("LinearTracking", r1, s1), ("plain sDFS", r2, s2)):
+            rows[name][0].append(int(r.nodes))
+            rows[name][1].append(s)
+            rows[name][2].append(bool(r.complete))
+    for name, (nodes, secs, complete) in rows.items():
+        capped = len(complete) - sum(complete)
+        print(f"{name:<14} {stats(nodes, secs)}  {f'{capped} capped' if capped else 'all complete'}")
+
+
+def section_batch(args):
+    N, B = 10, args.batch
+    lt = three_level.tracking(N, args.lambda_u)
+    rng = np.random.default_rng(0)
+    phase = rng.uniform(0, 1 / three_level.PARAMS.frequency, B)
+    X = inverter.reference(three_level.PARAMS, phase) + rng.uniform(-1.0, 1.0, (B, 2))
+    U = three_level.SWITCH_STATES[rng.integers(0, 27, B)]
+    t = phase[:, None] + np.arange(1, N + 1) * three_level.PARAMS.ts
+    Z, P = jax.vmap(lt.observe)(jnp.asarray(X), jnp.asarray(U)), lt.params(inverter.reference(three_level.PARAMS, t))
+    print(f"\n## Batch: {B} inverter states (reference phase uniform, current within 1 A of it, u_prev random), "
+          f"N = {N}, fj.solve_batch (pool, {args.lanes} lanes)")
+    print(f"{'search':<14} {'rows':>6} {'s':>8} {'states/s':>9} {'nodes/s':>12} {'nodes mean':>11}  note")
+    for name, prob, rows, cap in (("LinearTracking", lt.problem, B, None),
+                                  ("plain sDFS", lt.problem.replace(lower_bound=None), args.batch_plain,
+                                   args.plain_max_nodes)):
+        sel = slice(0, rows)
+        z, p = Z[sel], jax.tree_util.tree_map(lambda a: a[sel], P)
+        fj.solve_batch(prob, z[:2], params=jax.tree_util.tree_map(lambda a: a[:2], p), lanes=args.lanes)  # warm-up
+        res, s = timed(lambda: fj.solve_batch(prob, z, params=p, lanes=args.lanes, max_nodes=cap))
+        nodes = np.asarray(res.nodes)
+        capped = int(np.sum(~np.asarray(res.complete)))
+        print(f"{name:<14} {rows:>6} {s:>8.2f} {rows / s:>9.1f} {nodes.sum() / s:>12,.0f} {nodes.mean():>11,.0f}  "
+              f"{f'{capped} capped' if capped else 'all complete'}")
+
+
+SECTIONS = {"inverter": section_inverter, "granularity": section_granularity, "thermal": section_thermal,
+            "batch": section_batch}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sections", nargs="+", choices=sorted(SECTIONS), default=list(SECTIONS))
+    ap.add_argument("--horizons", type=int, nargs="+", default=[1, 2, 3, 5, 8, 10, 15, 20])
+    ap.add_argument("--lambda-u", type=float, default=0.1)
+    ap.add_argument("--steps", type=int, default=1600, help="decisions (2 fundamental periods = 1600)")
+    ap.add_argument("--full-until", type=int, default=10, help="longer horizons run --long-steps decisions")
+    ap.add_argument("--long-steps", type=int, default=100)
+    ap.add_argument("--plain-until", type=int, default=15, help="plain sDFS only up to this N")
+    ap.add_argument("--plain-max-nodes", type=int, default=5_000_000)
+    ap.add_argument("--granularity-horizons", type=int, nargs="+", default=[5, 8])
+    ap.add_argument("--granularity-steps", type=int, default=200)
+    ap.add_argument("--thermal-horizon", type=int, default=10)
+    ap.add_argument("--thermal-lambda-u", type=float, default=thermal.LAMBDA_U)
+    ap.add_argument("--thermal-states", type=int, default=20)
+    ap.add_argument("--thermal-max-nodes", type=int, default=20_000_000)
+    ap.add_argument("--batch", type=int, default=4096)
+    ap.add_argument("--batch-plain", type=int, default=256, help="rows of the plain sDFS batch")
+    ap.add_argument("--lanes", type=int, default=256)
+    args = ap.parse_args()
+    jax.config.update("jax_enable_x64", True)
+    print(f"sphere_bench: {platform.processor() or platform.machine()}, {jax.devices()[0].platform}, "
+          f"jax {jax.__version__}, float64; a 2-core machine shared with other jobs: times are noisy")
+    for name in args.sections:
+        SECTIONS[name](args)
+
+
+if __name__ == "__main__":
+    main()
