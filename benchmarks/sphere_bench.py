@@ -12,6 +12,7 @@ Sections (each prints a table; every search is exact unless a row says "capped")
 * thermal: four rooms, N = 10, calm states near the set point
   (``firhc_jax.models.thermal``), LinearTracking against the plain sDFS (capped).
 * batch: ``fj.solve_batch`` over B inverter states at N = 10: states/s and nodes/s.
+* tradeoff: THD and switching frequency of the inverter closed loop per N, lambda_u swept.
 
     python benchmarks/sphere_bench.py [--sections inverter granularity thermal batch] [--horizons 1 2 3 5 8 10]
 """
@@ -260,8 +261,37 @@ def section_batch(args):
               f"{f'{capped} capped' if capped else 'all complete'}")
 
 
+def section_tradeoff(args):
+    """THD against switching frequency per N, lambda_u swept: the closed loop as one compiled FIRHC scan (the
+    model is in params, so every lambda_u reuses it)."""
+    from firhc_jax.apps import inverter_three_level as app
+
+    steps = args.steps
+    A, B = three_level.model()
+    i0 = jnp.asarray(inverter.initial_currents(three_level.PARAMS))
+
+    def plant(x, u, p):  # one function for every run: one compiled closed loop per N
+        return jnp.asarray(A) @ x + jnp.asarray(B) @ u
+
+    print(f"\n## Distortion against switching frequency, {steps} decisions per run (compiled closed loop)")
+    print(f"{'N':>3} {'lambda_u':>8} {'THD %':>6} {'f_sw Hz':>8} {'nodes mean':>11} {'nodes max':>10} {'s':>7}")
+    for N in args.tradeoff_horizons:
+        refs = jnp.asarray(inverter.horizon_references(three_level.PARAMS, steps, N))
+        for lam in args.tradeoff_lambdas:
+            lt = three_level.tracking(N, lam)
+            ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
+            t0 = time.perf_counter()
+            run = jax.block_until_ready(ctrl.simulate(i0, steps, plant, params=lt.params(refs), u0=jnp.zeros(3)))
+            s = time.perf_counter() - t0
+            out = app.summarize(app.InverterRun(np.asarray(run.states), inverter.reference(
+                three_level.PARAMS, np.arange(steps + 1) * three_level.PARAMS.ts), np.asarray(run.inputs),
+                np.asarray(run.predicted_costs), np.asarray(run.nodes), np.full(steps, np.nan), 0.0), N, lam)
+            print(f"{N:>3} {lam:>8g} {out['thd'] * 100:>6.2f} {out['switching_frequency_hz']:>8.0f} "
+                  f"{out['nodes_mean']:>11,.0f} {out['nodes_max']:>10,d} {s:>7.1f}", flush=True)
+
+
 SECTIONS = {"inverter": section_inverter, "granularity": section_granularity, "thermal": section_thermal,
-            "batch": section_batch}
+            "batch": section_batch, "tradeoff": section_tradeoff}
 
 
 def main():
@@ -283,6 +313,8 @@ def main():
     ap.add_argument("--batch", type=int, default=4096)
     ap.add_argument("--batch-plain", type=int, default=256, help="rows of the plain sDFS batch")
     ap.add_argument("--lanes", type=int, default=256)
+    ap.add_argument("--tradeoff-horizons", type=int, nargs="+", default=[1, 3, 5, 10])
+    ap.add_argument("--tradeoff-lambdas", type=float, nargs="+", default=[0.1, 1, 3, 10, 30, 100])
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
     print(f"sphere_bench: {platform.processor() or platform.machine()}, {jax.devices()[0].platform}, "

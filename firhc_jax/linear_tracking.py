@@ -112,12 +112,15 @@ class LinearTracking:
         return self.problem.controls
 
     # -- one decision ------------------------------------------------------------
-    def observe(self, x, u_prev, p=None):
+    @staticmethod
+    def observe(x, u_prev, p=None):
         """The search state ``[x, u_prev, 0]`` ``[n + 2m]`` from the plant state
-        ``x`` ``[n]`` and the input applied last. The signature of
-        ``fj.FIRHC``'s ``observe`` (``p`` unused)."""
+        ``x`` ``[n]`` and the input applied last ``[m]``. The signature of
+        ``fj.FIRHC``'s ``observe`` (``p`` unused); one function for every
+        tracker, so controllers of equal shapes share their compiled loop."""
         x = jnp.asarray(x)
-        return jnp.concatenate([x, jnp.asarray(u_prev, x.dtype).reshape(self.m), jnp.zeros((self.m,), x.dtype)])
+        u_prev = jnp.asarray(u_prev, x.dtype)
+        return jnp.concatenate([x, u_prev, jnp.zeros_like(u_prev)])
 
     def params(self, y_ref, d=None) -> dict:
         """The params of ``problem`` for a reference ``y_ref`` ``[..., N, p]``
