@@ -42,46 +42,41 @@ def shifted(seq):
     return np.where(seq[0] >= 0, np.concatenate([seq[1:], seq[-1:]]), -1)
 
 
-def inverter_loop(N, steps, lambda_u):
-    """The LinearTracking closed loop from the reference at t = 0: per decision its
-    search state, params, warm start, nodes and seconds (the decision jitted, compiled first)."""
+def inverter_loop(N, steps, lambda_u, plain_cap=None, plain_every=1):
+    """The LinearTracking closed loop from the reference at t = 0, each decision jitted (compiled first) and
+    timed; with ``plain_cap``, every ``plain_every``-th decision is also solved by the plain sDFS (the same
+    problem without the bound, the same warm start, at most ``plain_cap`` nodes), right after it, so that
+    both see the same machine load. Returns the tracker and per-decision records."""
     lt = three_level.tracking(N, lambda_u)
     A, B = three_level.model()
     refs = inverter.horizon_references(three_level.PARAMS, steps, N)  # [T, N, 2]
-    decide = jax.jit(lambda z, p, ws: fj.sdfs(lt.problem, z, params=p, warm_start=ws))
+    ours = jax.jit(lambda z, p, ws: fj.sdfs(lt.problem, z, params=p, warm_start=ws))
+    plain = lt.problem.replace(lower_bound=None)
+    base = jax.jit(lambda z, p, ws, cap: fj.sdfs(plain, z, params=p, warm_start=ws, max_nodes=cap))
     x, u = inverter.reference(three_level.PARAMS, 0.0), np.zeros(3)
     seq = np.full(N, -1, np.int32)
-    rec = {"z": [], "p": [], "ws": [], "nodes": [], "s": [], "seq": [], "cost": []}
+    rec = {key: [] for key in ("z", "p", "ws", "nodes", "s", "seq", "plain_nodes", "plain_s", "plain_complete",
+                               "plain_index")}
     for k in range(steps):
         z, p, ws = lt.observe(jnp.asarray(x), u), lt.params(jnp.asarray(refs[k])), jnp.asarray(shifted(seq))
         if k == 0:
-            timed(decide, z, p, ws)  # compile
-        res, s = timed(decide, z, p, ws)
+            timed(ours, z, p, ws)  # compile
+        res, s = timed(ours, z, p, ws)
         seq = np.asarray(res.sequence)
-        for key, v in (("z", z), ("p", p), ("ws", ws), ("nodes", int(res.nodes)), ("s", s), ("seq", seq),
-                       ("cost", float(res.cost))):
+        for key, v in (("z", z), ("p", p), ("ws", ws), ("nodes", int(res.nodes)), ("s", s), ("seq", seq)):
             rec[key].append(v)
+        if plain_cap is not None and k % plain_every == 0:
+            if k == 0:
+                timed(base, z, p, ws, plain_cap)
+            other, s = timed(base, z, p, ws, plain_cap)
+            if bool(other.complete):  # both exact: the same optimal cost
+                assert np.isclose(float(other.cost), float(res.cost), rtol=1e-9), (k, float(other.cost), res.cost)
+            for key, v in (("plain_nodes", int(other.nodes)), ("plain_s", s), ("plain_complete", bool(other.complete)),
+                           ("plain_index", k)):
+                rec[key].append(v)
         u = three_level.SWITCH_STATES[seq[0]]
         x = A @ x + B @ u
     return lt, rec
-
-
-def plain_on(lt, rec, cap, every=1):
-    """The plain sDFS (no bound) on the recorded decisions: nodes, seconds, complete, costs."""
-    plain = lt.problem.replace(lower_bound=None)
-    decide = jax.jit(lambda z, p, ws, cap: fj.sdfs(plain, z, params=p, warm_start=ws, max_nodes=cap))
-    out = {"nodes": [], "s": [], "complete": [], "index": []}
-    for k in range(0, len(rec["z"]), every):
-        if not out["index"]:
-            timed(decide, rec["z"][k], rec["p"][k], rec["ws"][k], cap)
-        res, s = timed(decide, rec["z"][k], rec["p"][k], rec["ws"][k], cap)
-        out["nodes"].append(int(res.nodes))
-        out["s"].append(s)
-        out["complete"].append(bool(res.complete))
-        out["index"].append(k)
-        if bool(res.complete):  # both exact: the same optimal cost
-            assert np.isclose(float(res.cost), rec["cost"][k], rtol=1e-9), (k, float(res.cost), rec["cost"][k])
-    return out
 
 
 def stats(nodes, seconds):
@@ -91,22 +86,26 @@ def stats(nodes, seconds):
 
 def section_inverter(args):
     print(f"\n## Three-level inverter closed loop, lambda_u = {args.lambda_u}, max_step = 1 "
-          f"({args.steps} decisions; plain sDFS capped at {args.plain_max_nodes:,} nodes)")
+          f"({args.steps} decisions up to N = {args.full_until}, then {args.long_steps}; plain sDFS on every "
+          f"decision up to N = {args.full_until}, then on {args.plain_long} of them, capped at "
+          f"{args.plain_max_nodes:,} nodes)")
     print(f"{'N':>3} {'search':<14} {'nodes mean':>11} {'nodes max':>11} {'ms median':>9} {'ms max':>9}  note")
     for N in args.horizons:
-        steps = args.steps if N <= args.full_until else args.long_steps
-        lt, rec = inverter_loop(N, steps, args.lambda_u)
+        long = N > args.full_until
+        steps = args.long_steps if long else args.steps
+        cap = args.plain_max_nodes if N <= args.plain_until else None
+        every = max(1, steps // args.plain_long) if long else 1
+        lt, rec = inverter_loop(N, steps, args.lambda_u, cap, every)
         print(f"{N:>3} {'LinearTracking':<14} {stats(rec['nodes'], rec['s'])}  {steps} decisions")
-        if N > args.plain_until:
+        if cap is None:
             continue
-        every = 1 if N <= args.full_until else max(1, steps // 50)
-        pl = plain_on(lt, rec, args.plain_max_nodes, every)
-        capped = len(pl["complete"]) - sum(pl["complete"])
-        ours = np.asarray(rec["nodes"])[pl["index"]]
-        note = f"{len(pl['index'])} decisions" + (f", {capped} capped (lower bounds)" if capped else "")
-        print(f"{N:>3} {'plain sDFS':<14} {stats(pl['nodes'], pl['s'])}  {note}; "
-              f"nodes ratio {np.sum(pl['nodes']) / np.sum(ours):.1f}x, "
-              f"time ratio {np.sum(pl['s']) / np.sum(np.asarray(rec['s'])[pl['index']]):.1f}x")
+        idx = rec["plain_index"]
+        capped = len(idx) - sum(rec["plain_complete"])
+        note = f"{len(idx)} decisions" + (f", {capped} capped (their counts are lower bounds)" if capped else "")
+        ratio_n = np.sum(rec["plain_nodes"]) / np.sum(np.asarray(rec["nodes"])[idx])
+        ratio_t = np.sum(rec["plain_s"]) / np.sum(np.asarray(rec["s"])[idx])
+        print(f"{N:>3} {'plain sDFS':<14} {stats(rec['plain_nodes'], rec['plain_s'])}  {note}; plain/ours: "
+              f"nodes {ratio_n:.2f}x, time {ratio_t:.2f}x")
 
 
 # -- granularity: the decoder's own coordinates ---------------------------------------------------------------------
@@ -303,6 +302,7 @@ def main():
     ap.add_argument("--full-until", type=int, default=10, help="longer horizons run --long-steps decisions")
     ap.add_argument("--long-steps", type=int, default=100)
     ap.add_argument("--plain-until", type=int, default=15, help="plain sDFS only up to this N")
+    ap.add_argument("--plain-long", type=int, default=20, help="decisions the plain sDFS solves beyond --full-until")
     ap.add_argument("--plain-max-nodes", type=int, default=5_000_000)
     ap.add_argument("--granularity-horizons", type=int, nargs="+", default=[5, 8])
     ap.add_argument("--granularity-steps", type=int, default=200)
