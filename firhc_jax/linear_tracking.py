@@ -238,7 +238,7 @@ def cost_to_go(A, B, C, sqrt_q, lambda_u, N):
     vec(d)]: W_k = ||T[k] s + Mw[k] data||^2 + ||Ms[k] data||^2.
 
     Returns ``T`` ``[N, n+m, n+m]``, ``Mw`` ``[N, n+m, N(p+n)]``, ``Ms``
-    ``[N, N p, N(p+n)]`` (rows padded with zeros). W_k = ||P (G_s s + G_d data)||^2
+    ``[N, r, N(p+n)]`` (rows padded with zeros; r <= N(p+m)). W_k = ||P (G_s s + G_d data)||^2
     where F U - (G_s s + G_d data) is the stacked residual of the steps left
     and P projects onto the complement of F's range (from its SVD); a QR
     factorisation of P G_s splits it into the square part T and the rest.
@@ -250,7 +250,7 @@ def cost_to_go(A, B, C, sqrt_q, lambda_u, N):
         powers.append(A @ powers[-1])
     q_c = sqrt_q @ C
     nd, ns = N * (p + n), n + m
-    T, Mw, Ms = np.zeros((N, ns, ns)), np.zeros((N, ns, nd)), np.zeros((N, N * p, nd))
+    T, Mw, rests = np.zeros((N, ns, ns)), np.zeros((N, ns, nd)), []
     for k in range(N):
         S = N - k
         F = np.zeros((S * (p + m), S * m))
@@ -276,7 +276,9 @@ def cost_to_go(A, B, C, sqrt_q, lambda_u, N):
         rows = min(ns, Te.shape[0])
         T[k, :rows] = Te[:rows]
         Mw[k, :rows] = Ue[:, :rows].T @ perp @ Gd
-        rest = Ue[:, rows:].T @ perp @ Gd
+        rests.append(Ue[:, rows:].T @ perp @ Gd)
+    Ms = np.zeros((N, max(r.shape[0] for r in rests), nd))
+    for k, rest in enumerate(rests):
         Ms[k, :rest.shape[0]] = rest
     return T, Mw, Ms
 

@@ -19,7 +19,8 @@ SETTINGS = settings(max_examples=15, deadline=None, suppress_health_check=[Healt
 
 # Fixed shapes, so that one compiled search serves every example: (n, m, p, N, levels per input). The model is
 # in the params: a new random problem of the same shapes does not recompile.
-SHAPES = {"siso": (2, 1, 1, 4, (-1.0, 0.0, 1.0)), "mimo": (3, 2, 2, 3, (-1.0, 0.0, 1.0))}
+# mimo has more inputs than outputs: with lambda_u = 0 its stacked F is rank deficient.
+SHAPES = {"siso": (2, 1, 1, 4, (-1.0, 0.0, 1.0)), "mimo": (3, 3, 2, 3, (-1.0, 0.0, 1.0))}
 NONE = np.full(3, -1)  # mimo's "no warm start": the same compiled search as a warm-started call
 
 
@@ -143,10 +144,10 @@ def test_warm_start_never_changes_the_optimum_and_an_infeasible_one_is_ignored(c
 
 def test_an_infeasible_warm_start_under_max_step_is_ignored():
     case = Case("mimo", True, 7)
-    case.u_prev = np.array([-1.0, -1.0])
+    case.u_prev = np.array([-1.0, -1.0, -1.0])
     lt = case.tracker()
     cold = lt.solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=NONE)
-    jump = np.full(case.N, 8)  # u = [+1, +1] right after [-1, -1]: breaks max_step at k = 0
+    jump = np.full(case.N, 26)  # u = [+1, +1, +1] right after [-1, -1, -1]: breaks max_step at k = 0
     assert not np.isfinite(case.J(jump[None])[0])
     warm = lt.solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=jump)
     check(case, warm, "infeasible warm start")
@@ -244,8 +245,8 @@ def test_the_cost_to_go_bound_is_admissible_on_sampled_states():
     case = Case("mimo", False, 13)
     lt = case.tracker()
     rng = np.random.default_rng(3)
-    states = np.concatenate([rng.normal(size=(16, 3)), case.controls[rng.integers(9, size=16)],
-                             rng.normal(size=(16, 2))], axis=1)
+    states = np.concatenate([rng.normal(size=(16, 3)), case.controls[rng.integers(27, size=16)],
+                             rng.normal(size=(16, 3))], axis=1)
     assert fj.check_lower_bound(lt.problem, states, params=lt.params(case.y_ref, case.d)) == []
 
 
