@@ -25,14 +25,16 @@ at least the decoder's distance where F is rank deficient (singular Q,
 lambda_u = 0, more inputs than outputs): the decoder then loses the part of
 the suffix that no input reaches.
 
-In this form the search state is the plant's own, ``[x, u, u - u_prev]``
-(n + 2m numbers) instead of the decoder's N m partial sums, and the cost a
-search returns is J itself, accumulated stage by stage. W_k is kept factored,
+In this form the search state is the plant's own, ``[x, u, u - u_prev]``,
+plus the stage cost and the bound of the step that led to it (n + 2m + 2
+numbers instead of the decoder's N m partial sums), and the cost a search
+returns is J itself, accumulated stage by stage. W_k is kept factored,
 W_k(s) = ||T_k s + w_k||^2 + s_k for s = [x; u_prev]: T_k is static, w_k and
 s_k are linear and quadratic in (y_ref, d) and travel as params, so new
 states, references and disturbances never recompile. One node is one step
-with its M inputs (not one input component per level as in the decoder):
-measured in docs/inverter.md.
+with its M inputs (not one input component per level as in the decoder), and
+where F is rank deficient W is strictly tighter than the decoder's distance:
+both measured in docs/inverter.md.
 """
 from __future__ import annotations
 
@@ -62,9 +64,9 @@ class LinearTracking:
 
     Attributes:
       problem: the ``fj.Problem`` the search solves (``step_index=True``): state
-        ``[x, u, u - u_prev]`` ``[n + 2m]`` (``observe``), params of one decision
-        from ``params``, ``lower_bound`` the cost-to-go W. Use it with any
-        solver: ``fj.sdfs``, ``fj.solve_batch``, ``fj.FIRHC``.
+        ``[x, u, u - u_prev, stage cost, W]`` ``[n + 2m + 2]`` (``observe``),
+        params of one decision from ``params``, ``lower_bound`` the cost-to-go
+        W. Use it with any solver: ``fj.sdfs``, ``fj.solve_batch``, ``fj.FIRHC``.
         ``problem.replace(lower_bound=None)`` is the plain sorted search of the
         same problem.
 
@@ -94,12 +96,12 @@ class LinearTracking:
         self.A, self.B, self.C, self.Q = A, B, C, Q
         self.lambda_u, self.max_step, self.horizon = lambda_u, max_step, N
         self.n, self.m, self.p = n, m, p
-        sqrt_q = psd_factor("Q", Q)
-        T, Mw, Ms = cost_to_go(A, B, C, sqrt_q, lambda_u, N)
-        model = {"A": A, "B": B, "C": C, "sqrt_q": sqrt_q, "lambda_u": np.float64(lambda_u), "T": T}
+        M, M_data, Ms = child_map(A, B, C, psd_factor("Q", Q), lambda_u, N)
+        # M_norm: the Frobenius norm of each step's W rows, for the bound on their rounding
+        model = {"M": M, "M_norm": np.linalg.norm(M[:, n + p:], axis=(1, 2)), "lambda_u": np.float64(lambda_u)}
         if max_step is not None:
             model["max_step"] = np.float64(max_step)
-        self._host = {"model": model, "Mw": Mw, "Ms": Ms}  # float64
+        self._host = {"model": model, "M_data": M_data, "Ms": Ms}  # float64
         self._device = {}  # dtype -> the same on the device
         self.problem = Problem(_dynamics, controls, _stage_cost, N, lower_bound=_lower_bound,
                                constraint=None if max_step is None else _constraint, step_index=True)
@@ -114,13 +116,13 @@ class LinearTracking:
     # -- one decision ------------------------------------------------------------
     @staticmethod
     def observe(x, u_prev, p=None):
-        """The search state ``[x, u_prev, 0]`` ``[n + 2m]`` from the plant state
-        ``x`` ``[n]`` and the input applied last ``[m]``. The signature of
-        ``fj.FIRHC``'s ``observe`` (``p`` unused); one function for every
-        tracker, so controllers of equal shapes share their compiled loop."""
+        """The search state ``[x, u_prev, 0, 0, 0]`` ``[n + 2m + 2]`` from the
+        plant state ``x`` ``[n]`` and the input applied last ``[m]``. The
+        signature of ``fj.FIRHC``'s ``observe`` (``p`` unused); one function for
+        every tracker, so controllers of equal shapes share their compiled loop."""
         x = jnp.asarray(x)
         u_prev = jnp.asarray(u_prev, x.dtype)
-        return jnp.concatenate([x, u_prev, jnp.zeros_like(u_prev)])
+        return jnp.concatenate([x, u_prev, jnp.zeros(u_prev.shape[0] + 2, x.dtype)])
 
     def params(self, y_ref, d=None) -> dict:
         """The params of ``problem`` for a reference ``y_ref`` ``[..., N, p]``
@@ -128,11 +130,12 @@ class LinearTracking:
         (default 0), in y_ref's floating dtype. Leading axes batch: one row per
         state for ``fj.solve_batch``, one per step for ``FIRHC.simulate``.
 
-        Returns the model (``A``, ``B``, ``C``, ``sqrt_q``, ``lambda_u``,
-        ``max_step``, ``T``), the data (``y_ref``, ``d``) and the data part of
-        the cost-to-go (``w`` ``[..., N, n + m]`` with ``w_err``, a bound on
-        its rounding, and ``s`` ``[..., N]``). Give the state (``observe``) the
-        same dtype."""
+        Returns the model (``M``, ``M_norm``, ``lambda_u``, ``max_step``: ``child_map``),
+        the data part of each step's map (``off`` ``[..., N, 2n + p + m]``,
+        ``off_err`` a bound on the rounding of its cost-to-go rows, ``s``
+        ``[..., N]``), and the data itself (``y_ref``, ``d``: a closed loop's
+        plant gets the same params, e.g. ``A x + B u + p["d"][0]``). Give the
+        state (``observe``) the same dtype."""
         y_ref = jnp.asarray(y_ref)
         if not jnp.issubdtype(y_ref.dtype, jnp.floating):
             y_ref = y_ref.astype(jax.dtypes.canonicalize_dtype(np.float64))
@@ -174,39 +177,44 @@ class LinearTracking:
 
 # ---------------------------------------------------------------------------
 # The problem's callables: one set for every model, which travels in params (a new A, B, Q or reference of the
-# same shapes never recompiles). State z = [x (n), u (m), u - u_prev (m)].
+# same shapes never recompiles). State z = [x (n), u (m), u - u_prev (m), stage cost, bound] ``[n + 2m + 2]``:
+# one affine map of [x; u] per child (``child_map``) gives its state, the residual of its stage cost and that of
+# its cost-to-go (one matrix product instead of several: measured in docs/inverter.md), and the stage cost and
+# the bound just read their entries.
 # ---------------------------------------------------------------------------
 
-def _split(z, prm):
-    n, m = prm["B"].shape
-    return z[:n], z[n:n + m], z[n + m:]
+def _sizes(z, u, prm):
+    m = u.shape[0]
+    n = z.shape[0] - 2 * m - 2
+    return n, m, prm["M"].shape[1] - 2 * n - m  # n, m, p
 
 
 def _dynamics(z, u, k, prm):
-    x, u_last, _ = _split(z, prm)
-    u = u.astype(z.dtype)
-    return jnp.concatenate([prm["A"] @ x + prm["B"] @ u + prm["d"][k], u, u - u_last])
+    n, m, p = _sizes(z, u, prm)
+    xu = jnp.concatenate([z[:n], u.astype(z.dtype)])
+    out = prm["M"][k] @ xu + prm["off"][k]  # [x(k+1) (n), sqrt(Q) (y_ref[k] - C x(k+1)) (p), W's residual v (n + m)]
+    # W = ||v||^2 + s, rounded down by a bound on the rounding of v (its terms nearly cancel, and W must stay
+    # admissible): ||v_true|| >= ||v|| - ||v - v_true||, with ||v - v_true|| <= gamma (||M_v|| ||[x; u]|| + ||off_v||)
+    # + the rounding of off_v.
+    v, off_v = out[n + p:], prm["off"][k][n + p:]
+    err = _gamma(z.dtype, n + m) * (prm["M_norm"][k] * jnp.sqrt(xu @ xu) + jnp.sqrt(off_v @ off_v)) + prm["off_err"][k]
+    bound = jnp.maximum(jnp.sqrt(v @ v) - err, 0) ** 2 * (1 - _gamma(z.dtype, n + m)) + prm["s"][k]
+    e, du = out[n:n + p], xu[n:] - z[n:n + m]
+    stage = e @ e + prm["lambda_u"] * (du @ du)
+    return jnp.concatenate([out[:n], xu[n:], du, stage[None], bound[None]])
 
 
 def _stage_cost(z, u, k, prm):
-    x, _, du = _split(z, prm)
-    e = prm["sqrt_q"] @ (prm["y_ref"][k] - prm["C"] @ x)
-    return e @ e + prm["lambda_u"] * (du @ du)
-
-
-def _constraint(z, u, k, prm):
-    return jnp.all(jnp.abs(_split(z, prm)[2]) <= prm["max_step"])
+    return z[-2]
 
 
 def _lower_bound(z, steps_left, prm):
-    """W_k at the state reached (k = N - steps_left), rounded down by a bound
-    on its own rounding: T s and w nearly cancel, and W must stay admissible
-    in float32 too."""
-    n, m = prm["B"].shape
-    k = jnp.clip(prm["T"].shape[0] - steps_left, 0, prm["T"].shape[0] - 1)
-    s, w, Tk = z[:n + m], prm["w"][k], prm["T"][k]
-    err = _gamma(z.dtype, n + m) * (jnp.abs(Tk) @ jnp.abs(s) + jnp.abs(w)) + prm["w_err"][k]
-    return _norm2_below(Tk @ s + w, err) + prm["s"][k]
+    return z[-1]
+
+
+def _constraint(z, u, k, prm):
+    m = u.shape[0]
+    return jnp.all(jnp.abs(z[-2 - m:-2]) <= prm["max_step"])
 
 
 @jax.jit
@@ -220,10 +228,12 @@ def _params(factors, y_ref, d):
         return (jnp.einsum("kid,...d->...ki", M, data),
                 gamma * jnp.einsum("kid,...d->...ki", jnp.abs(M), jnp.abs(data)))
 
-    w, w_err = apply(factors["Mw"])
+    off, off_err = apply(factors["M_data"])
     e, e_err = apply(factors["Ms"])
+    n_w = factors["model"]["M"].shape[2]  # n + m rows of W's residual, the last of off
     model = {k: jnp.broadcast_to(v, lead + v.shape) for k, v in factors["model"].items()}
-    return {**model, "y_ref": y_ref, "d": d, "w": w, "w_err": w_err, "s": _norm2_below(e, e_err)}
+    return {**model, "off": off, "off_err": jnp.sqrt(jnp.sum(off_err[..., -n_w:] ** 2, axis=-1)),
+            "s": _norm2_below(e, e_err), "y_ref": y_ref, "d": d}
 
 
 # ---------------------------------------------------------------------------
@@ -281,6 +291,37 @@ def cost_to_go(A, B, C, sqrt_q, lambda_u, N):
     for k, rest in enumerate(rests):
         Ms[k, :rest.shape[0]] = rest
     return T, Mw, Ms
+
+
+def child_map(A, B, C, sqrt_q, lambda_u, N):
+    """The affine map from a node to a child, per input index k.
+
+    For the child of input u(k) from state x(k) after u(k-1):
+    ``M[k] [x; u] + M_data[k] data`` = [x(k+1); sqrt(Q) (y_ref[k] - C x(k+1));
+    T_{k+1} [x(k+1); u] + w_{k+1}], whose last part's squared norm plus
+    ``||Ms[k] data||^2`` is W_{k+1}(x(k+1), u(k)) (``cost_to_go``; 0 at k = N-1).
+
+    Returns ``M`` ``[N, n + p + n + m, n + m]``, ``M_data``
+    ``[N, n + p + n + m, N(p + n)]`` and ``Ms`` ``[N, r, N(p + n)]``."""
+    n, m = B.shape
+    p = sqrt_q.shape[0]
+    T, Mw, Ms = cost_to_go(A, B, C, sqrt_q, lambda_u, N)
+    nd, q_c = N * (p + n), sqrt_q @ C
+    M, M_data = np.zeros((N, 2 * n + p + m, n + m)), np.zeros((N, 2 * n + p + m, nd))
+    for k in range(N):
+        d_k = np.zeros((n, nd))
+        d_k[:, N * p + k * n:N * p + (k + 1) * n] = np.eye(n)  # selects d[k] from data
+        M[k, :n] = np.hstack([A, B])
+        M_data[k, :n] = d_k
+        M[k, n:n + p] = -q_c @ M[k, :n]
+        M_data[k, n:n + p] = -q_c @ d_k
+        M_data[k, n:n + p, k * p:(k + 1) * p] += sqrt_q  # y_ref[k]
+        if k + 1 < N:
+            Tx, Tu = T[k + 1][:, :n], T[k + 1][:, n:]
+            M[k, n + p:] = Tx @ M[k, :n] + np.hstack([np.zeros((n + m, n)), Tu])
+            M_data[k, n + p:] = Tx @ d_k + Mw[k + 1]
+    Ms_next = np.concatenate([Ms[1:], np.zeros_like(Ms[:1])])
+    return M, M_data, Ms_next
 
 
 def _gamma(dtype, terms: int):

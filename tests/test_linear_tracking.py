@@ -273,12 +273,25 @@ def test_the_bound_is_the_unconstrained_cost_to_go(case):
     lt = case.tracker()
     params = lt.params(case.y_ref, case.d)
     rng = np.random.default_rng(int(case.x[0] * 1e6) % 2**32)
-    bound = jax.jit(lt.problem.lower_bound)
-    for k in range(1, case.N):
-        x, u_prev = rng.normal(size=case.x.shape), case.controls[rng.integers(len(case.controls))]
-        true = unconstrained_cost_to_go(case, k, x, u_prev)
-        w = float(bound(lt.observe(x, u_prev), np.int32(case.N - k), params))
+    child = jax.jit(lt.problem.dynamics)
+    for k in range(1, case.N):  # a child k steps deep: from a random node at depth k - 1 with a random input
+        parent = lt.observe(rng.normal(size=case.x.shape), case.controls[rng.integers(len(case.controls))])
+        z = child(parent, case.controls[rng.integers(len(case.controls))], np.int32(k - 1), params)
+        n, m = case.x.shape[0], case.controls.shape[1]
+        true = unconstrained_cost_to_go(case, k, np.asarray(z[:n]), np.asarray(z[n:n + m]))
+        w = float(lt.problem.lower_bound(z, np.int32(case.N - k), params))
         assert abs(w - true) <= 1e-9 * max(true, 1.0), (k, w, true)  # both exact up to rounding
+    # In float32 W is rounded down by a bound on its own rounding: never above the true cost-to-go.
+    f32 = np.float32
+    case.y_ref, case.d = case.y_ref.astype(f32).astype(float), case.d.astype(f32).astype(float)
+    params = lt.params(case.y_ref.astype(f32), case.d.astype(f32))
+    for k in range(1, case.N):
+        parent = lt.observe(rng.normal(size=case.x.shape).astype(f32), case.controls[rng.integers(len(case.controls))])
+        z = child(parent, case.controls[rng.integers(len(case.controls))].astype(f32), np.int32(k - 1), params)
+        n, m = case.x.shape[0], case.controls.shape[1]
+        true = unconstrained_cost_to_go(case, k, np.asarray(z[:n], float), np.asarray(z[n:n + m], float))
+        w = float(lt.problem.lower_bound(z, np.int32(case.N - k), params))
+        assert w <= true and w >= true - 1e-3 * max(true, 1.0), (k, w, true)
 
 
 @pytest.mark.parametrize("kwargs, match", [
