@@ -28,7 +28,6 @@ from firhc_jax.models import three_level
 from .inverter import InverterRun, distortion, plot
 
 LAMBDA_U = 0.1  # A^2 per unit leg step (issue 21)
-MAX_HORIZON = 30
 
 
 def closed_loop(horizon: int, steps: int, lambda_u: float = LAMBDA_U, progress: bool = False) -> InverterRun:
@@ -97,9 +96,15 @@ def summarize(run: InverterRun, horizon: int, lambda_u: float) -> dict:
 
 def run(args) -> int:
     """``inverter --levels 3``: uses ``horizon``, ``cycles``, ``lambda_u`` (None: ``LAMBDA_U``),
-    ``out`` and ``no_progress`` of the parsed ``args``; returns the exit status (0)."""
-    if args.horizon > MAX_HORIZON:
-        raise SystemExit(f"inverter --levels 3: --horizon must be at most {MAX_HORIZON}, got {args.horizon}")
+    ``out`` and ``no_progress`` of the parsed ``args``; returns the exit status (0). The two-level
+    options ``--solver``, ``--bound`` and ``--model`` do not apply and are refused."""
+    if args.horizon > three_level.MAX_HORIZON:
+        raise SystemExit(f"inverter --levels 3: --horizon must be at most {three_level.MAX_HORIZON}, "
+                         f"got {args.horizon}")
+    if getattr(args, "solver", "sdfs") != "sdfs" or getattr(args, "bound", False) or \
+            getattr(args, "model", "exact") != "exact":
+        raise SystemExit("inverter --levels 3 runs fj.LinearTracking (sDFS with its own bound, exact model): "
+                         "--solver, --bound and --model apply to --levels 2 only")
     jax.config.update("jax_enable_x64", True)
     lambda_u = LAMBDA_U if args.lambda_u is None else args.lambda_u
     steps = int(args.cycles * three_level.PARAMS.steps_per_cycle)

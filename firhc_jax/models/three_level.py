@@ -26,6 +26,7 @@ from ..linear import discretize, product_controls
 from ..linear_tracking import LinearTracking
 from .inverter import InverterParams
 
+MAX_HORIZON = 30  # the command line's limit; N = 15 already takes about a second per decision at lambda_u = 0.1
 PARAMS = InverterParams(vdc=400.0, r=2.0, l=2e-3, ts=25e-6, amplitude=20.0, frequency=50.0)
 SWITCH_STATES = product_controls([-1.0, 0.0, 1.0], repeat=3)  # [27, 3]
 CLARKE = np.array([[2.0, -1.0, -1.0], [0.0, math.sqrt(3.0), -math.sqrt(3.0)]]) / 3.0  # [2, 3] abc -> alpha-beta
