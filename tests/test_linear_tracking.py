@@ -364,3 +364,22 @@ def test_readme_long_horizon_snippet_runs():
     for b, x in enumerate(namespace["X"]):  # fj.solve_batch: each row is lt.solve's optimum
         one = lt.solve(x, np.zeros(3), namespace["reference"](0))
         assert same_cost(float(many.cost[b]), float(one.cost)) and bool(many.feasible[b])
+
+
+@pytest.mark.slow
+def test_cli_three_level_inverter_writes_summary_and_figure(tmp_path):
+    import json
+
+    from firhc_jax import cli
+
+    argv = ["inverter", "--levels", "3", "--horizon", "3", "--cycles", "0.1", "--out", str(tmp_path), "--no-progress"]
+    assert cli.main(argv) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["levels"] == 3 and summary["horizon"] == 3 and summary["lambda_u"] == 0.1 and summary["steps"] == 80
+    assert 0 < summary["thd"] < 0.2 and 0 < summary["switching_frequency_hz"] < 20_000
+    assert summary["nodes_max"] <= 27 + 27**2 + 27**3 + 3
+    assert (tmp_path / "inverter3_N3.png").stat().st_size > 10_000
+    with pytest.raises(SystemExit, match="apply to --levels 2 only"):
+        cli.main(["inverter", "--levels", "3", "--solver", "exhaustive", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="with --levels 2"):
+        cli.main(["inverter", "--horizon", "10", "--out", str(tmp_path)])
