@@ -5,6 +5,8 @@
     python benchmarks/batch_bench.py              # synthetic N=4, tanks N=4, hopper N=6; B = 1, 64, 1024, 4096;
                                                   # then 1 vs 4 forced host devices (minutes)
     python benchmarks/batch_bench.py --sweep      # also the pool's lanes x pop_width grid (long)
+    python benchmarks/batch_bench.py --pinned --plants synthetic:4,tanks:4 --batches 4096
+                                                  # default call pinned to one core (taskset -c 0) vs every core
 
 Method. The states are drawn (with replacement, fixed seed) from closed-loop
 runs: the tanks and hopper runs of ``firhc_jax.apps.bench`` where those
@@ -17,7 +19,9 @@ exhaustive search of 4096 tank states takes two). "per-node cost" is time / node
 exhaustive search's; "time" is relative to the exhaustive search's time.
 Costs are checked against the exhaustive search (same optimum per row).
 The device comparison runs this script again in subprocesses with
-``XLA_FLAGS=--xla_force_host_platform_device_count=D``.
+``XLA_FLAGS=--xla_force_host_platform_device_count=D``; ``--pinned`` runs it
+in subprocesses under ``taskset -c 0`` and unpinned (one device: the default
+call splits the rows over the usable cores).
 """
 from __future__ import annotations
 
@@ -33,6 +37,8 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from firhc_jax.sharding import usable_cores
 
 SOLVERS = {"pool sDFS": "sdfs", "vmap sDFS": "sdfs-vmap", "vmap exhaustive": "exhaustive"}
 
@@ -126,43 +132,60 @@ def device_child(plant: str, horizon: int, batch: int, repeats: int) -> None:
     problem, states = closed_loop_states(plant, horizon)
     X = jnp.asarray(states[np.random.default_rng(1).integers(0, len(states), batch)])
     t, first, r = timed(lambda: solve_batch(problem, X), repeats)
-    print(json.dumps({"devices": jax.local_device_count(), "seconds": t, "compile_s": max(first - t, 0.0),
-                      "cost": np.asarray(r.cost).tolist(), "sequence": np.asarray(r.sequence).tolist(),
-                      "nodes": int(np.sum(r.nodes))}))
+    print(json.dumps({"devices": jax.local_device_count(), "cores": usable_cores(), "seconds": t,
+                      "compile_s": max(first - t, 0.0), "cost": np.asarray(r.cost).tolist(),
+                      "sequence": np.asarray(r.sequence).tolist(), "nodes": int(np.sum(r.nodes))}))
 
 
-def devices(plant: str, horizon: int, batch: int, repeats: int, counts=(1, 4)) -> list[dict]:
+def child_runs(plant: str, horizon: int, batch: int, repeats: int, settings) -> list[dict]:
+    """This script's ``--child`` in a fresh process per ``(label, command prefix, XLA_FLAGS or None)``, each
+    compared with the first."""
     runs = []
-    for count in counts:
-        env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={count}", JAX_PLATFORMS="cpu")
-        cmd = [sys.executable, __file__, "--child", f"{plant}:{horizon}:{batch}:{repeats}"]
+    for label, prefix, flags in settings:
+        env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+        env.update(JAX_PLATFORMS="cpu", **({"XLA_FLAGS": flags} if flags else {}))
+        cmd = [*prefix, sys.executable, __file__, "--child", f"{plant}:{horizon}:{batch}:{repeats}"]
         out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
-        runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        runs.append(dict(json.loads(out.stdout.strip().splitlines()[-1]), label=label))
     base = runs[0]
-    return [{"plant": plant, "N": horizon, "B": batch, "devices": r["devices"], "seconds": r["seconds"],
-             "solves_per_s": batch / r["seconds"], "speedup": base["seconds"] / r["seconds"],
-             "same_sequences": r["sequence"] == base["sequence"],
+    return [{"plant": plant, "N": horizon, "B": batch, "run": r["label"], "devices": r["devices"],
+             "cores": r["cores"], "seconds": r["seconds"], "solves_per_s": batch / r["seconds"],
+             "speedup": base["seconds"] / r["seconds"], "same_sequences": r["sequence"] == base["sequence"],
              "max_cost_diff": float(np.max(np.abs(np.subtract(r["cost"], base["cost"]),
                                                   where=np.isfinite(base["cost"]), out=np.zeros(batch)))),
              "nodes": r["nodes"]} for r in runs]
 
 
+def devices(plant: str, horizon: int, batch: int, repeats: int, counts=(1, 4)) -> list[dict]:
+    """Default ``solve_batch`` with 1 and 4 forced host devices."""
+    return child_runs(plant, horizon, batch, repeats,
+                      [(f"{c} host devices", [], f"--xla_force_host_platform_device_count={c}") for c in counts])
+
+
+def pinned(plant: str, horizon: int, batch: int, repeats: int) -> list[dict]:
+    """Default ``solve_batch`` (one device) pinned to core 0 (``taskset -c 0``) and on every usable core."""
+    return child_runs(plant, horizon, batch, repeats,
+                      [("taskset -c 0", ["taskset", "-c", "0"], None), ("every core", [], None)])
+
+
 def markdown(rows, devices_rows, sweep_rows) -> str:
     lines = [f"jax {jax.__version__}, {platform.machine()}, {os.cpu_count()} cores, "
-             f"{'float64' if jax.config.jax_enable_x64 else 'float32'}", "",
-             "| plant | N | B | solver | time | solves/s | nodes/s | nodes/solve | per-node cost vs exhaustive "
-             "| time vs exhaustive | compile |", "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+             f"{'float64' if jax.config.jax_enable_x64 else 'float32'}, load average {os.getloadavg()[0]:.1f}"]
+    if rows:
+        lines += ["", "| plant | N | B | solver | time | solves/s | nodes/s | nodes/solve | per-node cost vs "
+                  "exhaustive | time vs exhaustive | compile |",
+                  "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['plant']} | {r['N']} | {r['B']} | {r['solver']} | {1e3 * r['seconds']:.1f} ms | "
                      f"{r['solves_per_s']:,.0f} | {r['nodes_per_s']:.3g} | {r['nodes'] / r['B']:,.0f} | "
                      f"{r['per_node_vs_exhaustive']:.2f}x | {r['time_vs_exhaustive']:.3f}x | {r['compile_s']:.1f} s |")
     if devices_rows:
-        lines += ["", "| plant | N | B | host devices | time | solves/s | speedup | same sequences | max cost diff "
-                  "| nodes |", "|---|---:|---:|---:|---:|---:|---:|---|---:|---:|"]
+        lines += ["", "| plant | N | B | run | devices | usable cores | time | solves/s | speedup | same sequences "
+                  "| max cost diff | nodes |", "|---|---:|---:|---|---:|---:|---:|---:|---:|---|---:|---:|"]
         for r in devices_rows:
-            lines.append(f"| {r['plant']} | {r['N']} | {r['B']} | {r['devices']} | {1e3 * r['seconds']:.1f} ms | "
-                         f"{r['solves_per_s']:,.0f} | {r['speedup']:.2f}x | {r['same_sequences']} | "
-                         f"{r['max_cost_diff']:.1e} | {r['nodes']:,} |")
+            lines.append(f"| {r['plant']} | {r['N']} | {r['B']} | {r['run']} | {r['devices']} | {r['cores']} | "
+                         f"{1e3 * r['seconds']:.1f} ms | {r['solves_per_s']:,.0f} | {r['speedup']:.2f}x | "
+                         f"{r['same_sequences']} | {r['max_cost_diff']:.1e} | {r['nodes']:,} |")
     if sweep_rows:
         lines += ["", "| plant | N | B | lanes | pop_width | time | solves/s | nodes |",
                   "|---|---:|---:|---:|---:|---:|---:|---:|"]
@@ -183,6 +206,9 @@ def main(argv=None):
     ap.add_argument("--lanes", type=int, default=None, help="pool lanes (default: solve_batch's)")
     ap.add_argument("--pop-width", type=int, default=None, help="pool pop_width (default: solve_batch's)")
     ap.add_argument("--no-devices", action="store_true", help="skip the 1 vs 4 host devices comparison")
+    ap.add_argument("--pinned", action="store_true",
+                    help="only: the default call (largest batch) pinned to core 0 (taskset -c 0) against every "
+                         "core, each plant in fresh processes")
     ap.add_argument("--sweep", action="store_true", help="also sweep the pool's lanes x pop_width (long)")
     ap.add_argument("--f32", action="store_true", help="float32 (default float64)")
     ap.add_argument("--json", help="also write the rows to this file")
@@ -196,6 +222,10 @@ def main(argv=None):
         args.plants, args.batches, args.repeats, args.no_devices = "synthetic:4", "1,64", 1, True
     plants = [(p.split(":")[0], int(p.split(":")[1])) for p in args.plants.split(",")]
     batches = [int(b) for b in args.batches.split(",")]
+    if args.pinned:
+        device_rows = [r for plant, horizon in plants for r in pinned(plant, horizon, max(batches), args.repeats)]
+        print(markdown([], device_rows, []))
+        return
     pool_options = {k: v for k, v in (("lanes", args.lanes), ("pop_width", args.pop_width)) if v is not None}
     rows, device_rows, sweep_rows = [], [], []
     for plant, horizon in plants:

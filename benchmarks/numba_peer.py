@@ -1,5 +1,7 @@
 """Compiled scalar peers of ``fj.sdfs`` and ``fj.exhaustive``, written in Numba, so that engine timings
-can be read as ratios to the best plain loop code (``benchmarks/engine_bench.py``).
+can be read as ratios to the best plain loop code (``benchmarks/engine_bench.py``). Batches run row after
+row on one core (``sdfs_batch``) or over every core with ``prange`` (``sdfs_batch_parallel``), the peer of
+``fj.solve_batch``'s default.
 
 The searches follow the library rule for rule (Table 1 at ``pop_width=1``; exhaustive search keeps the
 lexicographically first optimum) and count nodes the same way, so cost, sequence and node count can be
@@ -105,11 +107,11 @@ def linear_problem(horizon: int, num_controls: int = 17, seed: int = 0):
 def tank_params(params: tanks.TankParams | None = None, set_point=tanks.SET_POINT,
                 switch_penalty: float = 0.0):
     """Peer parameters of ``tanks.make_problem``: ``(coefficients [17, 5], toggles [17, 17], set point [3],
-    (dt, height, substeps, switch_penalty))``."""
+    [dt, height, substeps, switch_penalty])``: arrays only, so that ``prange`` can share them out."""
     params = params or tanks.TankParams()
     dt = params.ts / params.substeps
     return (tanks.mode_coefficients(params), tanks._TOGGLES, np.asarray(set_point, float),
-            (dt, params.height, params.substeps, float(switch_penalty)))
+            np.array([dt, params.height, params.substeps, switch_penalty], float))
 
 
 @numba.njit(inline="always")
@@ -146,7 +148,8 @@ def _tank_cost(h1, h2, h3, toggles, hs, penalty):
 @numba.njit
 def tank_children(P, x, out_x, out_stage):
     """Three-tank plant, one child after another (all RK4 sub-steps of a mode, then the next mode)."""
-    coeffs, toggles, hs, (dt, top, substeps, penalty) = P
+    coeffs, toggles, hs, scalars = P
+    dt, top, substeps, penalty = scalars[0], scalars[1], int(scalars[2]), scalars[3]
     prev = int(x[3])
     for m in range(coeffs.shape[0]):
         in1, in2, k13, k32, k30 = coeffs[m, 0], coeffs[m, 1], coeffs[m, 2], coeffs[m, 3], coeffs[m, 4]
@@ -161,7 +164,8 @@ def tank_children(P, x, out_x, out_stage):
 @numba.njit
 def tank_children_simd(P, x, out_x, out_stage):
     """Three-tank plant, all modes in one loop per sub-step (branch-free body: LLVM vectorises it)."""
-    coeffs, toggles, hs, (dt, top, substeps, penalty) = P
+    coeffs, toggles, hs, scalars = P
+    dt, top, substeps, penalty = scalars[0], scalars[1], int(scalars[2]), scalars[3]
     M, prev = coeffs.shape[0], int(x[3])
     for m in range(M):
         out_x[m, 0], out_x[m, 1], out_x[m, 2] = x[0], x[1], x[2]
@@ -269,5 +273,16 @@ def sdfs_batch(children, P, X0, M, N):
     B = X0.shape[0]
     costs, seqs, nodes = np.empty(B), np.empty((B, N), np.int64), np.empty(B, np.int64)
     for b in range(B):
+        costs[b], seqs[b], nodes[b] = sdfs(children, P, X0[b], M, N)
+    return costs, seqs, nodes
+
+
+@numba.njit(parallel=True)
+def sdfs_batch_parallel(children, P, X0, M, N):
+    """``sdfs`` on each row of ``X0`` ``[B, n]``, the rows spread over every core (``prange``, Numba's
+    default schedule: equal blocks of rows per thread). Returns ``(costs [B], sequences [B, N], nodes [B])``."""
+    B = X0.shape[0]
+    costs, seqs, nodes = np.empty(B), np.empty((B, N), np.int64), np.empty(B, np.int64)
+    for b in numba.prange(B):
         costs[b], seqs[b], nodes[b] = sdfs(children, P, X0[b], M, N)
     return costs, seqs, nodes

@@ -328,11 +328,10 @@ def section_tradeoff(args):
             lt = three_level.tracking(N, lam)
             ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
             t0 = time.perf_counter()
-            run = jax.block_until_ready(ctrl.simulate(i0, steps, plant, params=lt.params(refs), u0=jnp.zeros(3)))
+            run = jax.block_until_ready(ctrl.simulate(i0, steps, plant, params=lt.params(refs), u0=jnp.zeros(3),
+                                                      dt=three_level.PARAMS.ts))
             s = time.perf_counter() - t0
-            out = app.summarize(app.InverterRun(np.asarray(run.states), inverter.reference(
-                three_level.PARAMS, np.arange(steps + 1) * three_level.PARAMS.ts), np.asarray(run.inputs),
-                np.asarray(run.predicted_costs), np.asarray(run.nodes), np.full(steps, np.nan), 0.0), N, lam)
+            out = app.summarize(app.InverterRun(run, inverter.reference(three_level.PARAMS, run.times), np.nan), N, lam)
             print(f"{N:>3} {lam:>8g} {out['thd'] * 100:>6.2f} {out['switching_frequency_hz']:>8.0f} "
                   f"{out['nodes_mean']:>11,.0f} {out['nodes_max']:>10,d} {s:>7.1f}", flush=True)
 

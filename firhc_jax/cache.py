@@ -10,7 +10,8 @@ that builds problem after problem (a notebook, a parameter study, a controller
 that re-identifies its plant) keeps a bounded amount of compiled code instead
 of pinning one executable per problem for ever (measured in docs/cache.md).
 
-``clear_cache()`` empties it; ``set_cache_size(n)`` changes the bound;
+``clear_cache()`` empties it; ``set_cache_size(n)`` changes the bound (at
+least ``MIN_SIZE``: one call must never evict its own entries, docs/cache.md);
 ``cache_info()`` reports its use.
 """
 from __future__ import annotations
@@ -22,6 +23,10 @@ from typing import Any, Callable, Hashable
 import jax
 
 DEFAULT_MAX_SIZE = 64
+# The most entries one call uses: a closed loop with a fallback touches up to 7 while it compiles (its check, the
+# loop, and the checks and searches it traces for both problems; tests/test_soak.py). LRU at this size keeps them
+# all, so a repeated call finds every one; below it, a call can evict its own and recompile every time.
+MIN_SIZE = 8
 _entries: "collections.OrderedDict[Hashable, Any]" = collections.OrderedDict()
 _max_size = DEFAULT_MAX_SIZE
 _stats = {"hits": 0, "misses": 0}
@@ -57,11 +62,16 @@ def clear_cache() -> None:
 
 
 def set_cache_size(max_size: int) -> None:
-    """Keep at most ``max_size`` (>= 1) compiled searches and checks."""
+    """Keep at most ``max_size`` (>= ``MIN_SIZE``) compiled searches and checks."""
     from .problem import positive_int
 
     global _max_size
-    _max_size = positive_int("max_size", max_size)
+    max_size = positive_int("max_size", max_size)
+    if max_size < MIN_SIZE:
+        raise ValueError(f"max_size must be at least {MIN_SIZE}, got {max_size}: one call (a closed loop with a "
+                         f"fallback) uses up to {MIN_SIZE - 1} entries, and a smaller cache would evict them "
+                         "and recompile on every call")
+    _max_size = max_size
     while len(_entries) > _max_size:
         _entries.popitem(last=False)
 

@@ -12,7 +12,7 @@ import sys
 
 # Subcommand modules, in the order shown by --help.
 _APPS = ("firhc_jax.apps.example", "firhc_jax.apps.hopper", "firhc_jax.apps.tanks", "firhc_jax.apps.inverter",
-         "firhc_jax.apps.batch", "firhc_jax.apps.bench")
+         "firhc_jax.apps.batch", "firhc_jax.apps.bench", "firhc_jax.apps.profile")
 
 
 def build_parser() -> argparse.ArgumentParser:

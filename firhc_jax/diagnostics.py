@@ -59,16 +59,18 @@ def check_problem(problem: Problem, states, params=None) -> list[Violation]:
 
 
 def check_lower_bound(problem: Problem, states, params=None, max_steps: int | None = None,
-                      rtol: float = 1e-9) -> list[Violation]:
+                      rtol: float | None = None) -> list[Violation]:
     """Compare ``problem.lower_bound(x, s)`` with the exact optimal cost of the
     remaining ``s`` steps (an exhaustive search of horizon ``s`` from ``x``,
     with the problem's terminal set, terminal cost and constraint, and with
     ``step_index`` the last ``s`` step indices) for every sample state ``[S, n]`` and
     every ``s`` in ``1..max_steps`` (default: the horizon). Returns every
     ``(state, s, bound, exact)`` where the bound exceeds the exact cost by more
-    than ``rtol`` relative, or is NaN (empty: admissible on these samples). An
-    inadmissible bound never crashes a search; it can prune the optimum, so
-    the answer may then be suboptimal."""
+    than ``rtol`` relative (default: ``8 max_steps`` ulps of the coarser of
+    the bound's and the costs' dtypes, at least 1e-9: an exact bound summed in
+    another order is a few ulps off), or is NaN (empty: admissible on these
+    samples). An inadmissible bound never crashes a search; it can prune the
+    optimum, so the answer may then be suboptimal."""
     if problem.lower_bound is None:
         raise ValueError("problem has no lower_bound to check")
     X = _states(states)
@@ -82,6 +84,9 @@ def check_lower_bound(problem: Problem, states, params=None, max_steps: int | No
         short = _remaining(problem, s)
         exact = np.asarray(jax.vmap(lambda x, short=short: exhaustive(short, x, params=params).cost)(X))
         bound = bounds[:, s - 1]
+        if rtol is None:
+            rtol = max([1e-9] + [8 * max_steps * float(np.finfo(d).eps) for d in (bound.dtype, exact.dtype)
+                                 if np.issubdtype(d, np.floating)])
         bad = (bound > exact + rtol * np.abs(np.where(np.isfinite(exact), exact, 0))) & ~(np.isinf(bound)
                                                                                           & np.isinf(exact))
         bad |= np.isnan(bound)  # a NaN bound prunes nothing in the searches, but it is a bug to report

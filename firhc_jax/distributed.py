@@ -12,18 +12,23 @@ tests and the benchmarks:
 * ``load_states`` / ``save_result`` / ``load_result``: the ``.npz`` files of the
   command line;
 * ``launch_local``: run one command as P processes of one job on 127.0.0.1
-  (a free port), killing all of them if one fails or the time runs out.
+  (a free port), killing all of them if one fails or the time runs out;
+* ``exit_on_failure``: make a failing process of a job exit at once (so the
+  launcher sees the failure and stops the rest).
 
 See docs/batch.md, "Many devices and many hosts".
 """
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import socket
 import subprocess
 import sys
 import tempfile
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +37,7 @@ from .result import SearchResult
 
 ENV_COORDINATOR, ENV_NUM_PROCESSES, ENV_PROCESS_ID = "JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"
 STATES_KEY = "X0"
+DEFAULT_TIMEOUT = 3600.0  # s: launch_local's safety net for a job that hangs
 
 
 def _int_arg(value, name: str, low: int, high: int | None = None) -> int:
@@ -105,6 +111,8 @@ def load_states(path) -> np.ndarray:
         X0 = np.asarray(data[STATES_KEY])
     if X0.ndim != 2:
         raise ValueError(f"{path}: {STATES_KEY} must be [B, n], got shape {X0.shape}")
+    if X0.dtype == bool or not (np.issubdtype(X0.dtype, np.integer) or np.issubdtype(X0.dtype, np.floating)):
+        raise ValueError(f"{path}: {STATES_KEY} must hold real numbers, got dtype {X0.dtype}")
     return X0
 
 
@@ -144,22 +152,56 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def launch_local(args, num_processes: int, *, timeout: float | None = None, env: dict | None = None,
+def _die_with_parent():
+    """A ``preexec_fn`` (Linux; None elsewhere) after which the kernel sends the
+    launched process SIGKILL when the launcher dies, however it dies (``kill
+    -9`` included). ``prctl`` is looked up here, before the fork: the child
+    only calls it."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+
+    prctl, parent = ctypes.CDLL(None).prctl, os.getpid()
+
+    def preexec():
+        prctl(1, signal.SIGKILL)  # 1: PR_SET_DEATHSIG
+        if os.getppid() != parent:  # the launcher died before the line above
+            os._exit(1)
+
+    return preexec
+
+
+def _kill_group(proc: subprocess.Popen) -> None:
+    """Kill a launched process still running and anything it started (its own
+    process group)."""
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+def launch_local(args, num_processes: int, *, timeout: float | None = DEFAULT_TIMEOUT, env: dict | None = None,
                  capture: bool = False, cwd=None) -> list[subprocess.CompletedProcess]:
     """Run ``python *args`` as ``num_processes`` processes of one job on 127.0.0.1.
 
     Each process gets ``JAX_COORDINATOR_ADDRESS`` (a free port),
     ``JAX_NUM_PROCESSES`` and its ``JAX_PROCESS_ID`` (read by ``initialize``).
-    Waits for all; if one exits with an error (the others would wait for it
-    forever) or ``timeout`` seconds pass, kills every process still running.
-    Returns their ``CompletedProcess`` (stdout/stderr as text with ``capture``,
-    else inherited); raises ``subprocess.TimeoutExpired`` on timeout.
+    Polls all of them; as soon as one exits with an error (the others would
+    wait for it in a collective) or ``timeout`` seconds pass (default
+    ``DEFAULT_TIMEOUT``; None: no limit), kills every process still running,
+    each with its process group. No process outlives the launcher: they are
+    killed when it returns, raises or is interrupted, and on Linux when it is
+    killed. Returns their ``CompletedProcess`` (stdout/stderr as text with
+    ``capture``, else inherited; a killed process has a negative
+    ``returncode``); raises ``subprocess.TimeoutExpired`` on timeout.
     """
     num_processes = _int_arg(num_processes, "num_processes", 1)
     base = dict(os.environ if env is None else env)
     base.update({ENV_COORDINATOR: f"127.0.0.1:{free_port()}", ENV_NUM_PROCESSES: str(num_processes)})
     command = [sys.executable, *map(str, args)]
     deadline = None if timeout is None else time.monotonic() + timeout
+    preexec = _die_with_parent()
     procs, logs = [], []
     try:
         for i in range(num_processes):
@@ -167,7 +209,7 @@ def launch_local(args, num_processes: int, *, timeout: float | None = None, env:
             err = tempfile.TemporaryFile("w+") if capture else None
             logs.append((out, err))
             procs.append(subprocess.Popen(command, env={**base, ENV_PROCESS_ID: str(i)}, stdout=out, stderr=err,
-                                          cwd=cwd))
+                                          cwd=cwd, start_new_session=True, preexec_fn=preexec))
         while True:
             codes = [p.poll() for p in procs]  # every process, not only up to the first still running
             if all(c is not None for c in codes):
@@ -179,8 +221,7 @@ def launch_local(args, num_processes: int, *, timeout: float | None = None, env:
             time.sleep(0.05)
     finally:
         for p in procs:
-            if p.poll() is None:
-                p.kill()
+            _kill_group(p)
         for p in procs:
             p.wait()
     done = []
@@ -195,3 +236,31 @@ def launch_local(args, num_processes: int, *, timeout: float | None = None, env:
                 f.close()
         done.append(subprocess.CompletedProcess(command, p.returncode, *texts))
     return done
+
+
+@contextlib.contextmanager
+def exit_on_failure():
+    """In a process of a multi-process job: on any exception (or a non-zero
+    ``SystemExit``), print it and end the process at once (``os._exit``).
+
+    A normal interpreter exit runs ``jax.distributed.shutdown``, which waits
+    for every other process, while they wait in a collective for this one: the
+    job would hang. Exiting at once lets a launcher (``launch_local``) see the
+    failure and stop the others."""
+    try:
+        yield
+    except SystemExit as e:
+        if e.code in (None, 0):
+            raise
+        if not isinstance(e.code, int):
+            print(e.code, file=sys.stderr)
+        _exit_now(e.code if isinstance(e.code, int) else 1)
+    except BaseException:  # noqa: B036 (KeyboardInterrupt too: the process must not hang on its way out)
+        traceback.print_exc()
+        _exit_now(1)
+
+
+def _exit_now(code: int) -> None:
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)

@@ -10,6 +10,8 @@ tracking costs along the horizon.
   with the reference ``r`` read from the parameters along the horizon.
 * ``input_change_cost(lambda_u)``: the switching penalty
   ``lambda_u ||u(k) - u(k-1)||^2`` for ``fj.with_input_memory``.
+* ``horizon_windows(signal, steps, horizon)``: a sampled reference cut into
+  the per-step parameters of a closed loop, ``[steps, N, ...]``.
 
 Each callable returned here ignores arguments it does not use, so it fits a
 problem with or without ``step_index`` and ``params``. Matrices are checked and
@@ -172,3 +174,18 @@ def input_change_cost(lambda_u, norm: str = "squared") -> Callable:
         return jnp.asarray(w, du.dtype) * change
 
     return switching_cost
+
+
+def horizon_windows(signal, steps: int, horizon: int) -> np.ndarray:
+    """``[steps, N, ...]``: for the decision at step t, ``signal[t+1 .. t+N]``,
+    the samples that the N predicted states ``x(t+1) .. x(t+N)`` should
+    follow (``signal`` ``[steps + N, ...]`` sampled at the control period,
+    ``signal[0]`` at t = 0). With ``tracking_cost`` and ``step_index`` pass
+    ``params={"ref": horizon_windows(r, T, N)}`` to ``FIRHC.simulate``."""
+    steps, horizon = positive_int("steps", steps), positive_int("horizon", horizon)
+    signal = np.asarray(signal)
+    if signal.ndim == 0 or signal.shape[0] < steps + horizon:
+        raise ValueError(f"signal needs at least steps + horizon = {steps + horizon} samples along its first "
+                         f"axis, got shape {signal.shape}")
+    index = np.arange(steps)[:, None] + 1 + np.arange(horizon)[None, :]
+    return signal[index]

@@ -164,7 +164,7 @@ class Problem:
     def tree_unflatten(cls, aux, leaves):
         obj = object.__new__(cls)  # already validated
         *fns, horizon, step_index, controls = aux
-        for name, value in zip(_CALLABLE_FIELDS, fns):
+        for name, value in zip(_CALLABLE_FIELDS, fns, strict=True):
             object.__setattr__(obj, name, value)
         for name, value in (("horizon", horizon), ("step_index", step_index), ("controls", controls.array),
                             ("_key", aux)):

@@ -1,10 +1,12 @@
 """Progress bars for long runs (closed loops, sweeps), drawn by tqdm.
 
 ``with Progress(total, "label") as bar: bar.update(k)`` from Python loops.
-Inside a compiled loop call ``tick(step)`` (only when progress is on: it is a
-host callback per step): it reports through ``jax.debug.callback`` to the
-innermost active bar, so a cached compiled function reports to whichever bar
-is open when it runs (no retracing).
+Inside a compiled loop call ``tick(step, total)`` (only when progress is on):
+it reports through ``jax.debug.callback`` to the innermost active bar, so a
+cached compiled function reports to whichever bar is open when it runs (no
+retracing). A host callback costs about 20 times a small decision
+(benchmarks/RESULTS.md, issue 24), so a run reports at most ``TICKS`` times:
+every ``interval(total)`` steps and at its last step (``due``).
 
 The bar reads "compiling" until the first step is done and its clock starts
 then, so rates and ETAs exclude compilation. tqdm picks the notebook or
@@ -18,6 +20,19 @@ import jax
 from tqdm.auto import tqdm
 
 _active: list = []
+TICKS = 100  # most updates a run of any length sends to its bar
+
+
+def interval(total: int) -> int:
+    """Steps between two reports in a run of ``total`` steps (at most ``TICKS`` reports)."""
+    return max(1, -(-int(total) // TICKS))
+
+
+def due(step, total: int):
+    """Whether step ``step`` (0-based) reports: every ``interval(total)`` steps and the last one.
+    Works on Python ints and on traced steps."""
+    done = step + 1
+    return (done % interval(total) == 0) | (done == total)
 
 
 class Progress:
@@ -55,11 +70,15 @@ class Progress:
 
 
 def tick_python(step) -> None:
-    """From a Python loop: report that step ``step`` (0-based) is done."""
+    """From a Python loop: report that step ``step`` (0-based) is done (call it when ``due``)."""
     if _active:
         _active[-1].update(int(step) + 1)
 
 
-def tick(step) -> None:
-    """Inside a jitted loop body: report that step ``step`` (0-based) is done."""
-    jax.debug.callback(tick_python, step)
+def tick(step, total: int) -> None:
+    """Inside a jitted loop body of ``total`` steps: report that step ``step``
+    (0-based, traced) is done, when it is ``due`` (a host callback only then)."""
+    if interval(total) == 1:
+        jax.debug.callback(tick_python, step)
+    else:
+        jax.lax.cond(due(step, total), lambda k: jax.debug.callback(tick_python, k), lambda k: None, step)

@@ -93,9 +93,49 @@ def node_budget(max_nodes):
     return np.int32(min(positive_int("max_nodes", max_nodes), INT32_MAX))
 
 
+class Settled(NamedTuple):
+    """One iteration's outcome for one stack (``settle_children``)."""
+
+    x: jax.Array  # [L, n] children: the batch to push one depth below
+    cost: jax.Array  # [L] accumulated costs
+    key: jax.Array  # [L] keys; +inf: never to expand (a leaf, a bad child, a dead parent's, not below the incumbent)
+    leaf_cost: jax.Array  # [] cheapest usable feasible leaf (+inf: none)
+    leaf_path: jax.Array  # [N] int32 its sequence
+    improve: jax.Array  # [] bool it is strictly cheaper than the incumbent
+    stats: SearchStats  # the counters with this iteration added
+
+
+def settle_children(problem: Problem, popped: Popped, row, children, best_cost, stats: SearchStats, *,
+                    prune: bool = True) -> Settled:
+    """Best leaf and the batch to push: the rest of every sDFS iteration after
+    ``expand``, here and in each slot of the batch pool (``firhc_jax.pool``,
+    vmapped over the slots).
+
+    ``children`` (``[K, M]`` fields) are those of the nodes ``popped`` ``[K]``
+    from depth ``row``; only the nodes whose key is below the incumbent
+    ``best_cost`` count (all of them with ``prune=False``). The cheapest usable
+    feasible leaf improves the incumbent when strictly cheaper; the other
+    children are the batch to push at depth ``row + 1``."""
+    N, M = problem.horizon, problem.num_controls
+    K, n = popped.x.shape
+    L = K * M
+    bound = best_cost if prune else jnp.inf  # without pruning, only taken nodes leave the stack
+    alive = popped.key < bound  # [K]
+    depth = row + 1  # of the children
+    ok = (alive[:, None] & ~children.bad).reshape(L)
+    cost, key = children.cost.reshape(L), children.key.reshape(L)
+    leaf_cost, i, improve = best_leaf(cost, children.terminal_ok.reshape(L), ok, depth == N, best_cost)
+    if prune:
+        bound = jnp.where(improve, leaf_cost, bound)
+    keep = ok & (depth < N) & (key < bound)
+    return Settled(x=children.x.reshape(L, n), cost=cost, key=jnp.where(keep, key, jnp.inf), leaf_cost=leaf_cost,
+                   leaf_path=stacks.child_path(popped.path, row, M, i), improve=improve,
+                   stats=tally(stats, children, alive))
+
+
 def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int, prune: bool) -> SearchResult:
     N, M, K = problem.horizon, problem.num_controls, pop_width
-    n, L = x0.shape[0], K * M
+    L = K * M
     dtype = cost_dtype(problem, x0, params)
     inf = jnp.array(jnp.inf, dtype)
     # Rows 0 .. N - 1 hold the batches of depth 0 (the root) to N - 1; row N
@@ -103,9 +143,11 @@ def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int,
     stack = stacks.init(N + 1, K, M, N, x0, dtype)
     best_cost, best_path, stats = inf, jnp.full((N,), -1, jnp.int32), no_stats()
     if warm_start is not None:
-        best_cost, flags = rollout_cost(problem, x0, warm_start, dtype, params)
-        used = jnp.all((warm_start >= 0) & (warm_start < M))  # an all -1 warm start is no warm start
-        stats = no_stats(jnp.where(used, N, 0), flags)
+        cost, flags = rollout_cost(problem, x0, warm_start, dtype, params)
+        # An all -1 warm start is no warm start; one whose N nodes do not fit in the budget is not evaluated.
+        used = jnp.all((warm_start >= 0) & (warm_start < M)) & (N <= budget)
+        best_cost = jnp.where(used, cost, inf)
+        stats = no_stats(jnp.where(used, N, 0), jnp.where(used, flags, 0))
         best_path = jnp.where(best_cost < inf, warm_start, best_path)
     limit = budget - L  # an iteration computes at most L children
 
@@ -118,21 +160,13 @@ def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int,
         return stack, popped, row
 
     def body(c: _Carry) -> _Carry:
-        alive = c.popped.key < incumbent(c.best_cost)  # [K]
-        depth = c.row + 1  # of the children
-        ch = expand(problem, c.popped.x, c.popped.cost, params, steps_left=N - depth,
+        ch = expand(problem, c.popped.x, c.popped.cost, params, steps_left=N - c.row - 1,
                     check_terminal=problem.terminal is not None)
-        ok = (alive[:, None] & ~ch.bad).reshape(L)
-        cost, key = ch.cost.reshape(L), ch.key.reshape(L)
-
-        leaf_cost, i, improve = best_leaf(cost, ch.terminal_ok.reshape(L), ok, depth == N, c.best_cost)
-        best_cost = jnp.where(improve, leaf_cost, c.best_cost)
-        best_path = jnp.where(improve, stacks.child_path(c.popped.path, c.row, M, i), c.best_path)
-
-        keep = ok & (depth < N) & (key < incumbent(best_cost))
-        stack = stacks.push(c.stack, depth, ch.x.reshape(L, n).astype(x0.dtype), cost, jnp.where(keep, key, inf),
-                            c.popped.path)
-        return _Carry(*next_nodes(stack, best_cost), best_cost, best_path, tally(c.stats, ch, alive))
+        step = settle_children(problem, c.popped, c.row, ch, c.best_cost, c.stats, prune=prune)
+        best_cost = jnp.where(step.improve, step.leaf_cost, c.best_cost)
+        best_path = jnp.where(step.improve, step.leaf_path, c.best_path)
+        stack = stacks.push(c.stack, c.row + 1, step.x.astype(x0.dtype), step.cost, step.key, c.popped.path)
+        return _Carry(*next_nodes(stack, best_cost), best_cost, best_path, step.stats)
 
     carry = _Carry(*next_nodes(stack, best_cost), best_cost, best_path, stats)
     out = jax.lax.while_loop(lambda c: (c.row >= 0) & (c.stats.nodes <= limit), body, carry)
@@ -189,11 +223,13 @@ def sdfs(problem: Problem, x0, *, params=None, pop_width: int = 1, warm_start=No
       warm_start: optional ``[N]`` candidate sequence (e.g. the previous
         solution shifted by one step), evaluated first; if it meets the
         terminal test it is the initial incumbent. ``nodes`` counts its N
-        nodes. All ``-1`` means none (no nodes counted).
-      max_nodes: optional node budget (real-time use): the search stops before
-        an iteration could compute more than ``max_nodes`` nodes in all and
-        returns its incumbent with ``complete=False`` (infeasible if it has
-        none yet). A traced value: changing it does not recompile.
+        nodes. All ``-1`` means none (no nodes counted); so does a
+        ``max_nodes`` below N (its nodes would not fit in the budget).
+      max_nodes: optional node budget (real-time use): ``nodes <= max_nodes``
+        always (a warm start's N nodes included). The search stops before an
+        iteration could take the count above it and returns its incumbent
+        with ``complete=False`` (infeasible if it has none yet). A traced
+        value: changing it does not recompile.
       max_memory: bytes the stack may take (``stack_memory``); larger problems
         are refused before anything is allocated.
 

@@ -30,6 +30,15 @@ def param_problem():
     return fj.Problem(dynamics, jnp.array([-1.0, 0.0, 1.0]), cost, 4)
 
 
+def fails_on_process_1():
+    """A ``--problem`` for ``python -m firhc_jax batch`` that raises on process 1 only, after the job is joined:
+    process 0 then waits for it in the job's first collective."""
+    import os
+    if os.environ.get("JAX_PROCESS_ID") == "1":
+        raise RuntimeError("process 1 fails on purpose")
+    return make(7, 3, 1, 5, 4, "loose").problem()
+
+
 def cases():
     rp = make(7, 3, 1, 5, 4, "loose")
     X0 = np.random.default_rng(B).uniform(-1, 1, (B, 3))

@@ -14,7 +14,7 @@ import numpy as np
 from hypothesis import strategies as st
 
 import firhc_jax as fj
-from reference import brute_force, rollout, same_cost  # noqa: F401 (same_cost: re-exported for the tests)
+from reference import brute_force, rollout, same_cost, sequences, tolerance  # noqa: F401 (same_cost: re-exported)
 
 SHAPES = ((1, 1, 3, 4), (2, 2, 4, 3), (3, 1, 2, 6), (2, 3, 5, 3))  # (n, m, M, N)
 
@@ -62,8 +62,15 @@ def draw_params(rng: np.random.Generator, shape, tightness: str = "loose") -> di
             "radius": np.float64(min(radius, 1e30))}
 
 
-def as_jax(params: dict, dtype=jnp.float64) -> dict:
+def as_jax(params: dict, dtype=None) -> dict:
+    """The parameters as JAX arrays (default: JAX's float, float64 with x64 and float32 without)."""
     return {k: jnp.asarray(v, dtype) for k, v in params.items()}
+
+
+def as_seen(params: dict, x0):
+    """``(params, x0)`` as NumPy float64 holding the values the library computes with (rounded to float32 in
+    the float32 run), for the reference."""
+    return {k: np.asarray(v, np.float64) for k, v in as_jax(params).items()}, np.asarray(jnp.asarray(x0), np.float64)
 
 
 def numpy_step(params):
@@ -95,3 +102,37 @@ def cases(draw, tightness=("none", "loose", "tight"), shapes=SHAPES):
     params = draw_params(rng, shape, draw(st.sampled_from(tightness)))
     x0 = np.asarray(draw(st.lists(st.floats(-1, 1), min_size=shape[0], max_size=shape[0])))
     return shape, params, x0
+
+
+def check_optimal(result, shape, params, x0, name=""):
+    """``result`` (one ``SearchResult``) is the optimum over every sequence of the horizon from ``x0``, by
+    brute force in float64 on the values the library saw (``as_seen``), up to ``tolerance()``; its sequence
+    achieves its cost; infeasible means sequence -1 and a NaN input.
+
+    In the float32 run a final state within ``1e-4`` of the terminal set's edge (in squared distance) counts as
+    either side: the search's float32 states and the reference's may fall on different sides. The returned cost
+    then lies between the optimum over the sequences surely inside and the one over those maybe inside. With
+    x64 the margin is 0 and the check is the plain optimum."""
+    import jax
+
+    assert result.cost.dtype == jnp.asarray(0.0).dtype, (name, result.cost.dtype)  # float32 without x64
+    params, x0 = as_seen(params, x0)
+    seqs = sequences(shape[2], shape[3])
+    costs, finals = rollout(numpy_step(params), x0, params["U"][seqs])
+    edge = np.sum((finals - params["r"]) ** 2, axis=-1) - params["radius"]  # < 0: inside
+    margin = 0.0 if jax.config.jax_enable_x64 else 1e-4
+    high = float(np.min(costs, initial=np.inf, where=edge < -margin))  # the optimum among the surely inside
+    low = float(np.min(costs, initial=np.inf, where=edge < margin))  # ... among the maybe inside
+    rtol, atol = tolerance()
+    cost, feasible = float(result.cost), bool(result.feasible)
+    seq = np.asarray(result.sequence)
+    if np.isfinite(high):
+        assert feasible, (name, "infeasible, but", high)
+    if not np.isfinite(low):
+        assert not feasible, (name, "feasible", cost, "but no sequence is")
+    if feasible:
+        assert low - rtol * abs(low) - atol <= cost <= high + rtol * abs(high) + atol, (name, cost, low, high)
+        i = int(np.ravel_multi_index(tuple(seq), (shape[2],) * shape[3]))  # its row of sequences(M, N)
+        assert same_cost(costs[i], cost) and edge[i] < margin, (name, "the sequence costs", costs[i], cost)
+    else:
+        assert np.all(seq == -1) and np.all(np.isnan(np.asarray(result.first_input))), name

@@ -35,18 +35,38 @@ def brute_force(step, controls, x0, N, terminal=None):
     reaches ``terminal``."""
     controls = np.asarray(controls, float)
     controls = controls[:, None] if controls.ndim == 1 else controls
-    seqs = np.array(list(itertools.product(range(len(controls)), repeat=N)), int).reshape(-1, N)
+    seqs = sequences(len(controls), N)
     cost, _ = rollout(step, x0, controls[seqs], terminal)
     best = int(np.argmin(cost))
     return (float(cost[best]), seqs[best]) if np.isfinite(cost[best]) else (np.inf, None)
 
 
-def same_cost(a, b, rtol=1e-9):
-    """Equal costs up to a relative ``rtol`` (the library and the reference
-    evaluate the same sums at other batch shapes: a few ulps apart). Two
-    infinite costs (both infeasible) are equal; finite and infinite never; NaN
-    never. Scalars or arrays (then every element)."""
+def sequences(M, N):
+    """Every index sequence of length ``N`` over ``M`` inputs, ``[M^N, N]``, in
+    ``itertools.product`` order."""
+    return np.array(list(itertools.product(range(M), repeat=N)), int).reshape(-1, N)
+
+
+def tolerance():
+    """``(rtol, atol)`` of a cost comparison in this run: with x64 (the suite's
+    default) 1e-9 relative, a few float64 ulps; in the float32 run (``pytest
+    --float32``) 1e-5 relative (about 80 float32 ulps: the library's float32
+    sums against the float64 reference) plus 1e-6 absolute for costs near 0."""
+    import jax
+
+    return (1e-9, 0.0) if jax.config.jax_enable_x64 else (1e-5, 1e-6)
+
+
+def same_cost(a, b, rtol=None, atol=None):
+    """Equal costs up to ``rtol`` relative plus ``atol`` (default: ``tolerance()``;
+    the library and the reference evaluate the same sums at other batch shapes
+    or precisions). Two infinite costs (both infeasible) are equal; finite and
+    infinite never; NaN never. Scalars or arrays (then every element)."""
+    default_rtol, default_atol = tolerance()
+    rtol = default_rtol if rtol is None else rtol
+    atol = default_atol if atol is None else atol
     a, b = np.asarray(a, float), np.asarray(b, float)
     with np.errstate(invalid="ignore"):
-        close = np.where(np.isinf(a) | np.isinf(b), a == b, np.abs(a - b) <= rtol * np.maximum(np.abs(a), np.abs(b)))
+        close = np.where(np.isinf(a) | np.isinf(b), a == b,
+                         np.abs(a - b) <= rtol * np.maximum(np.abs(a), np.abs(b)) + atol)
     return bool(np.all(close))

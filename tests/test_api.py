@@ -202,8 +202,9 @@ def test_firhc_closed_loop_sdfs_equals_exhaustive_and_reaches_target():
 
 def test_firhc_call_applies_first_input():
     ctrl = fj.FIRHC(problem())
-    u, r = ctrl(X0)
-    np.testing.assert_array_equal(u, CONTROLS[int(r.sequence[0])][None])
+    u, info = ctrl(X0)
+    np.testing.assert_array_equal(u, CONTROLS[int(info.result.sequence[0])][None])
+    assert not bool(info.used_fallback) and not bool(info.held)
 
 
 def test_firhc_python_loop_matches_compiled_loop_with_other_plant():
@@ -221,7 +222,7 @@ def test_firhc_infeasible_without_and_with_fallback():
         fj.FIRHC(p)(X0)
     with pytest.warns(RuntimeWarning, match="no feasible"):
         run = fj.FIRHC(p).simulate(X0, 3)
-    assert run.first_infeasible_step == 0 and np.all(np.isnan(run.inputs))
+    assert run.first_infeasible_step == 0 and np.all(run.held) and np.all(np.asarray(run.inputs) == 0)  # u0 held
     fb = fj.FIRHC(p, fallback="unconstrained").simulate(X0, 3)
     assert not np.any(fb.feasible) and np.all(fb.used_fallback) and np.all(np.isfinite(fb.inputs))
     free = fj.FIRHC(problem()).simulate(X0, 3)

@@ -5,12 +5,17 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jaxlib import xla_client
 
 import firhc_jax as fj
-from firhc_jax.batch import pool_memory, pool_row_memory, row_memory, solve_batch
+from firhc_jax import batch as batch_module
+from firhc_jax.batch import row_memory, solve_batch
+from firhc_jax.pool import pool_memory, pool_row_memory
+from firhc_jax.sharding import usable_cores
 from random_problems import make
 from reference import brute_force, same_cost
 
@@ -159,6 +164,10 @@ def test_bad_input_is_refused_clearly():
         solve_batch(p, X0, pop_width=0)
     with pytest.raises(ValueError, match="max_memory"):
         solve_batch(p, X0, max_memory=0)
+    with pytest.raises(ValueError, match="cores"):
+        solve_batch(p, X0, cores=0)
+    with pytest.raises(ValueError, match="cores=2 splits the rows of an un-jitted"):
+        jax.jit(lambda X: solve_batch(p, X, cores=2).cost)(X0)
 
 
 def test_bad_params_are_refused_clearly():
@@ -248,9 +257,8 @@ def test_error_flags_reach_the_caller():
     assert np.all(r.nan_encountered) and not np.any(r.negative_cost)
 
 
-def test_docs_example_runs(monkeypatch):
+def test_docs_example_runs():
     """docs/batch.md's example runs as written and its results are exact."""
-    monkeypatch.setattr(fj, "solve_batch", solve_batch, raising=False)  # until fj re-exports it
     text = (Path(__file__).parent.parent / "docs" / "batch.md").read_text()
     namespace = {}
     exec(compile(re.search(r"```python\n(.*?)```", text, re.S).group(1), "docs/batch.md", "exec"), namespace)
@@ -292,3 +300,99 @@ def test_pool_matches_brute_force_per_row(shape, seed, tightness):
         if np.isfinite(ref):  # the stored path (stolen subtrees included) really achieves the cost
             again = pp.sequence_cost(rows[b], X0[b], np.asarray(res.sequence[b]))
             assert pp.same_cost(again, float(res.cost[b])), (b, again, float(res.cost[b]))
+
+
+# ---------------------------------------------------------------- budgets
+@pytest.mark.parametrize("lanes", [1, 3])
+def test_a_budget_below_one_expansion_expands_nothing(lanes):
+    """As fj.sdfs, which stops before an iteration could take the count above max_nodes: a row whose budget
+    cannot cover one expansion (K M = 5 children) gets no nodes and complete=False (issue 24: the pool expanded
+    every row's root, 5 nodes per row with max_nodes=1)."""
+    p = make(4, 2, 1, 5, 3, "loose").problem()
+    X0 = states(4, 4, 2)
+    for max_nodes in (1, 4):
+        res = solve_batch(p, X0, lanes=lanes, max_nodes=max_nodes)
+        one = fj.sdfs(p, X0[0], max_nodes=max_nodes)
+        assert int(one.nodes) == 0 and not bool(one.complete)
+        np.testing.assert_array_equal(res.nodes, 0)
+        assert not np.any(res.complete) and not np.any(res.feasible)
+
+
+def test_one_lane_keeps_any_budget_exactly_as_fj_sdfs():
+    """One slot never shares a row, so the documented overshoot (lanes - 1) K M is 0: with any budget the pool
+    is fj.sdfs row by row (node counts, completeness, incumbents)."""
+    p = make(9, 3, 2, 4, 4, "loose").problem()
+    X0 = states(9, 5, 3)
+    for max_nodes in (3, 4, 7, 30, 90):
+        pool = solve_batch(p, X0, lanes=1, max_nodes=max_nodes)
+        plain = solve_batch(p, X0, solver="sdfs-vmap", max_nodes=max_nodes)
+        for field in ("nodes", "complete", "sequence", "feasible", "iterations"):
+            np.testing.assert_array_equal(getattr(pool, field), getattr(plain, field), err_msg=f"{max_nodes} {field}")
+        assert np.all(np.asarray(pool.nodes) <= max_nodes)
+
+
+
+# ---------------------------------------------------------------- every core of a CPU
+def dispatches(monkeypatch) -> list:
+    """Record the execution stream of every dispatch of a compiled batch (``solve_batch`` calls the compiled
+    batch once per part)."""
+    seen, real = [], batch_module.compiled
+
+    def counting(*args, **kwargs):
+        run = real(*args, **kwargs)
+
+        def dispatch(*a):
+            seen.append(xla_client._xla.get_execution_stream_id())
+            return run(*a)
+        return dispatch
+
+    monkeypatch.setattr(batch_module, "compiled", counting)
+    return seen
+
+
+@pytest.mark.skipif(usable_cores() < 2, reason="needs a process that may use at least 2 cores")
+def test_a_default_solve_keeps_every_core_busy(monkeypatch):
+    """On one CPU device, a default solve dispatches one part per usable core without waiting between them,
+    each on its own execution stream (executions on one stream wait for each other; on different streams they
+    run side by side): as many executions in flight as cores. Where one part's pool alone fills max_memory,
+    one execution."""
+    seen = dispatches(monkeypatch)
+    rp = make(3, 2, 1, 3, 3, "loose")
+    p, X0 = rp.problem(), states(3, 11, 2)
+    res = solve_batch(p, X0, devices=jax.devices()[:1])
+    assert len(seen) == min(usable_cores(), 11) and len(set(seen)) == len(seen) and 0 not in seen, seen
+    assert_exact(rp, np.asarray(X0), res)
+    seen.clear()
+    # One pool of 11 lanes and one row: k >= 2 parts would need k pools of ceil(11 / k) lanes and k rows.
+    whole = pool_memory(p, 2, X0.dtype.itemsize, 11) + pool_row_memory(p, 2, X0.dtype.itemsize)
+    solve_batch(p, X0, devices=jax.devices()[:1], max_memory=whole)
+    assert seen == [0]  # one execution, on the thread's own stream
+
+
+def lower_bound(x, steps_left, p):
+    """Admissible: every step costs at least its cheapest input's weight."""
+    return steps_left * jnp.sum(p["w"] * jnp.min(p["U"] ** 2, axis=0))
+
+
+def test_parts_give_the_single_execution_result():
+    """Every solver, with per-row parameters, a lower bound and (sDFS solvers) a node budget: 3 parts give the
+    costs, sequences, flags and node counts of one execution. The pool has one lane here, so that a row cut by
+    the budget was searched alone, in fj.sdfs's order, whatever the parts (with shared rows the incumbent at the
+    cut depends on the sharing); the default pool over parts is checked against brute force above."""
+    shape = pp.SHAPES[0]
+    rng = np.random.default_rng(5)
+    rows = [pp.draw_params(rng, shape, "loose") for _ in range(7)]
+    params = {k: jnp.asarray(np.stack([r[k] for r in rows])) for k in rows[0]}
+    X0 = rng.uniform(-1, 1, (7, shape[0]))
+    p = pp.problem(shape, lower_bound=lower_bound)
+    cut = False
+    for solver, options in (("sdfs", {"lanes": 1, "max_nodes": 12}), ("sdfs-vmap", {"max_nodes": 12}),
+                            ("exhaustive", {})):
+        one = solve_batch(p, X0, solver=solver, params=params, cores=1, **options)
+        three = solve_batch(p, X0, solver=solver, params=params, cores=3, **options)
+        for field in ("sequence", "feasible", "complete", "first_input", "nodes", "iterations", "negative_cost",
+                      "nan_encountered", "overflow"):
+            np.testing.assert_array_equal(getattr(three, field), getattr(one, field), err_msg=f"{solver} {field}")
+        np.testing.assert_allclose(three.cost, one.cost, rtol=1e-14, atol=0, err_msg=solver)
+        cut |= not np.all(one.complete)
+    assert cut  # the budget stopped some rows

@@ -3,9 +3,11 @@ import json
 import subprocess
 import sys
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import firhc_jax as fj
 from firhc_jax.apps import bench
 
 
@@ -33,18 +35,29 @@ def test_exhaustive_subset_respects_the_node_budget():
     assert len(bench.subset(case, max_nodes=case.problem.tree_size() - 1)) == 0  # one search alone is over budget
 
 
-def test_table_row_on_a_small_case():
-    case = bench.synthetic_case(3, count=3)
-    row = bench.table_row(case, repeats=1, max_es_nodes=1e9, pop_widths=(1, 4))  # two widths: fewer compiles
-    assert row["A"] == case.problem.tree_size() and row["es_steps"] == row["steps"] == 3
-    assert row["B_min"] <= row["B_mean"] <= row["B_max"] <= row["A"]
+def _bounded_case(count: int) -> bench.Case:
+    """A Table-2/3 row's case in miniature, like ``bench tables --bound``: a terminal set and an admissible
+    bound that is +inf wherever the set is out of reach (x moves at most 1 a step), on a 39-node tree."""
+    problem = fj.Problem(lambda x, u: x + u, np.array([[-1.0], [0.0], [1.0]]), lambda x, u: jnp.sum(x * x), 3,
+                         terminal=lambda x: jnp.abs(x[0]) <= 0.5,
+                         lower_bound=lambda x, s: jnp.where(jnp.abs(x[0]) - s > 0.5, jnp.inf, 0.0))
+    return bench._case("toy", problem, np.linspace(1.0, 3.0, count)[:, None])
+
+
+def test_table_row_of_a_bounded_problem_times_full_exhaustive_searches():
+    """The bound prunes sDFS only: both exhaustive searches visit all A nodes of every state (table_row asserts
+    it, as in ``bench tables --bound``; exhaustive(method="dfs") once let a +inf bound prune)."""
+    case = _bounded_case(3)
+    row = bench.table_row(case, repeats=1, max_es_nodes=1e9, pop_widths=(1, 2))  # two widths: fewer compiles
+    assert row["A"] == case.problem.tree_size() == 39 and row["es_steps"] == row["steps"] == 3
+    assert row["B_min"] <= row["B_mean"] <= row["B_max"] < row["A"]
     assert 0 < row["C_dfs_pct"] and 0 < row["C_levels_pct"]
-    assert row["best_pop_width"] in (1, 4)
+    assert row["best_pop_width"] in (1, 2)
     np.testing.assert_array_equal(case.reference.shape, (3, 3))
 
 
 def test_table_row_without_exhaustive_searches_when_one_exceeds_the_budget():
-    case = bench.synthetic_case(3, count=2)
+    case = _bounded_case(2)
     row = bench.table_row(case, repeats=1, max_es_nodes=case.problem.tree_size() - 1, pop_widths=(1, 2))
     assert row["es_steps"] == 0 and row["steps"] == 2
     assert row["C_dfs_pct"] is None and row["C_levels_pct"] is None and row["dfs_ms"] is None

@@ -99,6 +99,24 @@ def test_check_lower_bound_catches_an_inadmissible_bound():
     assert bad and all(v.value > v.limit for v in bad)
 
 
+def test_an_exact_float32_bound_is_not_a_violation():
+    """An exact bound computed in another order (s * c against the search's c + c + ...) differs from the
+    float32 sums by an ulp or two: the default ``rtol`` follows the dtype, so that is no violation (with
+    1e-9 it was), while a bound 0.1% too high still is."""
+    def cost(x, u):
+        return 0.1 * x[0] ** 2 + 0.3 + 0.0 * u[0]
+
+    def bound(x, s):
+        return s * cost(x, jnp.zeros(1, x.dtype))
+
+    still = fj.Problem(lambda x, u: x, jnp.zeros((1, 1), jnp.float32), cost, 6, lower_bound=bound)
+    states = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (16, 1)), jnp.float32)
+    assert check_lower_bound(still, states) == []
+    assert check_lower_bound(still, states, rtol=0.0)  # the ulps are there: the default tolerates them
+    high = still.replace(lower_bound=lambda x, s: 1.001 * bound(x, s))
+    assert len(check_lower_bound(high, states)) == 16 * 6
+
+
 def test_a_nan_bound_prunes_nothing_in_every_solver():
     """A bound that returns NaN (a bug in the user's bound) is treated as 0: every solver stays exact."""
     shape = pp.SHAPES[0]

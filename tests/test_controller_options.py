@@ -1,4 +1,4 @@
-"""FIRHC's fallback problem and warm-start callable."""
+"""FIRHC's fallback problem, warm-start callable and progress bar."""
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -50,3 +50,59 @@ def test_bad_options_are_refused():
         fj.FIRHC(p, fallback="relaxed")
     with pytest.raises(ValueError, match="solver='sdfs' only"):
         fj.FIRHC(p, "exhaustive", warm_start=lambda *a: None)
+
+
+def test_a_progress_bar_costs_at_most_TICKS_host_callbacks(capsys, monkeypatch):
+    """A host callback per step made progress=True 23x slower (issue 24): a run reports every
+    interval(T) steps and at its end, whatever T, compiled or not."""
+    from firhc_jax import controller, progress
+
+    ticks = []
+    original = progress.tick_python
+    counting = lambda step: (ticks.append(int(step)), original(step))  # noqa: E731
+    monkeypatch.setattr(progress, "tick_python", counting)  # reached from the compiled loop's callback
+    monkeypatch.setattr(controller, "tick_python", counting)  # called by the Python loop
+    fj.clear_cache()  # a closed loop compiled earlier would hold the original callback
+    ctrl = fj.FIRHC(fj.Problem(dyn, CONTROLS, COST, 2))
+    for steps, compiled in ((1_000, True), (1_001, True), (250, False)):
+        ticks.clear()
+        ctrl.simulate(jnp.array([1.0, -0.5]), steps, progress=True, compiled=compiled)
+        every = progress.interval(steps)
+        expected = sorted({k for k in range(steps) if (k + 1) % every == 0} | {steps - 1})
+        assert ticks == expected and len(ticks) <= progress.TICKS + 1, (steps, compiled)
+        assert f"{steps}/{steps}" in capsys.readouterr().err
+
+
+def test_unconstrained_fallback_keeps_terminal_cost_and_constraints():
+    """It drops the terminal set and the lower bound only: hard constraints are physical limits, and the
+    terminal cost is part of the objective."""
+    no_up = lambda x_next, u: u[0] < 0.5  # noqa: E731 (input +1 is forbidden)
+    end_cost = lambda x: 5.0 * x[1] ** 2  # noqa: E731
+    p = fj.Problem(dyn, CONTROLS, COST, 3, terminal=lambda x: x[1] > 50.0,
+                   lower_bound=lambda x, steps_left: 0.0 * x[0], terminal_cost=end_cost, constraint=no_up)
+    x = jnp.array([-1.0, -0.5])
+    result, used = fj.FIRHC(p, fallback="unconstrained").solve(x)
+    ref = fj.sdfs(p.replace(terminal=None, lower_bound=None), x)
+    bare = fj.sdfs(fj.Problem(dyn, CONTROLS, COST, 3), x)
+    assert bool(used) and float(result.cost) == float(ref.cost) and list(result.sequence) == list(ref.sequence)
+    assert 2 not in list(result.sequence) and 2 in list(bare.sequence)  # the constraint still binds
+    # Nothing satisfies a constraint that forbids every input: the message names the constraint, no terminal set.
+    stuck = fj.Problem(dyn, CONTROLS, COST, 2, constraint=lambda x_next, u: u[0] > 5.0)
+    with pytest.raises(fj.InfeasibleError, match="constraint") as e:
+        fj.FIRHC(stuck)(x)
+    assert "terminal" not in str(e.value)
+
+
+def test_step_index_problems_run_in_the_closed_loop():
+    """With step_index the model's callables get k; the closed loop's applied step is k = 0."""
+    def dyn_k(x, u, k):
+        return dyn(x, u) * (1.0 + 0.1 * k)
+
+    def cost_k(x_next, u, k):
+        return COST(x_next, u) * (1.0 + k)
+
+    p = fj.Problem(dyn_k, CONTROLS, cost_k, 3, step_index=True)
+    run = fj.FIRHC(p).simulate(jnp.array([1.0, -0.5]), 4)
+    x, u = run.states[0], CONTROLS[int(run.input_indices[0])]
+    assert float(run.stage_costs[0]) == float(cost_k(dyn_k(x, u, 0), u, 0))
+    np.testing.assert_array_equal(np.asarray(run.states[1]), np.asarray(dyn_k(x, u, 0)))

@@ -114,6 +114,111 @@ def test_batch_command_on_two_local_processes(tmp_path):
     assert one.cost.shape == (24,) and np.all(one.feasible)
 
 
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has ended
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.slow
+def test_a_failure_in_any_process_ends_the_whole_job(tmp_path, monkeypatch, capfd):
+    """``batch --launch-local 2`` where process 1 fails after joining the job (process 0 then waits for it in a
+    collective, and process 1's normal exit would wait for process 0): the launcher returns 1 at once with a
+    message naming the failed process, and no process is left."""
+    for key, value in child_env(1).items():
+        monkeypatch.setenv(key, value)
+    for key in (distributed.ENV_COORDINATOR, distributed.ENV_NUM_PROCESSES, distributed.ENV_PROCESS_ID):
+        monkeypatch.delenv(key, raising=False)
+    distributed.save_states(tmp_path / "X0.npz", np.random.default_rng(0).uniform(-1, 1, (4, 3)))
+    argv = ["batch", "--problem", "_distributed_worker:fails_on_process_1", "--states", str(tmp_path / "X0.npz"),
+            "--out", str(tmp_path / "r.npz"), "--timeout", str(TIMEOUT)]
+    t0 = time.monotonic()
+    assert cli_main(argv + ["--launch-local", "2"]) == 1
+    assert time.monotonic() - t0 < TIMEOUT / 2  # ended by the failure, not by the timeout
+    err = capfd.readouterr().err  # the processes write to the launcher's file descriptors
+    assert "process 1 fails on purpose" in err and "the job failed (process 0 killed" in err and "process 1 exit 1" \
+        in err, err[-3000:]
+    assert not (tmp_path / "r.npz").exists()
+
+
+@pytest.mark.slow
+def test_launcher_stops_on_timeout_with_a_message(tmp_path, capsys):
+    """``--timeout`` too short for the job: a message and exit status 1, not a TimeoutExpired traceback."""
+    distributed.save_states(tmp_path / "X0.npz", np.zeros((2, 3)))
+    argv = ["batch", "--plant", "synthetic", "-N", "2", "--states", str(tmp_path / "X0.npz"), "--out",
+            str(tmp_path / "r.npz"), "--launch-local", "2", "--timeout", "0.5"]
+    assert cli_main(argv) == 1
+    assert "did not finish within 0.5 s (--timeout); every process was stopped" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_no_launched_process_outlives_the_launcher(tmp_path):
+    """The launcher killed with SIGKILL (no Python clean-up runs): its processes die with it."""
+    child = f"import os, time; open(os.path.join({str(tmp_path)!r}, os.environ['JAX_PROCESS_ID']), 'w')" \
+            ".write(str(os.getpid())); time.sleep(120)"
+    launcher = subprocess.Popen([sys.executable, "-c", f"from firhc_jax import distributed\n"
+                                 f"distributed.launch_local(['-c', {child!r}], 2)"], cwd=ROOT)
+    try:
+        deadline = time.monotonic() + 60
+        while not all((tmp_path / i).exists() and (tmp_path / i).read_text() for i in "01"):
+            assert time.monotonic() < deadline and launcher.poll() is None, "the processes did not start"
+            time.sleep(0.05)
+        pids = [int((tmp_path / i).read_text()) for i in "01"]
+        launcher.kill()
+        launcher.wait()
+        deadline = time.monotonic() + 10
+        while any(map(_alive, pids)) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not any(map(_alive, pids)), pids
+    finally:  # nothing left behind, whatever happened
+        launcher.kill()
+        for f in (tmp_path / i for i in "01"):
+            if f.exists() and f.read_text() and _alive(pid := int(f.read_text())):
+                os.kill(pid, 9)
+
+
+def _refuse_to_solve(*args, **kwargs):
+    raise AssertionError("solved before the arguments were checked")
+
+
+@pytest.mark.parametrize("out, launch, match", [
+    ("/proc/nope/r.npz", False, "cannot write --out /proc/nope/r.npz: No such file or directory"),
+    ("/proc/nope/r.npz", True, "cannot write --out"),  # the launcher checks before it starts the processes
+    (".", False, "--out . is a directory"),
+    ("sub", False, "--out sub is a directory"),
+    ("r", False, "must name an .npz file"),
+    ("X0.npz/r.npz", False, "cannot write --out X0.npz/r.npz: X0.npz is not a directory")])
+def test_batch_checks_out_before_any_work(tmp_path, monkeypatch, out, launch, match):
+    """An unwritable or ambiguous ``--out`` is a one-line error before anything is solved (``--out .`` wrote
+    ``..npz`` and reported ``-> .``), and nothing is written."""
+    import firhc_jax.batch
+    monkeypatch.setattr(firhc_jax.batch, "solve_batch", _refuse_to_solve)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sub").mkdir()
+    distributed.save_states("X0.npz", np.zeros((2, 3)))
+    argv = ["batch", "--plant", "synthetic", "-N", "2", "--states", "X0.npz", "--out", out]
+    with pytest.raises(SystemExit, match=match):
+        cli_main(argv + (["--launch-local", "2", "--timeout", "60"] if launch else []))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["X0.npz", "sub"] and not any((tmp_path / "sub").iterdir())
+
+
+@pytest.mark.parametrize("problem, states, match", [
+    ("nosuchmod:f", None, "--problem nosuchmod:f: cannot import 'nosuchmod'"),
+    ("os:getcwd", None, "--problem os:getcwd must return a firhc_jax.Problem, got str"),
+    ("os:nosuchname", None, "module 'os' has no 'nosuchname'"),
+    ("firhc_jax.models.tanks:make_problem", None, "must be a function without arguments"),
+    (None, np.array([["a", "b", "c"]]), "X0 must hold real numbers, got dtype <U1")])
+def test_batch_refuses_bad_problems_and_states_clearly(tmp_path, monkeypatch, problem, states, match):
+    import firhc_jax.batch
+    monkeypatch.setattr(firhc_jax.batch, "solve_batch", _refuse_to_solve)
+    distributed.save_states(tmp_path / "X0.npz", np.zeros((2, 3)) if states is None else states)
+    what = ["--problem", problem] if problem else ["--plant", "synthetic", "-N", "2"]
+    with pytest.raises(SystemExit, match=match):
+        cli_main(["batch", *what, "--states", str(tmp_path / "X0.npz"), "--out", str(tmp_path / "r.npz")])
+
+
 def test_launcher_kills_the_job_when_a_process_fails(tmp_path):
     """Process 1 fails at once; process 0 would wait for it forever (here: sleep 60 s, twice the timeout): the
     launcher returns both, killed, instead of raising TimeoutExpired."""

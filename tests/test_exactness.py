@@ -72,50 +72,59 @@ def test_warm_start_keeps_the_optimum(case, seed):
         assert int(opt.nodes) <= int(plain.nodes) + N
 
 
-def table1_reference(rp, x0):
-    """Plain-Python rendering of the paper's Table 1; returns (best_cost, best_path, nodes)."""
+def table1_reference(step, controls, N, terminal, x0):
+    """Plain-Python rendering of the paper's Table 1 on a NumPy ``step(x, u) -> (x_next, stage cost)``, the
+    inputs ``[M, m]`` and ``terminal(x) -> bool`` (None: unconstrained); returns (best_cost, best_path, nodes)."""
     best_cost, best_path, nodes = np.inf, None, 0
     stack = [(np.asarray(x0, float), 0.0, 0, ())]
     while stack:
         x, cost, depth, path = stack.pop()
         if cost < best_cost:
             temp = []
-            for mode in range(rp.M):
-                u = rp.controls[mode]
-                x_new = rp.dynamics(x, u, xp=np)
-                c_new = cost + float(rp.stage_cost(x_new, u, xp=np))
+            for mode, u in enumerate(controls):
+                x_new, c = step(x, u)
+                c_new = cost + float(c)
                 nodes += 1
-                if c_new < best_cost and depth + 1 != rp.N:
+                if c_new < best_cost and depth + 1 != N:
                     temp.append((x_new, c_new, depth + 1, path + (mode,)))
-                if c_new < best_cost and depth + 1 == rp.N and (rp.radius is None or rp.terminal(x_new, xp=np)):
+                if c_new < best_cost and depth + 1 == N and (terminal is None or terminal(x_new)):
                     best_cost, best_path = c_new, path + (mode,)
             temp.sort(key=lambda node: node[1], reverse=True)  # push the cheapest last
             stack.extend(temp)
     return best_cost, best_path, nodes
 
 
-@pytest.mark.parametrize("seed", range(12))
-def test_node_count_equals_table1(seed):
-    rng = np.random.default_rng(seed)
-    n, m, M, N = rng.integers(1, 5), rng.integers(1, 4), rng.integers(2, 7), rng.integers(1, 6)
-    rp = make(seed, int(n), int(m), int(M), int(N), ["none", "loose", "tight"][seed % 3])
-    x0 = rng.uniform(-1, 1, n)
-    ref_cost, ref_path, ref_nodes = table1_reference(rp, x0)
-    r = fj.sdfs(rp.problem(), x0)
+def _table1_of(rp, x0):
+    return table1_reference(rp.step, rp.controls, rp.N, rp.terminal_np, x0)
+
+
+@settings(max_examples=16, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(pp.cases())
+def test_node_count_equals_table1(case):
+    """Node counts, costs and paths of sdfs equal Table 1's on random problems (every number a parameter: one
+    compile per shape, shared with the warm start test's plain search)."""
+    shape, params, x0 = case
+    ref_cost, ref_path, ref_nodes = table1_reference(pp.numpy_step(params), params["U"], shape[3],
+                                                     lambda z: pp.terminal(z, params, xp=np), x0)
+    r = fj.sdfs(pp.problem(shape), x0, params=pp.as_jax(params))
     assert int(r.nodes) == ref_nodes
     assert same_cost(float(r.cost), ref_cost)
     if ref_path is not None:
         assert tuple(np.asarray(r.sequence)) == ref_path
 
 
-def test_node_count_on_a_deep_pruned_tree():
-    """A case where pruning matters (many nodes cut), compared with Table 1."""
-    rp = make(7, 3, 1, 5, 6, "loose")
-    x0 = np.array([0.3, -0.2, 0.1])
-    ref_cost, _, ref_nodes = table1_reference(rp, x0)
+@pytest.mark.parametrize("args, x0, pruned", [
+    ((7, 3, 1, 5, 6, "loose"), [0.3, -0.2, 0.1], True),  # deep: pruning cuts most of the tree
+    ((2, 2, 3, 6, 2, "tight"), [0.5, -0.4], False)])  # shallow and wide, infeasible: the whole tree
+def test_node_count_equals_table1_at_the_ends(args, x0, pruned):
+    """Shapes beyond the property test's four, compared with Table 1."""
+    rp, x0 = make(*args), np.array(x0)
+    ref_cost, ref_path, ref_nodes = _table1_of(rp, x0)
     r = fj.sdfs(rp.problem(), x0)
-    assert int(r.nodes) == ref_nodes < rp.problem().tree_size()
+    assert int(r.nodes) == ref_nodes and (ref_nodes < rp.problem().tree_size()) == pruned
     assert same_cost(float(r.cost), ref_cost)
+    if ref_path is not None:
+        assert tuple(np.asarray(r.sequence)) == ref_path
 
 
 def test_exhaustive_chunking_changes_nothing():
@@ -132,9 +141,14 @@ def test_exhaustive_chunking_changes_nothing():
         assert int(result.iterations) == layout.split + layout.chunks * (p.horizon - layout.split)
 
 
-def test_vmap_batch_equals_per_item():
-    rp = make(11, 3, 2, 4, 4, "loose")
-    p = rp.problem()
+@pytest.fixture(scope="module")
+def small():
+    """One problem object for the two tests below: they share its compiled eager searches."""
+    return make(11, 3, 2, 4, 4, "loose").problem()
+
+
+def test_vmap_batch_equals_per_item(small):
+    p = small
     X0 = jnp.asarray(np.random.default_rng(1).uniform(-1, 1, (6, 3)))
     for solve in (lambda x: fj.sdfs(p, x), lambda x: fj.sdfs(p, x, pop_width=3), lambda x: fj.exhaustive(p, x)):
         batch = jax.vmap(solve)(X0)
@@ -144,12 +158,11 @@ def test_vmap_batch_equals_per_item():
                 np.testing.assert_array_equal(getattr(batch, field)[i], getattr(one, field))
 
 
-def test_jit_and_same_cost_bit_for_bit():
-    rp = make(5, 3, 2, 5, 4, "none")
-    p, x0 = rp.problem(), jnp.array([0.1, 0.5, -0.3])
+def test_jit_and_same_cost_bit_for_bit(small):
+    p, x0 = small, jnp.array([0.1, 0.5, -0.3])
     a = jax.jit(lambda x: fj.sdfs(p, x))(x0)
     b = fj.exhaustive(p, x0)
-    assert float(a.cost) == float(b.cost)  # same accumulation order; elementwise dynamics
+    assert float(a.cost) == float(b.cost) < np.inf  # same accumulation order; elementwise dynamics
 
 
 def test_edge_sizes_m1_n1():

@@ -11,7 +11,8 @@ import firhc_jax as fj
 from firhc_jax.models import tanks
 from firhc_jax.models.synthetic import benchmark_state, synthetic_problem
 
-pytest.importorskip("numba")
+pytest.importorskip("numba", reason="the Numba peer check needs the bench extra: pip install -e '.[test,bench]' "
+                                    "(README, Tests)")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import numba_peer as peer  # noqa: E402
 

@@ -1,9 +1,13 @@
-"""The README's API tour runs as written."""
+"""The README's Python code runs as written: every ```python block, in order, in one namespace (a later block
+may use what an earlier one defined, as a reader would)."""
 import re
 from pathlib import Path
 
 import jax.numpy as jnp
+import numpy as np
 import pytest
+
+from reference import same_cost
 
 
 def _blocks():
@@ -12,14 +16,21 @@ def _blocks():
 
 
 @pytest.fixture(scope="module")
-def tour():
-    """The names the tour (the first block) defines, run once for both tests."""
-    namespace = {}
-    exec(compile(_blocks()[0], "README.md", "exec"), namespace)
-    return namespace
+def after():
+    """The namespace after each block (copies: later blocks rebind names such as ``run``)."""
+    namespace, snapshots = {}, []
+    for i, block in enumerate(_blocks()):
+        exec(compile(block, f"README.md python block {i}", "exec"), namespace)
+        snapshots.append(dict(namespace))
+    return snapshots
 
 
-def test_readme_api_tour_runs(tour):
+def test_every_python_block_runs(after):
+    assert len(after) == len(_blocks()) >= 4
+
+
+def test_readme_api_tour(after):
+    tour = after[0]
     best, ref, run = tour["best"], tour["ref"], tour["run"]
     assert float(best.cost) == float(ref.cost)
     assert int(ref.nodes) == tour["problem"].tree_size()
@@ -28,11 +39,16 @@ def test_readme_api_tour_runs(tour):
     assert int(rt.nodes) <= 500 and bool(rt.complete) == (int(best.nodes) <= 500)
 
 
-def test_readme_parameter_and_switching_snippets_run(tour):
-    """The tour's names, then the parameter and switching-penalty snippets, as written."""
-    namespace = dict(tour)
-    for i, block in enumerate(_blocks()[1:3], 1):
-        exec(compile(block, f"README.md block {i}", "exec"), namespace)
-    run = namespace["run"]  # the switching-penalty closed loop
+def test_readme_parameter_and_switching_snippets(after):
+    assert after[1]["run"].states.shape == (201, 2)  # the tracking loop, one decision per reference step
+    run = after[2]["run"]  # the switching-penalty closed loop
     assert run.states.shape == (81, 2) and run.inputs.shape == (80, 1)
     assert not bool(jnp.any(jnp.isnan(run.inputs)))
+
+
+def test_readme_batched_search(after):
+    ns = next(n for n in after if "tracked" in n)
+    res, tracked = ns["res"], ns["tracked"]
+    assert res.cost.shape == tracked.cost.shape == (16,)
+    assert same_cost(float(res.cost[-1]), float(ns["best"].cost))  # the last row is the tour's x0
+    assert np.all(np.isfinite(np.asarray(tracked.cost)))  # tracking has no terminal set: every row feasible

@@ -1,5 +1,6 @@
 """Edges where a controller in the field ends up (issue 13): nothing made up,
 nothing silently rounded, no raw XLA errors, no needless recompiles."""
+import dataclasses
 import warnings
 
 import jax
@@ -63,10 +64,58 @@ def test_simulate_never_applies_a_made_up_input():
     prob = fj.Problem(_shift, jnp.array([3, 0, 1], jnp.int32), fj.quadratic_cost(1.0, 0.0), 3,
                       terminal=lambda x: x[0] > 100.0)
     with pytest.warns(RuntimeWarning, match="no feasible input"):
-        run = fj.FIRHC(prob).simulate(jnp.zeros(1), 2)
-    assert np.isnan(np.asarray(run.inputs)).all() and (np.asarray(run.input_indices) == -1).all()
-    with pytest.raises(fj.InfeasibleError):
+        run = fj.FIRHC(prob).simulate(jnp.zeros(1), 2, u0=jnp.array([1.0]))
+    assert (np.asarray(run.inputs) == 1.0).all() and np.asarray(run.held).all()  # u0 held, flagged
+    assert (np.asarray(run.input_indices) == -1).all() and np.isinf(np.asarray(run.predicted_costs)).all()
+    with pytest.raises(fj.InfeasibleError, match="terminal constraint"):
         fj.FIRHC(prob)(jnp.zeros(1))
+
+
+# 1b. No input found (issue 24): never a NaN to the plant, whatever the fallback. Two triggers: a budget that
+# stops every search before any leaf, and +inf stage costs without a terminal set (no fallback search runs).
+def _no_leaf_in_budget():
+    prob = fj.Problem(lambda x, u: 0.5 * x + u, jnp.array([-1.0, 0.0, 1.0]), fj.quadratic_cost(1.0, 0.0), 5,
+                      terminal=lambda x: jnp.abs(x[0]) < 10.0)
+    return prob, {"max_nodes": 10}, "max_nodes=10"
+
+
+def _infinite_costs():
+    prob = fj.Problem(lambda x, u: 0.5 * x + u, jnp.array([-1.0, 0.0, 1.0]), lambda x, u: jnp.inf + 0 * x[0], 5)
+    return prob, {}, "finite cost"
+
+
+@pytest.mark.parametrize("trigger", [_no_leaf_in_budget, _infinite_costs], ids=["budget", "inf-costs"])
+def test_no_input_found_holds_a_safe_input_and_says_so(trigger):
+    prob, opts, why = trigger()
+    x0 = jnp.ones(1)
+    ctrl = fj.FIRHC(prob, fallback="unconstrained", **opts)
+    with pytest.warns(RuntimeWarning, match="held"):
+        run = ctrl.simulate(x0, 3, u0=jnp.array([1.0]))
+    assert np.isfinite(np.asarray(run.states)).all() and np.isfinite(np.asarray(run.inputs)).all()
+    assert np.asarray(run.held).all() and (np.asarray(run.inputs) == 1.0).all()  # u0, held
+    assert (np.asarray(run.decision_nodes) <= opts.get("max_nodes", prob.tree_size())).all()
+    with pytest.raises(fj.InfeasibleError, match=why) as e:
+        ctrl(x0)
+    assert "terminal" not in str(e.value) or prob.terminal is not None
+    # A user-given safe input goes through actuate; the one-shot call raises whatever the fallback.
+    safe = fj.FIRHC(prob, **opts, u_safe=jnp.array([0.0]), actuate=lambda x, u: u + 0.25)
+    with pytest.warns(RuntimeWarning, match="u_safe"):
+        run = safe.simulate(x0, 2, u0=jnp.array([1.0]))
+    assert (np.asarray(run.inputs) == 0.25).all() and np.asarray(run.held).all()
+    u, state, info = safe.step(safe.init(x0), x0)
+    assert float(u[0]) == 0.25 and bool(info.held) and float(state.u[0]) == 0.0
+    with pytest.raises(fj.InfeasibleError):
+        safe(x0)
+
+
+def test_infeasible_message_names_only_what_the_problem_has():
+    """With terminal=None there is no terminal constraint to blame (issue 24, item 6)."""
+    prob = fj.Problem(lambda x, u: 0.5 * x + u, jnp.array([-1.0, 1.0]), lambda x, u: jnp.inf + 0 * x[0], 2)
+    with pytest.raises(fj.InfeasibleError) as e:
+        fj.FIRHC(prob)(jnp.ones(1))
+    assert "terminal" not in str(e.value) and "finite cost" in str(e.value)
+    with pytest.raises(fj.InfeasibleError, match="terminal constraint"):
+        fj.FIRHC(prob.replace(stage_cost=fj.quadratic_cost(1.0, 0.0), terminal=lambda x: x[0] > 9.0))(jnp.ones(1))
 
 
 # 2. quadratic_cost keeps real targets with integer controls.
@@ -179,8 +228,8 @@ def test_no_recompilation_for_python_loops_second_controllers_or_rebuilt_problem
     # The rebuilt problem's lambdas are new objects, so that one retraces (by design: the callables are
     # the key); everything else reuses its executable.
     assert len(traces) - before <= 2
-    assert set(vars(prob)) == {"dynamics", "controls", "stage_cost", "horizon", "terminal", "lower_bound",
-                               "_key"}  # solving wrote no cache into the frozen dataclass
+    fields = {f.name for f in dataclasses.fields(fj.Problem)}
+    assert set(vars(prob)) == fields | {"_key"}  # solving wrote no cache into the frozen dataclass
 
 
 # 8. What is guaranteed about costs across solvers.

@@ -29,11 +29,11 @@ def _run(body: str) -> dict:
 
 @pytest.mark.slow
 def test_rebuilt_problems_do_not_pile_up():
-    """19 rebuilt problems through a cache of 2: the 12 compiled after the first 7 (by then the cache has
-    evicted, and the allocator has warmed up) leave maps and memory flat. Unbounded (checked with
-    ``set_cache_size(10**6)``), those 12 added about 970 maps and 43 MB."""
+    """19 rebuilt problems through a cache of 8 entries (the smallest allowed; 2 per problem): the 12 compiled
+    after the first 7 (by then the cache has evicted, and the allocator has warmed up) leave maps and memory
+    flat. Unbounded (checked with ``set_cache_size(10**6)``), those 12 added about 970 maps and 43 MB."""
     r = _run("""
-        fj.set_cache_size(2)
+        fj.set_cache_size(8)
         counts = {}
         for i in range(19):
             p = fj.Problem(lambda x, u: 0.5 * x + u, [-1.0, 0.0, 1.0], fj.quadratic_cost(1.0, 0.001 * i), 2)
@@ -45,7 +45,7 @@ def test_rebuilt_problems_do_not_pile_up():
     """)
     assert r["maps"][1] - r["maps"][0] < 200, r
     assert r["rss"][1] - r["rss"][0] < 20 * 2**20, r
-    assert r["cache"] <= 2
+    assert r["cache"] <= 8
 
 
 @pytest.mark.slow
@@ -64,3 +64,46 @@ def test_a_long_closed_loop_keeps_memory_flat():
     """)
     assert r["maps"][1] - r["maps"][0] < 50, r
     assert r["rss"][1] - r["rss"][0] < 20 * 2**20, r
+
+
+@pytest.mark.slow
+def test_no_accepted_cache_size_makes_a_call_evict_its_own_entries():
+    """Every cache size that ``set_cache_size`` accepts holds what one call uses: each kind of call, repeated,
+    finds all its entries (no miss) and traces nothing again. Sizes 1-3 used to be accepted, and then the
+    check and the executable of one solve evicted each other (size 1), or a closed loop the searches it
+    traces (2-3): a recompile on every call."""
+    r = _run("""
+        traces = []
+
+        def dyn(x, u):
+            if isinstance(x, jax.core.Tracer):
+                traces.append(1)
+            return 0.5 * x + u
+
+        P = fj.Problem(dyn, [-1.0, 0.0, 1.0], fj.quadratic_cost(1.0, 0.1), 3, terminal=lambda x: jnp.abs(x[0]) < 0.5)
+        x, X = jnp.ones(1), jnp.ones((2, 1))
+        calls = {  # sdfs stands for every call of one check and one search (the other solve_batch solvers, dfs)
+            "sdfs": lambda: fj.sdfs(P, x, warm_start=jnp.zeros(3, jnp.int32)),
+            "exhaustive": lambda: fj.exhaustive(P, x), "solve_batch exhaustive": lambda: fj.solve_batch(
+                P, X, solver="exhaustive"),
+            "FIRHC": lambda: fj.FIRHC(P, fallback="unconstrained")(x),
+            **{f"simulate {s} {c}": lambda s=s, c=c: fj.FIRHC(P, solver=s, fallback="unconstrained").simulate(
+                x, 3, compiled=c) for s in ("sdfs", "exhaustive") for c in (True, False)},
+        }
+        refused, again = [], {}
+        for size in (1, 2, 3, fj.cache.MIN_SIZE):
+            try:
+                fj.set_cache_size(size)
+            except ValueError as e:
+                refused.append(size)
+                continue
+            fj.clear_cache()
+            for name, call in calls.items():
+                call()
+                misses, n = fj.cache_info()["misses"], len(traces)
+                call()
+                again[f"{size} {name}"] = (fj.cache_info()["misses"] - misses, len(traces) - n)
+        print(json.dumps({"refused": refused, "again": again, "min": fj.cache.MIN_SIZE}))
+    """)
+    assert r["refused"] == [1, 2, 3], r
+    assert all(v == [0, 0] for v in r["again"].values()) and len(r["again"]) == 8, r

@@ -1,9 +1,13 @@
 """Argument types shared by the command-line applications: numbers with bounds
-and a clear message when the value is out of them."""
+and output folders, each refused by argparse with a one-line message before
+any work starts."""
 from __future__ import annotations
 
 import argparse
 import math
+import os
+import tempfile
+from pathlib import Path
 
 
 def number(kind=float, low=None, high=None, low_open=False):
@@ -27,3 +31,29 @@ def number(kind=float, low=None, high=None, low_open=False):
         return value
 
     return parse
+
+
+def output_dir(text: str) -> Path:
+    """An argparse ``type`` for an output folder: refused unless it is, or can be created as, a folder this
+    process can write files into. Checked by writing (a temporary file or folder, removed at once), which
+    permission bits cannot fool (root, read-only mounts, /proc); nothing is left behind, so a command that
+    fails on a later argument has created nothing. The command creates the folder when it starts."""
+    if not text:
+        raise argparse.ArgumentTypeError("must name a folder, got ''")
+    folder = Path(text)
+    if os.path.lexists(folder) and not os.path.isdir(folder):
+        raise argparse.ArgumentTypeError(f"{text!r} exists and is not a folder")
+    existing = folder
+    while not os.path.lexists(existing):  # the nearest existing ancestor (".", "/" always exist)
+        existing = existing.parent
+    if not os.path.isdir(existing):
+        raise argparse.ArgumentTypeError(f"cannot create {text!r}: {str(existing)!r} is not a folder")
+    try:
+        if existing == folder:
+            with tempfile.TemporaryFile(dir=folder):
+                pass
+        else:
+            os.rmdir(tempfile.mkdtemp(dir=existing))
+    except OSError as e:
+        raise argparse.ArgumentTypeError(f"cannot write into {text!r}: {e.strerror or e}") from None
+    return folder

@@ -16,7 +16,9 @@ The problem is a built-in plant (``--plant``, ``--horizon``) or
 from __future__ import annotations
 
 import importlib
+import inspect
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -35,7 +37,8 @@ def register(subparsers) -> None:
                     "or --coordinator/--num-processes/--process-id (or the JAX_COORDINATOR_ADDRESS, "
                     "JAX_NUM_PROCESSES, JAX_PROCESS_ID environment variables) on each host.")
     p.add_argument("--states", type=Path, required=True, help=".npz holding X0 [B, n]")
-    p.add_argument("--out", type=Path, required=True, help="result .npz, written by process 0")
+    p.add_argument("--out", type=Path, required=True,
+                   help="result .npz, written by process 0 (checked before any work)")
     what = p.add_mutually_exclusive_group()
     what.add_argument("--plant", choices=PLANTS, default="tanks", help="built-in plant (default tanks)")
     what.add_argument("--problem", metavar="MODULE:FUNCTION", help="a function without arguments returning a Problem")
@@ -56,7 +59,8 @@ def register(subparsers) -> None:
     job.add_argument("--launch-local", type=number(int, 1), metavar="P", default=None,
                      help="start P processes of one job on 127.0.0.1 running this command, and wait")
     job.add_argument("--timeout", type=number(float, 0, low_open=True), default=None,
-                     help="with --launch-local: kill every process after this many seconds")
+                     help="with --launch-local: stop the job (every process) after this many seconds "
+                          "(default: firhc_jax.distributed.DEFAULT_TIMEOUT, 3600)")
     p.set_defaults(func=run)
 
 
@@ -71,13 +75,58 @@ def _child_argv(args) -> list[str]:
     return argv + (["--float32"] if args.float32 else [])
 
 
+def check_out(path: Path) -> Path:
+    """``--out`` before any work: an ``.npz`` file name (NumPy would append
+    the suffix to any other) in a directory that can be created and written.
+    Tried for real (root may write where ``os.access`` says no, and not
+    where it says yes); an error is a ``SystemExit`` with the reason."""
+    if path.is_dir():
+        raise SystemExit(f"batch: --out {path} is a directory; give a file name such as {path / 'result.npz'}")
+    if path.suffix != ".npz":
+        raise SystemExit(f"batch: --out must name an .npz file (NumPy would write {path}.npz), got {str(path)!r}")
+    for parent in path.parents:  # the nearest one that exists
+        if parent.exists():
+            if not parent.is_dir():
+                raise SystemExit(f"batch: cannot write --out {path}: {parent} is not a directory")
+            break
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        existed = path.exists()
+        with open(path, "ab"):
+            pass
+        if not existed:
+            path.unlink()
+    except OSError as e:
+        raise SystemExit(f"batch: cannot write --out {path}: {e.strerror or e}") from None
+    return path
+
+
 def make_problem(args):
     """The ``Problem`` named by ``--problem`` or ``--plant``/``--horizon``."""
     if args.problem:
-        module, sep, name = args.problem.partition(":")
+        from ..problem import Problem
+
+        spec = args.problem
+        module, sep, name = spec.partition(":")
         if not sep or not module or not name:
-            raise SystemExit(f"batch: --problem must be MODULE:FUNCTION, got {args.problem!r}")
-        return getattr(importlib.import_module(module), name)()
+            raise SystemExit(f"batch: --problem must be MODULE:FUNCTION, got {spec!r}")
+        try:
+            factory = getattr(importlib.import_module(module), name)
+        except ImportError as e:
+            raise SystemExit(f"batch: --problem {spec}: cannot import {module!r} ({e})") from None
+        except AttributeError:
+            raise SystemExit(f"batch: --problem {spec}: module {module!r} has no {name!r}") from None
+        try:
+            inspect.signature(factory).bind()
+        except TypeError:
+            raise SystemExit(f"batch: --problem {spec} must be a function without arguments") from None
+        except ValueError:  # no signature to inspect (some builtins): calling it tells
+            pass
+        problem = factory()
+        if not isinstance(problem, Problem):
+            raise SystemExit(f"batch: --problem {spec} must return a firhc_jax.Problem, got "
+                             f"{type(problem).__name__}")
+        return problem
     if args.plant == "tanks":
         from ..models import tanks
 
@@ -85,6 +134,13 @@ def make_problem(args):
     from ..models.synthetic import synthetic_problem
 
     return synthetic_problem(17, args.horizon)
+
+
+def _job_failure(done) -> str:
+    """One line on how a launched job ended badly."""
+    parts = [f"process {i} " + (f"exit {d.returncode}" if d.returncode > 0 else f"killed (signal {-d.returncode})")
+             for i, d in enumerate(done) if d.returncode != 0]
+    return f"batch: the job failed ({', '.join(parts)}); the first process to fail stops the others"
 
 
 def run(args) -> int:
@@ -95,12 +151,34 @@ def run(args) -> int:
         if args.coordinator or args.num_processes is not None or args.process_id is not None:
             raise SystemExit("batch: --launch-local starts its own job; drop --coordinator/--num-processes/"
                              "--process-id")
-        done = distributed.launch_local(_child_argv(args), args.launch_local, timeout=args.timeout)
-        failed = [i for i, d in enumerate(done) if d.returncode != 0]
-        if failed:
-            print(f"batch: processes {failed} failed (exit {[done[i].returncode for i in failed]})", file=sys.stderr)
+        check_out(args.out)
+        timeout = distributed.DEFAULT_TIMEOUT if args.timeout is None else args.timeout
+        try:
+            done = distributed.launch_local(_child_argv(args), args.launch_local, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            print(f"batch: the job did not finish within {timeout:g} s (--timeout); every process was stopped",
+                  file=sys.stderr)
+            return 1
+        if any(d.returncode != 0 for d in done):
+            print(_job_failure(done), file=sys.stderr)
             return 1
         return 0
+    try:
+        job = distributed.job_settings(args.coordinator, args.num_processes, args.process_id)
+    except ValueError as e:
+        raise SystemExit(f"batch: {e}") from None
+    if job is None or job[2] == 0:  # process 0 writes --out
+        check_out(args.out)
+    if job is None:
+        return _solve(args)
+    with distributed.exit_on_failure():  # a failing process must not wait for the others on its way out
+        return _solve(args)
+
+
+def _solve(args) -> int:
+    """Join the job (if any), solve and let process 0 write ``--out``."""
+    from .. import distributed
+
     try:
         distributed.initialize(args.coordinator, args.num_processes, args.process_id)
         X0 = distributed.load_states(args.states)
@@ -129,16 +207,18 @@ def run(args) -> int:
 
     try:
         first, result = timed()
-    except ValueError as e:  # options the solver refuses (e.g. --lanes without the pool): a message, no traceback
+    except (ValueError, TypeError) as e:  # what the solver refuses (e.g. --lanes without the pool, NaN states)
         raise SystemExit(f"batch: {e}") from None
     times = [timed()[0] for _ in range(args.repeats)]
     seconds = statistics.median(times) if times else first
     if jax.process_index() == 0:
         nodes = int(np.asarray(result.nodes, np.int64).sum())
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        distributed.save_result(args.out, result, seconds=seconds, first_seconds=first, times=np.array(times),
-                                processes=jax.process_count(), devices=jax.device_count(),
-                                local_devices=jax.local_device_count(), nodes_per_second=nodes / seconds)
+        try:  # checked before the work, but a disk can fill up or a directory vanish since
+            distributed.save_result(args.out, result, seconds=seconds, first_seconds=first, times=np.array(times),
+                                    processes=jax.process_count(), devices=jax.device_count(),
+                                    local_devices=jax.local_device_count(), nodes_per_second=nodes / seconds)
+        except OSError as e:
+            raise SystemExit(f"batch: cannot write --out {args.out}: {e.strerror or e}") from None
         print(f"batch: {len(X0)} rows on {jax.device_count()} devices ({jax.process_count()} processes): "
               f"{seconds * 1e3:.1f} ms{' (median)' if times else ''}, first call {first:.2f} s, "
               f"{nodes / seconds:.3g} nodes/s, {int(np.sum(result.feasible))} feasible -> {args.out}")

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._args import number
+from ._args import number, output_dir
 
 # The paper's figures: Point A, Point B max/min, Point C (sDFS time / ES time, %).
 PAPER = {
@@ -49,21 +49,23 @@ class Case(NamedTuple):
 
 
 def hopper_case(horizon: int, seconds: float = 2.0, bound: bool = False) -> Case:
-    from . import hopper
+    from ..models import hopper as hm
 
-    params = hopper.hm.HopperParams()
-    loop, _ = hopper.simulate(seconds, horizon, "sdfs", params, progress=False)
+    params = hm.HopperParams()
+    steps = max(1, int(round(seconds / hm.CONTROL_PERIOD)))
+    loop = hm.controller(params, horizon, "sdfs").simulate(hm.initial_state(params), steps, hm.plant(params))
     states = np.asarray(loop.states[:-1])
-    searched = jax.vmap(lambda X: hopper.observe(X, None))(states[hopper.contact(states)])  # model states in contact
-    return _case("hopper", hopper.problem(params, horizon, bound), searched)
+    searched = jax.vmap(lambda X: hm.observe(X, None))(states[hm.contact(states)])  # model states in contact
+    return _case("hopper", hm.problem(params, horizon, bound), searched)
 
 
 def tanks_case(horizon: int, seconds: float = 200.0, bound: bool = False) -> Case:
+    import firhc_jax as fj
+
     from ..models import tanks as model
-    from . import tanks
 
     problem = model.make_problem(horizon, bound=bound)  # the same closed loop with or without the bound
-    loop, _ = tanks.simulate(problem, "sdfs", int(seconds // model.TankParams().ts))
+    loop = fj.FIRHC(problem).simulate(model.initial_state(), int(seconds // model.TankParams().ts))
     return _case("tanks", problem, np.asarray(loop.states[:-1]))
 
 
@@ -378,7 +380,6 @@ def run_throughput(args) -> int:
     lines += ["", "| plant | N | search | ms/step |", "|---|---|---|---|"]
     lines += [f"| {r['plant']} | {r['N']} | {r['search']} | {r['ms_per_step']:.3f} |" for r in sweep]
     text = "\n".join(lines) + "\n"
-    args.out.mkdir(parents=True, exist_ok=True)
     paths = plot_profile(profile, sweep, args.out)
     _write(args.out, "throughput", text, profile + sweep)
     print(text)
@@ -387,7 +388,6 @@ def run_throughput(args) -> int:
 
 
 def _write(out: Path, stem: str, markdown: str, rows: list[dict]) -> None:
-    out.mkdir(parents=True, exist_ok=True)
     (out / f"{stem}.md").write_text(markdown)
     (out / f"{stem}.json").write_text(json.dumps(rows, indent=1, default=float))
     keys = sorted({k for r in rows for k in r if not isinstance(r[k], dict)})
@@ -398,8 +398,6 @@ def _write(out: Path, stem: str, markdown: str, rows: list[dict]) -> None:
     print(f"wrote {out / (stem + '.md')}, .json, .csv")
 
 
-
-
 def register(subparsers) -> None:
     p = subparsers.add_parser("bench", help="the paper's Tables 2 and 3, and throughput profiles",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -408,11 +406,11 @@ def register(subparsers) -> None:
                               ("throughput", run_throughput, "nodes/s by pop_width and batch size; time vs horizon")):
         q = sub.add_parser(name, help=help_, description=help_)
         q.add_argument("--quick", action="store_true", help="a smoke run in seconds (short runs, few cases)")
-        q.add_argument("--out", type=Path, default=Path(f"out/bench-{name}"), help="output folder")
+        q.add_argument("--out", type=output_dir, default=f"out/bench-{name}", help="output folder")
         q.add_argument("--repeats", type=number(int, 1), default=3, help="timing repeats, median taken (default 3)")
-        q.add_argument("--max-es-nodes", type=float, default=3e7,
+        q.add_argument("--max-es-nodes", type=number(float, 0), default=3e7,
                        help="exhaustive searches are timed on evenly spaced steps visiting at most this many "
-                            "nodes in all (default 3e7)")
+                            "nodes in all (default 3e7; 0: none)")
         if name == "tables":
             q.add_argument("--plants", nargs="+", choices=("hopper", "tanks"), default=["hopper", "tanks"],
                            help="which tables: hopper (Table 2), tanks (Table 3); default both")
@@ -425,11 +423,13 @@ def register(subparsers) -> None:
             q.add_argument("--bound", action="store_true",
                            help="sDFS variants with the applications' lower bounds (docs/bounds.md); the "
                                 "exhaustive searches are unchanged")
-        q.set_defaults(func=_with_x64(func))
+        q.set_defaults(func=_prepared(func))
 
 
-def _with_x64(func):
+def _prepared(func):
+    """``func`` run in float64, into its output folder (created first)."""
     def run(args):
         jax.config.update("jax_enable_x64", True)
+        args.out.mkdir(parents=True, exist_ok=True)
         return func(args)
     return run

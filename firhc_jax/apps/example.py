@@ -10,13 +10,18 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._args import number, output_dir
+
 DT = 0.05  # s, control period
+# The example checks sDFS against exhaustive search, which visits all 3 + 9 + ... + 3^N nodes at every step:
+# 797,160 at N = 12 (about 0.25 s a step on a 2-core CPU, a minute for the default run); each step of horizon
+# beyond triples it.
+MAX_HORIZON = 12
 
 
 def pendulum(x, u):
@@ -44,9 +49,10 @@ def _near_rest(x):
 def register(subparsers):
     p = subparsers.add_parser("example", help="small worked example: on/off pendulum under FIRHC",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--horizon", type=int, default=8, help="prediction horizon N (default 8)")
-    p.add_argument("--steps", type=int, default=80, help="closed-loop steps (default 80)")
-    p.add_argument("--out", default="out/example", help="output folder (default out/example)")
+    p.add_argument("--horizon", type=number(int, 1, MAX_HORIZON), default=8,
+                   help=f"prediction horizon N (1-{MAX_HORIZON}, default 8; exhaustive search: 3^N leaves a step)")
+    p.add_argument("--steps", type=number(int, 1), default=80, help="closed-loop steps (default 80)")
+    p.add_argument("--out", type=output_dir, default="out/example", help="output folder (default out/example)")
     p.set_defaults(func=run)
 
 
@@ -54,9 +60,7 @@ def run(args) -> int:
     jax.config.update("jax_enable_x64", True)
     import firhc_jax as fj
 
-    if args.horizon < 1 or args.steps < 1:
-        raise SystemExit("--horizon and --steps must be >= 1")
-    out = Path(args.out)
+    out = args.out
     out.mkdir(parents=True, exist_ok=True)
     problem = make_problem(args.horizon)
     x0 = jnp.array([0.6, 0.0])

@@ -8,15 +8,17 @@ fundamental cycles from steady state, timing every decision, and writes into
 * ``summary.json``: tracking error, fundamental amplitude, THD, switching
   frequency, nodes and solve times (keys listed in ``summarize``);
 * ``inverter_N<N>_<solver>.png``: phase currents against their references
-  (up to three cycles) and the spectrum of phase a with its THD.
+  (up to three cycles) and the spectrum of phase a with its THD;
+* ``closed_loop.npz``: the whole run (``fj.ClosedLoop.load`` reads it).
 
 The plant is the exact (zero-order hold) RL response; the prediction model is
 exact too unless ``--model euler``.
 """
 from __future__ import annotations
 
+import functools
 import json
-import time
+import math
 from pathlib import Path
 from typing import NamedTuple
 
@@ -28,51 +30,77 @@ import firhc_jax as fj
 from firhc_jax.models import inverter as model
 from firhc_jax.models.three_level import MAX_HORIZON as THREE_LEVEL_MAX_HORIZON
 
-from ._args import number
+from ._args import number, output_dir
+from ._timing import timed_closed_loop
 
 MAX_HORIZON = 8  # 8^8 sequences; exhaustive search is already slow there
 
 
 class InverterRun(NamedTuple):
-    """One closed-loop run of T steps (NumPy arrays)."""
+    """One closed-loop run of T steps."""
 
-    currents: np.ndarray  # [T+1, 2] alpha-beta load currents i(0) .. i(T), A
+    loop: fj.ClosedLoop  # the controller's record (states: alpha-beta load currents i(0) .. i(T), A)
     references: np.ndarray  # [T+1, 2] alpha-beta reference at the same instants, A
-    inputs: np.ndarray  # [T, 3] applied leg states (0/1)
-    predicted_costs: np.ndarray  # [T] optimal cost of each decision, A^2
-    nodes: np.ndarray  # [T] int nodes per decision
-    solve_times: np.ndarray  # [T] s wall time of each decision (jitted, compilation excluded)
-    compile_time: float  # s first decision, tracing and compilation included
+    compile_time: float  # s tracing and compilation of one decision (NaN: not timed)
+
+    @property
+    def currents(self) -> np.ndarray:
+        """[T+1, 2] alpha-beta load currents, A."""
+        return np.asarray(self.loop.states)
+
+    @property
+    def inputs(self) -> np.ndarray:
+        """[T, 3] applied leg states (0/1)."""
+        return np.asarray(self.loop.inputs)
+
+    @property
+    def predicted_costs(self) -> np.ndarray:
+        """[T] optimal cost of each decision, A^2."""
+        return np.asarray(self.loop.predicted_costs)
+
+    @property
+    def nodes(self) -> np.ndarray:
+        """[T] nodes per decision."""
+        return np.asarray(self.loop.nodes)
+
+    @property
+    def solve_times(self) -> np.ndarray:
+        """[T] s wall time of each decision (compiled, compilation excluded)."""
+        return np.asarray(self.loop.solve_times)
 
 
 def closed_loop(horizon: int, solver: str = "sdfs", steps: int = 1600, lambda_u: float = 0.0,
                 params: model.InverterParams | None = None, method: str = "exact",
-                progress: bool = False, bound: bool = False) -> InverterRun:
+                progress: bool = False, bound: bool = False, timed: bool = True) -> InverterRun:
     """Run the FIRHC law for ``steps`` samples from the reference at t = 0 (V0 applied before).
 
-    A Python loop over the jitted decision (``compiled=False``) so that every
-    decision is timed; one warm-up decision compiles it first. Needs float64.
-    ``params`` defaults to ``model.InverterParams()``; ``bound``: with ``model.current_bound``.
+    ``timed``: the decision is compiled first, then run from Python with
+    every decision timed (``_timing.timed_closed_loop``); else one compiled
+    scan (the same closed loop, ``compile_time`` NaN). Needs float64.
+    ``params`` defaults to ``model.InverterParams()``; ``bound``: with
+    ``model.current_bound``.
     """
     params = params or model.InverterParams()
     mem = model.make_problem(horizon, params, method, bound)
     ctrl = fj.FIRHC(mem.problem, solver, observe=mem.observe)
-    rl = model.make_plant(params)
-    plant = jax.jit(lambda i, u, p: rl(i, u))  # the closed loop passes p to the plant too
     refs = model.horizon_references(params, steps, horizon)  # [T, N, 2]
     p = {"ref": jnp.asarray(refs), "lambda_u": jnp.full((steps,), float(lambda_u))}
     i0, u0 = jnp.asarray(model.initial_currents(params)), jnp.zeros(3)
+    plant = _plant(params)
+    if timed:
+        loop, compile_time = timed_closed_loop(ctrl, i0, steps, plant, params=p, u0=u0, dt=params.ts,
+                                               progress=progress)
+    else:
+        loop, compile_time = ctrl.simulate(i0, steps, plant, params=p, u0=u0, dt=params.ts, progress=progress), math.nan
+    return InverterRun(loop, model.reference(params, loop.times), compile_time)
 
-    t0 = time.perf_counter()
-    first = jax.tree_util.tree_map(lambda a: a[:1], p)
-    jax.block_until_ready(ctrl.simulate(i0, 1, plant, params=first, u0=u0, compiled=False))
-    compile_time = time.perf_counter() - t0
 
-    run = ctrl.simulate(i0, steps, plant, params=p, u0=u0, compiled=False, progress=progress)
-    times = np.arange(steps + 1) * params.ts
-    return InverterRun(np.asarray(run.states), model.reference(params, times), np.asarray(run.inputs),
-                       np.asarray(run.predicted_costs), np.asarray(run.nodes), np.asarray(run.solve_times),
-                       compile_time)
+@functools.lru_cache(maxsize=None)
+def _plant(params: model.InverterParams):
+    """The exact RL plant for the closed loop, ``plant(i, u, p)`` (it passes ``p`` to the plant too), jitted
+    once per parameters."""
+    rl = model.make_plant(params)
+    return jax.jit(lambda i, u, p: rl(i, u))
 
 
 def spectrum(signal: np.ndarray, ts: float) -> tuple[np.ndarray, np.ndarray]:
@@ -102,7 +130,7 @@ def distortion(signal: np.ndarray, params: model.InverterParams) -> tuple[float,
 
 
 def summarize(run: InverterRun, horizon: int, solver: str, lambda_u: float, params: model.InverterParams,
-              method: str = "exact") -> dict:
+              method: str = "exact", levels: int = 2) -> dict:
     """The ``summary.json`` record of a run (currents in A, times in s, frequencies in Hz)."""
     steps = run.inputs.shape[0]
     seconds = steps * params.ts
@@ -126,6 +154,7 @@ def summarize(run: InverterRun, horizon: int, solver: str, lambda_u: float, para
         "leg_changes": changes.astype(int).tolist(),
         "lambda_u": lambda_u,
         "model": method,
+        "levels": levels,
         "nodes_min": int(run.nodes.min()),
         "exhaustive_nodes_per_step": (8 ** (horizon + 1) - 8) // 7,
         "solve_time_mean_s": float(run.solve_times.mean()),
@@ -178,21 +207,21 @@ def register(subparsers) -> None:
         "inverter", help="current control of a two-level three-phase inverter, 8 switch states (FCS-MPC)",
         description="FIRHC current control of a two-level voltage source inverter feeding an RL load "
                     "(520 V, 10 ohm, 10 mH, Ts = 25 us, 10 A at 50 Hz); writes summary.json and a figure.")
-    p.add_argument("--levels", type=int, choices=(2, 3), default=2,
-                   help="2: two-level inverter, 8 switch states (default); 3: three-level, 27 states, on "
-                        "fj.LinearTracking (docs/inverter.md)")
     p.add_argument("--horizon", "-N", type=number(int, 1, THREE_LEVEL_MAX_HORIZON), default=3,
                    help=f"prediction horizon N (1-{MAX_HORIZON} with --levels 2, 1-{THREE_LEVEL_MAX_HORIZON} "
                         "with 3; default 3)")
     p.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs",
                    help="search (default sdfs); exhaustive visits 8+...+8^N nodes per step")
-    p.add_argument("--out", type=Path, default=Path("out/inverter"), help="output folder (default out/inverter)")
+    p.add_argument("--out", type=output_dir, default="out/inverter", help="output folder (default out/inverter)")
     p.add_argument("--cycles", type=number(float, 0, low_open=True), default=2.0,
                    help="simulated fundamental cycles of 20 ms, rounded down to whole samples (default 2)")
     p.add_argument("--lambda-u", type=number(float, 0), default=None,
                    help="switching penalty in A^2 per leg change, charged against the previous input "
                         "(default 1; 0.1 per unit leg step with --levels 3)")
     p.add_argument("--bound", action="store_true", help="sDFS with the admissible lower bound (docs/bounds.md)")
+    p.add_argument("--levels", type=int, choices=(2, 3), default=2,
+                   help="inverter levels: 2, the two-level inverter (8 switch states, default); 3, the three-level "
+                        "inverter (27 states) on fj.LinearTracking (docs/inverter.md)")
     p.add_argument("--model", choices=model.DISCRETISATIONS, default="exact",
                    help="prediction model: exact zero-order hold (default) or forward Euler; the plant is exact")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -214,11 +243,12 @@ def run(args) -> int:
     steps = int(args.cycles * params.steps_per_cycle)
     if steps < 2:
         raise SystemExit(f"inverter: --cycles must cover at least two samples, got {args.cycles:g}")
+    args.out.mkdir(parents=True, exist_ok=True)
     result = closed_loop(args.horizon, args.solver, steps, args.lambda_u, params, args.model,
                          progress=not args.no_progress, bound=args.bound)
-    summary = summarize(result, args.horizon, args.solver, args.lambda_u, params, args.model)
-    args.out.mkdir(parents=True, exist_ok=True)
+    summary = summarize(result, args.horizon, args.solver, args.lambda_u, params, args.model, args.levels)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    result.loop.save(args.out / "closed_loop.npz")
     figure = args.out / f"inverter_N{args.horizon}_{args.solver}.png"
     plot(result, figure, params,
          title=f"Inverter FIRHC, N = {args.horizon}, {args.solver}, $\\lambda_u$ = {args.lambda_u:g} A$^2$: "
@@ -229,5 +259,5 @@ def run(args) -> int:
           f"THD {summary['thd'] * 100:.2f} %, switching {summary['switching_frequency_hz']:.0f} Hz per leg, "
           f"nodes/step {summary['nodes_mean']:.1f} mean / {summary['nodes_max']} max, "
           f"{summary['solve_time_median_s'] * 1e3:.3f} ms/step median")
-    print(f"wrote {args.out / 'summary.json'} and {figure}")
+    print(f"wrote {args.out / 'summary.json'}, {figure} and {args.out / 'closed_loop.npz'}")
     return 0

@@ -10,12 +10,13 @@ timed, and writes into ``--out``:
 * ``summary.json``: THD, switching frequency per leg, nodes and solve times
   (keys listed in ``summarize``);
 * ``inverter3_N<N>.png``: phase currents against their references and the
-  spectrum of phase a with its THD.
+  spectrum of phase a with its THD;
+* ``closed_loop.npz``: the whole run (``fj.ClosedLoop.load`` reads it).
 """
 from __future__ import annotations
 
+import functools
 import json
-import time
 
 import jax
 import jax.numpy as jnp
@@ -25,34 +26,30 @@ import firhc_jax as fj
 from firhc_jax.models import inverter as two_level
 from firhc_jax.models import three_level
 
+from ._timing import timed_closed_loop
 from .inverter import InverterRun, distortion, plot
 
 LAMBDA_U = 0.1  # A^2 per unit leg step (issue 21)
 
 
 def closed_loop(horizon: int, steps: int, lambda_u: float = LAMBDA_U, progress: bool = False) -> InverterRun:
-    """Run the LinearTracking FIRHC law for ``steps`` samples from the reference at t = 0 (all legs at 0 before).
-
-    A Python loop over the jitted decision (``compiled=False``), compiled by one
-    warm-up decision first. Needs float64."""
+    """Run the LinearTracking FIRHC law for ``steps`` samples from the reference at t = 0 (all legs at 0 before),
+    every decision timed after one compilation (``_timing.timed_closed_loop``). Needs float64."""
     params = three_level.PARAMS
     lt = three_level.tracking(horizon, lambda_u)
-    A, B = three_level.model()
     ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
-    plant = jax.jit(lambda i, u, p: jnp.asarray(A) @ i + jnp.asarray(B) @ u)
     p = lt.params(jnp.asarray(two_level.horizon_references(params, steps, horizon)))  # leading axis: steps
-    i0, u0 = jnp.asarray(two_level.initial_currents(params)), jnp.zeros(3)
+    i0 = jnp.asarray(two_level.initial_currents(params))
+    loop, compile_time = timed_closed_loop(ctrl, i0, steps, _plant(), params=p, u0=jnp.zeros(3), dt=params.ts,
+                                           progress=progress)
+    return InverterRun(loop, two_level.reference(params, loop.times), compile_time)
 
-    t0 = time.perf_counter()
-    jax.block_until_ready(ctrl.simulate(i0, 1, plant, params=jax.tree_util.tree_map(lambda a: a[:1], p), u0=u0,
-                                        compiled=False))
-    compile_time = time.perf_counter() - t0
 
-    run = ctrl.simulate(i0, steps, plant, params=p, u0=u0, compiled=False, progress=progress)
-    times = np.arange(steps + 1) * params.ts
-    return InverterRun(np.asarray(run.states), two_level.reference(params, times), np.asarray(run.inputs),
-                       np.asarray(run.predicted_costs), np.asarray(run.nodes), np.asarray(run.solve_times),
-                       compile_time)
+@functools.lru_cache(maxsize=None)
+def _plant():
+    """The RL load, ``plant(i, u, p)`` (the closed loop passes ``p`` to the plant too), jitted once."""
+    A, B = (jnp.asarray(a) for a in three_level.model())
+    return jax.jit(lambda i, u, p: A @ i + B @ u)
 
 
 def summarize(run: InverterRun, horizon: int, lambda_u: float) -> dict:
@@ -110,10 +107,11 @@ def run(args) -> int:
     steps = int(args.cycles * three_level.PARAMS.steps_per_cycle)
     if steps < 2:
         raise SystemExit(f"inverter: --cycles must cover at least two samples, got {args.cycles:g}")
+    args.out.mkdir(parents=True, exist_ok=True)
     result = closed_loop(args.horizon, steps, lambda_u, progress=not args.no_progress)
     summary = summarize(result, args.horizon, lambda_u)
-    args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    result.loop.save(args.out / "closed_loop.npz")
     figure = args.out / f"inverter3_N{args.horizon}.png"
     plot(result, figure, three_level.PARAMS,
          title=f"Three-level inverter, LinearTracking, N = {args.horizon}, $\\lambda_u$ = {lambda_u:g} A$^2$: "
@@ -123,5 +121,5 @@ def run(args) -> int:
           f"{summary['rms_tracking_error']:.3f} A, nodes/step {summary['nodes_mean']:,.0f} mean / "
           f"{summary['nodes_max']:,} max, {summary['solve_time_median_s'] * 1e3:.3f} ms median / "
           f"{summary['solve_time_max_s'] * 1e3:.2f} ms max")
-    print(f"wrote {args.out / 'summary.json'} and {figure}")
+    print(f"wrote {args.out / 'summary.json'}, {figure} and {args.out / 'closed_loop.npz'}")
     return 0

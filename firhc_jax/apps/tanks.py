@@ -8,7 +8,8 @@ and writes into ``--out``:
 * ``summary.json``: final levels, errors, settling time, nodes per step and
   solve times (keys listed in ``summarize``);
 * ``tanks_N<N>_<solver>.png``: the three levels against their set points,
-  their errors in mm, and the applied mode sequence beneath.
+  their errors in mm, and the applied mode sequence beneath;
+* ``closed_loop.npz``: the whole run (``fj.ClosedLoop.load`` reads it).
 
 The plant is the prediction model itself (no model error), as in the paper.
 """
@@ -24,33 +25,33 @@ import numpy as np
 import firhc_jax as fj
 from firhc_jax.models import tanks as model
 
-from ._args import number
+from ._args import number, output_dir
+from ._timing import timed_closed_loop
 
 MAX_HORIZON = 10  # 17^10 sequences: beyond this even sDFS's worst steps become impractical
 
 
 def simulate(problem: fj.Problem, solver: str = "sdfs", steps: int = 100, levels=model.INITIAL_LEVELS,
-             progress: bool = False, timed: bool = False) -> tuple[fj.ClosedLoop, float | None]:
+             progress: bool = False, timed: bool = False,
+             dt: float | None = None) -> tuple[fj.ClosedLoop, float | None]:
     """Run the FIRHC law for ``steps`` samples from ``levels`` (hold mode before t = 0).
 
     The plant is the prediction model itself. Needs float64
     (``jax_enable_x64``) for mm-accurate levels. With a terminal box, steps
     where it cannot be reached apply the unconstrained optimum
-    (``loop.used_fallback``). Returns ``(loop, compile_s)``. ``timed``: a
-    Python loop over the compiled decision, so that ``loop.solve_times`` holds
-    each one's wall time; ``compile_s`` is the first decision's (tracing and
-    compilation included), taken in a one-step run beforehand so that it is
-    not in ``solve_times``. Otherwise one compiled scan (the same closed loop)
-    and ``compile_s`` is None.
+    (``loop.used_fallback``). Returns ``(loop, compile_s)``. ``timed``: the
+    decision is compiled first, ``compile_s`` seconds of tracing and
+    compilation (``_timing.timed_closed_loop``), then run from Python with
+    each decision's wall time in ``loop.solve_times``. Otherwise one compiled
+    scan (the same closed loop) and ``compile_s`` is None. ``dt``: the
+    sample time, for the loop's time axis.
     """
     fallback = "unconstrained" if problem.terminal is not None else None
     ctrl = fj.FIRHC(problem, solver, fallback=fallback)
     x0 = jnp.asarray(model.initial_state(levels))  # [5]
     if not timed:
-        return ctrl.simulate(x0, steps, progress=progress), None
-    plant = jax.jit(problem.dynamics)  # called from Python once per step
-    compile_s = float(ctrl.simulate(x0, 1, plant, compiled=False).solve_times[0])
-    return ctrl.simulate(x0, steps, plant, progress=progress, compiled=False), compile_s
+        return ctrl.simulate(x0, steps, progress=progress, dt=dt), None
+    return timed_closed_loop(ctrl, x0, steps, jax.jit(problem.dynamics), progress=progress, dt=dt)
 
 
 def settling_time(errors: np.ndarray, ts: float, tolerance: float) -> float | None:
@@ -151,7 +152,7 @@ def register(subparsers) -> None:
                    help="prediction horizon N (default 4; paper: 3-6)")
     p.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs",
                    help="search (default sdfs); exhaustive visits 17+...+17^N nodes per step")
-    p.add_argument("--out", type=Path, default=Path("out/tanks"), help="output folder (default out/tanks)")
+    p.add_argument("--out", type=output_dir, default="out/tanks", help="output folder (default out/tanks)")
     p.add_argument("--seconds", type=number(float, 0, low_open=True), default=200.0,
                    help="simulated time in s, rounded down to whole 2 s samples (default 200)")
     p.add_argument("--switch-penalty", type=number(float, 0), default=0.0,
@@ -173,13 +174,14 @@ def run(args) -> int:
     steps = int(args.seconds // params.ts)
     if steps < 1:
         raise SystemExit(f"tanks: --seconds must be at least one sample ({params.ts:g} s), got {args.seconds:g}")
+    args.out.mkdir(parents=True, exist_ok=True)
     problem = model.make_problem(args.horizon, params, switch_penalty=args.switch_penalty,
                                  terminal_tol=args.terminal_tol, bound=args.bound)
-    loop, compile_s = simulate(problem, args.solver, steps, progress=not args.no_progress, timed=True)
+    loop, compile_s = simulate(problem, args.solver, steps, progress=not args.no_progress, timed=True, dt=params.ts)
     summary = summarize(loop, compile_s, problem, args.solver, params, tolerance=args.tolerance,
                         switch_penalty=args.switch_penalty, terminal_tol=args.terminal_tol)
-    args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    loop.save(args.out / "closed_loop.npz")
     figure = args.out / f"tanks_N{args.horizon}_{args.solver}.png"
     plot(loop, figure, params, tolerance=args.tolerance,
          title=f"Three-tank FIRHC, N = {args.horizon}, {args.solver}: "
@@ -191,5 +193,5 @@ def run(args) -> int:
           f"max |error| last 20 s {summary['max_abs_error_last_20s'] * 1e3:.2f} mm, "
           f"nodes/step {summary['nodes_min']}/{summary['nodes_mean']:.0f}/{summary['nodes_max']} (min/mean/max), "
           f"{summary['solve_time_mean_s'] * 1e3:.2f} ms/step")
-    print(f"wrote {args.out / 'summary.json'} and {figure}")
+    print(f"wrote {args.out / 'summary.json'}, {figure} and {args.out / 'closed_loop.npz'}")
     return 0

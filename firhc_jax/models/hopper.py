@@ -1,4 +1,5 @@
-"""Pneumatic vertical hopping robot (the paper's Sec. III and IV.1).
+"""Pneumatic vertical hopping robot (the paper's Sec. III and IV.1): plant, prediction model, and the FIRHC
+problem and controller on valve b.
 
 A vertical double-acting cylinder: the body M rides on the piston, the foot m
 is the cylinder end that touches the ground. Chamber a pushes the body up,
@@ -22,10 +23,41 @@ controller must hold the energy despite it, as in the paper).
 
 All functions are elementwise arithmetic (no matmuls), so a search gives the
 same bits for the same sequence whatever its batch size.
+
+Controller (last section; ``docs/hopper.md`` explains and measures it):
+
+* Control period 5 ms: longer than the 2-5 ms switching time of fast 3/2
+  solenoid valves, so a commanded state is actually reached within a period,
+  and short against the 0.2 s stance (about 40 decisions per stance).
+* In contact (foot on the ground at the sample): side a by the paper's on/off
+  law, side b by FIRHC over the three valve states. In flight both valves are
+  sealed; the valve drivers are gated by the foot contact at every plant step
+  (``control_period``), so they close at lift-off, not at the next sample.
+* FIRHC, cost (24): ``(E - E_d)^2 + 0.1 (xdot - xdot_d)^2 + 10 u^2`` per
+  step, ``u`` in {-0.01, 0, 0.01} (exhaust, closed, supply), terminal
+  constraint ``|E(k+N) - E_d| <= 0.02 J``, prediction by ``model_step``, which
+  stops at a predicted lift-off. Two deviations from the paper:
+
+  - ``E_d`` is eq. (20) evaluated for the air now in the chambers
+    (``orbit_energy``), not a constant: E is ~96% stored air energy, and a
+    constant target lets the controller replace the friction losses with air,
+    which parks the robot standing with E = E_d (one hop, then none).
+  - eq. (19) is applied to the centre of mass: the foot leaves at rest, so the
+    body must leave with ``(M + m) / M * g T_air / 2`` for a flight of T_air.
+
+* Fallback: when no sequence meets the terminal constraint the same search
+  runs without it (counted as an infeasible step). Should even that find
+  nothing (it has not happened), valve b stays closed (the controller's
+  ``u_safe``) and the step is counted as unsolved.
+
+``controller`` is the ``FIRHC`` of the closed loop: ``observe`` maps the plant
+state ``[6]`` to the model's ``[5]``, ``actuate`` adds side a's law and seals
+the valves in flight, and ``plant`` integrates one period.
 """
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import NamedTuple
 
@@ -33,6 +65,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import brentq
+
+import firhc_jax as fj
+from firhc_jax.nodes import rollout_cost
 
 PSI = 6894.757  # Pa per psi
 
@@ -426,3 +461,202 @@ def desired_energy(T_hop: float, T_air: float, params: HopperParams) -> Gait:
     Pa, Pb = nominal_pressures(x1, p)
     E_d = float(energy(x1, v1, Pa, Pb, p))
     return Gait(T_hop, T_air, T2, x1, v1, E_d)
+
+
+# ---------------------------------------------------------------------------
+# FIRHC on valve b (Sec. IV.1): problem, bound, controller, sampled plant
+# ---------------------------------------------------------------------------
+
+T_HOP, T_AIR = 0.4, 0.2  # s, gait specification (paper)
+CONTROL_PERIOD = 0.005  # s, see the module docstring
+PLANT_DT = 5e-5  # s, fixed RK4 step of the plant (ground contact eigenvalue ~ -1.9e4 1/s)
+MODEL_SUBSTEPS = 5  # RK4 steps per control period in the prediction model (1 ms)
+LAMBDA1, LAMBDA2, BETA = 1.0, 0.1, 10.0  # weights of cost (24)
+VALVE_B = (-0.01, 0.0, 0.01)  # u: exhaust, closed, supply (the paper's scaling)
+ENERGY_TOL = 0.02  # J, terminal constraint |E(k+N) - E_d| <= tol
+A_DEADBAND = 0.01  # relative: side a charges below (1 - 1%) of the reference pressure
+SUBSTEPS = int(round(CONTROL_PERIOD / PLANT_DT))  # plant steps per control period
+IN_FLIGHT = 2.0  # model state's airborne flag for a decision taken in flight (see ``problem``)
+OPEN_COST = BETA * min(u * u for u in VALVE_B if u != 0)  # cost of one period with valve b open (0.001)
+PASSIVE_DRIFT = 1e-6  # J, allowance per closed period for the RK4 drift of the conserved E - E_d (seen: <= 1e-10)
+A_IDLE_MARGIN = 1e-6  # relative margin on side a's threshold for "its law never fires below this node"
+
+
+def side_a_law(s, Pa, p: HopperParams):
+    """Paper's on/off law for side a in contact: charge (1.0) if ``P_a < P_a0 (V_mida / V_a)^gamma``, else 0.0.
+
+    ``s`` is the stroke (the paper's x in contact). A 1% dead band (sensor
+    resolution) keeps round-off on the adiabat from firing a 5 ms charge; the
+    plant has no leaks, so with it the law stays idle unless air is lost.
+    """
+    Pa_ref = nominal_pressures(s, p)[0]
+    return jnp.where(Pa < (1 - A_DEADBAND) * Pa_ref, 1.0, 0.0)
+
+
+def liftoff_velocity(p: HopperParams) -> float:
+    """Body lift-off velocity targeted (m/s): eq. (19) for the centre of mass (module docstring)."""
+    return (p.M + p.m) / p.M * desired_energy(T_HOP, T_AIR, p).xdot_t1
+
+
+def static_target(p: HopperParams) -> float:
+    """The controller's E_d (J) for the static charge of air."""
+    return float(orbit_energy(np.array([0.0, 0.0, p.P_a0, p.P_b0]), liftoff_velocity(p), p))
+
+
+@functools.lru_cache(maxsize=None)
+def problem(params: HopperParams, horizon: int, bound: bool = False) -> fj.Problem:
+    """The FIRHC problem for valve b (built once per parameters and horizon, so its search compiles once).
+
+    Prediction state ``[5]``: ``[x, xdot, P_a, P_b, airborne]`` (see
+    ``model_step``; ``airborne`` 1 from a predicted lift-off on). Input
+    ``u`` ``[1]``: one of ``VALVE_B``. The model applies side a's law itself,
+    so the prediction sees what the plant gets. ``airborne = IN_FLIGHT``
+    (set by ``observe``) marks a decision taken in flight: the valves are
+    sealed, so the state stays put, only the valve term ``10 u^2`` is charged
+    and the terminal constraint holds; the optimum is valve b closed, found in
+    3N nodes. Contact decisions are unaffected (bit for bit).
+
+    ``bound``: add the lower bound of ``docs/bounds.md`` (energy-band
+    reachability and energy-error cost), exact results with fewer nodes.
+    """
+    return _problems(params, horizon)["bounded" if bound else "plain"]
+
+
+def fallback_problem(params: HopperParams, horizon: int) -> fj.Problem:
+    """The bounded problem without its terminal set, for the fallback search: its bound is the same one without
+    the ``+inf`` that only the terminal set justifies (the core drops a bound with the terminal set)."""
+    return _problems(params, horizon)["relaxed"]
+
+
+@functools.lru_cache(maxsize=None)
+def _problems(params: HopperParams, horizon: int) -> dict:
+    p = params
+    v_liftoff, E_target = liftoff_velocity(p), static_target(p)
+
+    def dynamics(z, u):
+        cmd = jnp.stack([side_a_law(z[0], z[2], p), jnp.sign(u[0])])
+        return jnp.where(z[4] == IN_FLIGHT, z, model_step(z, cmd, p, CONTROL_PERIOD, MODEL_SUBSTEPS))
+
+    def energy_error(z):  # E_d re-evaluated for the air in the chambers of z (deviation 1)
+        return model_energy(z, p) - orbit_energy(z, v_liftoff, p)
+
+    def stage_cost(z, u):
+        x, xd = z[0], z[1]
+        # Desired velocity from the loss-free energy balance on the static charge's orbit.
+        v2 = 2 * (E_target - nominal_potential(x, p)) / p.M
+        xd_d = jnp.sign(xd) * jnp.sqrt(jnp.maximum(v2, 0.0))
+        gait = LAMBDA1 * energy_error(z) ** 2 + LAMBDA2 * (xd - xd_d) ** 2
+        return jnp.where(z[4] == IN_FLIGHT, 0.0, gait) + BETA * u[0] ** 2
+
+    def terminal(z):
+        return (z[4] == IN_FLIGHT) | (jnp.abs(energy_error(z)) <= ENERGY_TOL)
+
+    def bound(z, steps_left, band: bool):
+        """docs/bounds.md. In flight 0. After a predicted lift-off (frozen state) the exact cost with valve b
+        closed. In contact, with side a's law provably idle, e stays put while valve b is closed: either b stays
+        closed (every stage costs at least LAMBDA1 e^2) or it opens at least once (BETA u^2 = OPEN_COST); with side
+        a possibly charging, 0. ``band``: the terminal set applies, so a frozen or closed-valve future with e
+        outside the band is infeasible (+inf)."""
+        e, s = jnp.abs(energy_error(z)), steps_left.astype(z.dtype)
+        frozen = s * stage_cost(z, jnp.zeros(1, z.dtype))
+        j = jnp.arange(1, horizon + 1, dtype=z.dtype)
+        drift = jnp.where(j <= s, jnp.maximum(e - j * PASSIVE_DRIFT, 0.0), 0.0)  # e after j closed periods
+        closed = LAMBDA1 * jnp.sum(drift * drift)
+        airborne = z[4] == 1.0
+        if band:
+            closed = jnp.where(e - s * PASSIVE_DRIFT <= ENERGY_TOL, closed, jnp.inf)
+            frozen = jnp.where(e <= ENERGY_TOL, frozen, jnp.inf)
+        Pa_ref = nominal_pressures(z[0], p)[0]
+        a_idle = z[2] >= (1 - A_DEADBAND) * (1 + A_IDLE_MARGIN) * Pa_ref  # side_a_law with a margin: never fires
+        value = jnp.where(airborne, frozen, jnp.where(a_idle, jnp.minimum(closed, OPEN_COST), 0.0))
+        return jnp.where(z[4] == IN_FLIGHT, 0.0, (1 - 1e-9) * value)  # margin for the search's own rounding
+
+    def lower_bound(z, steps_left):
+        return bound(z, steps_left, True)
+
+    def relaxed_bound(z, steps_left):
+        return bound(z, steps_left, False)
+
+    plain = fj.Problem(dynamics, jnp.asarray(VALVE_B), stage_cost, horizon, terminal)
+    return dict(plain=plain, bounded=plain.replace(lower_bound=lower_bound),
+                relaxed=plain.replace(terminal=None, lower_bound=relaxed_bound))
+
+
+def initial_state(p: HopperParams) -> np.ndarray:
+    """Plant state ``[6]`` of the closed loop's start: at rest at the apex of the specified flight (foot at
+    ``g T_air^2 / 8``)."""
+    return apex_state(p, p.g * T_AIR**2 / 8)
+
+
+def contact(X):
+    """Foot on the ground (plant states ``[..., 6]``)."""
+    return X[..., 2] <= 0
+
+
+def observe(X, u_prev):
+    """Prediction state ``[5]`` from a plant state ``[6]``: stroke, stroke rate, pressures, and ``IN_FLIGHT``
+    when the foot is off the ground (0 on it)."""
+    flag = jnp.where(contact(X), 0.0, IN_FLIGHT)
+    return jnp.stack([X[0] - X[2], X[1] - X[3], X[4], X[5], flag])
+
+
+def warm_candidate(problem: fj.Problem, x, previous, params=None):
+    """The warm start for a search from ``x``: the cheaper of ``previous`` (the last decision's sequence ``[N]``)
+    shifted by one step and ``previous`` unshifted, all -1 (none) when neither meets the terminal test or there
+    is no previous sequence.
+
+    Why two: the plant loses energy to friction that the model does not have, so the shifted plan often just
+    misses the terminal band (no incumbent at all), while the same plan one period later meets it. Exact either
+    way: a warm start only sets the search's first incumbent.
+    """
+    shifted = jnp.concatenate([previous[1:], previous[-1:]])
+    candidates = jnp.stack([shifted, previous])  # [2, N]
+    dtype = jnp.promote_types(x.dtype, jnp.float32)
+    costs = jax.vmap(lambda w: rollout_cost(problem, x, w, dtype, params)[0])(jnp.maximum(candidates, 0))
+    i = jnp.argmin(costs)
+    return jnp.where((previous[0] >= 0) & jnp.isfinite(costs[i]), candidates[i], -1)
+
+
+@functools.lru_cache(maxsize=None)
+def controller(params: HopperParams, horizon: int, solver: str, bound: bool = False, warm: bool = False,
+               **options) -> fj.FIRHC:
+    """FIRHC on valve b; valve a by ``side_a_law``; both sealed in flight.
+
+    ``actuate`` turns the searched input into the plant's commands ``[2]``
+    (a, b) in {-1, 0, 1}: in flight at the sample both are 0. Should no
+    sequence be found at all (it has not happened) the safe input applies:
+    valve b closed (``u_safe``), the step flagged in ``ClosedLoop.held``.
+    Cached so that repeated closed loops reuse one compiled executable.
+    ``bound`` as in ``problem``, the fallback search with ``fallback_problem``'s bound; ``warm`` (sdfs only):
+    seed each search with ``warm_candidate`` (the better of the previous solution shifted and unshifted);
+    ``options`` go to the solver (e.g. ``max_nodes``).
+    """
+    p = params
+
+    def actuate(X, u):
+        return jnp.where(contact(X), jnp.stack([side_a_law(X[0] - X[2], X[4], p), jnp.sign(u[0])]), 0.0)
+
+    return fj.FIRHC(problem(params, horizon, bound), solver,
+                    fallback=fallback_problem(params, horizon) if bound else "unconstrained",
+                    warm_start=warm_candidate if warm else False, observe=observe, actuate=actuate,
+                    u_safe=np.zeros(1), **options)
+
+
+def control_period(X, cmd, p: HopperParams):
+    """One control period of the plant from ``X`` ``[6]`` with commands ``cmd`` ``[2]``:
+    ``(X_end, [SUBSTEPS, 6] states after each plant step)``.
+
+    The valve drivers are gated by foot contact at every plant step, so the
+    valves close at lift-off, not at the next sample.
+    """
+    def step(X, _):
+        X = plant_step(X, cmd * contact(X), p, PLANT_DT)
+        return X, X
+
+    return jax.lax.scan(step, X, None, length=SUBSTEPS)
+
+
+@functools.lru_cache(maxsize=None)
+def plant(params: HopperParams):
+    """``plant(X, cmd) -> X`` one control period later, for ``FIRHC.simulate`` (jitted, cached)."""
+    return jax.jit(lambda X, cmd: control_period(X, cmd, params)[0])

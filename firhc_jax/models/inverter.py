@@ -15,18 +15,20 @@ Over one sample T_s with v held (zero-order hold) the exact solution is
 and forward Euler (the discretisation of Rodriguez et al. 2007) gives
 a = 1 - R T_s / L, b = T_s / L. ``make_plant`` and ``make_problem`` take either.
 
-Controller state ``[i_alpha, i_beta, j]``: the currents (A) and the index j of
-the predicted step they belong to (0 at the measurement, j after j predicted
-steps). The reference moves within the horizon, so it is a parameter: for the
-decision at step k, ``p["ref"]`` ``[N, 2]`` holds i_ref(k+1) .. i_ref(k+N) and the
-stage cost of predicted step j is |i_ref(k+j) - i(k+j)|^2 (A^2). The counter j
-picks the row, so the search stays a plain ``Problem`` and a new reference never
-recompiles. The switching penalty ``p["lambda_u"]`` (A^2 per leg change) acts on
-the previous input through ``firhc_jax.with_input_memory``.
+The problem is written with step indices (``Problem(step_index=True)``): the
+reference moves within the horizon, so it is a parameter, and for the decision
+at step k ``p["ref"]`` ``[N, 2]`` holds i_ref(k+1) .. i_ref(k+N); the stage cost
+of the j-th input of a sequence (step index j = 0 .. N-1) is
+|i_ref(k+j+1) - i(k+j+1)|^2 (A^2), ``fj.tracking_cost``'s ``p["ref"][j]``. The
+model state is the currents ``[i_alpha, i_beta]`` (A) alone; a new reference
+never recompiles. The switching penalty ``p["lambda_u"]`` (A^2 per leg change)
+acts on the previous input through ``fj.with_input_memory`` and
+``fj.input_change_cost``.
 """
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import jax.numpy as jnp
@@ -110,11 +112,6 @@ def to_phases(i_ab) -> np.ndarray:
     return np.stack([al, -0.5 * al + 0.5 * math.sqrt(3.0) * be, -0.5 * al - 0.5 * math.sqrt(3.0) * be], axis=-1)
 
 
-def switching_cost(u, u_prev, p):
-    """``lambda_u`` times the number of legs that change state (A^2 per leg change)."""
-    return p["lambda_u"] * jnp.sum(jnp.abs(u - u_prev))
-
-
 def current_bound(horizon: int, params: InverterParams = InverterParams(), method: str = "exact"):
     """Admissible ``lower_bound(x, steps_left, p)`` of the tracking cost (``docs/bounds.md``).
 
@@ -134,8 +131,9 @@ def current_bound(horizon: int, params: InverterParams = InverterParams(), metho
         l = jnp.arange(1, horizon + 1, dtype=x.dtype)  # noqa: E741  [N] steps ahead
         decay = a ** l
         scale = b * radius * (1.0 - decay) / (1.0 - a)  # [N] circumradius of the reachable hexagon
-        rows = jnp.clip(x[2].astype(jnp.int32) + jnp.arange(horizon), 0, horizon - 1)
-        d = p["ref"][rows] - decay[:, None] * x[None, :2]  # [N, 2] reference minus the free response
+        # The step index of the input l steps ahead: the node's depth N - steps_left, plus l - 1.
+        rows = jnp.clip(horizon - steps_left + jnp.arange(horizon), 0, horizon - 1)
+        d = p["ref"][rows] - decay[:, None] * x[None, :]  # [N, 2] reference minus the free response
         circle = jnp.sqrt(jnp.sum(d * d, axis=1)) - scale
         slabs = jnp.max(jnp.abs(d @ jnp.asarray(normals.T, x.dtype)), axis=1) - scale * math.cos(math.pi / 6)
         gap = jnp.where(l <= steps_left, jnp.maximum(jnp.maximum(circle, slabs), 0.0), 0.0)
@@ -144,37 +142,25 @@ def current_bound(horizon: int, params: InverterParams = InverterParams(), metho
     return lower_bound
 
 
+@functools.lru_cache(maxsize=None)
 def make_problem(horizon: int, params: InverterParams = InverterParams(), method: str = "exact",
                  bound: bool = False) -> fj.InputMemory:
     """The FIRHC problem with its switching penalty, as ``(problem, observe)``.
 
-    ``problem`` tracks ``p["ref"]`` ``[N, 2]`` over the horizon and charges
-    ``p["lambda_u"]`` per leg change, the first step's against the input
-    applied last; ``observe(i, u_prev, p)`` builds its state from the plant's
-    currents ``[2]`` (step counter 0). Use them as
-    ``FIRHC(problem, observe=observe)`` with per-step parameters
-    ``{"ref": [T, N, 2], "lambda_u": [T]}``. Each call makes new callables
-    (a new compilation): build the problem once per run. ``bound``: with
-    ``current_bound``.
+    ``problem`` tracks ``p["ref"]`` ``[N, 2]`` over the horizon (step indices)
+    and charges ``p["lambda_u"]`` per leg change, the first step's against the
+    input applied last; ``observe(i, u_prev, p)`` builds its state from the
+    plant's currents ``[2]``. Use them as ``FIRHC(problem, observe=observe)``
+    with per-step parameters ``{"ref": [T, N, 2], "lambda_u": [T]}``. Cached:
+    equal arguments give the same problem, so closed loops of equal shapes
+    share one compilation whatever the reference and ``lambda_u``.
+    ``bound``: with ``current_bound``.
     """
     plant = make_plant(params, method)
-
-    def dynamics(x, u, p):  # [i_alpha, i_beta, j] -> one step later
-        return jnp.concatenate([plant(x[:2], u), x[2:] + 1.0])
-
-    def stage_cost(x_next, u, p):
-        ref = p["ref"][x_next[2].astype(jnp.int32) - 1]  # [2] reference of this predicted step
-        e_alpha, e_beta = ref[0] - x_next[0], ref[1] - x_next[1]
-        return e_alpha * e_alpha + e_beta * e_beta
-
     lower_bound = current_bound(horizon, params, method) if bound else None
-    mem = fj.with_input_memory(fj.Problem(dynamics, SWITCH_STATES, stage_cost, horizon, lower_bound=lower_bound),
-                               switching_cost)
-
-    def observe(i, u_prev, p):
-        return mem.observe(jnp.concatenate([i, jnp.zeros((1,), i.dtype)]), u_prev, p)
-
-    return fj.InputMemory(mem.problem, observe)
+    tracking = fj.Problem(lambda i, u, k, p: plant(i, u), SWITCH_STATES, fj.tracking_cost(), horizon,
+                          lower_bound=lower_bound, step_index=True)
+    return fj.with_input_memory(tracking, fj.input_change_cost("lambda_u", norm="abs"))
 
 
 def initial_currents(params: InverterParams = InverterParams()) -> np.ndarray:

@@ -1,0 +1,57 @@
+"""Compile, then time the loop: how every application times its closed loop.
+
+The loop is the deployment path, ``FIRHC.simulate(..., compiled=False)``: a
+Python loop of the compiled ``step`` with each decision timed in
+``solve_times``. Before it, the decision is compiled for the run's shapes and
+that compilation is timed on its own, so ``compile_s`` is tracing plus
+compilation and ``solve_times`` never include it.
+"""
+from __future__ import annotations
+
+import contextlib
+import time
+
+import jax
+
+BACKEND_COMPILE = "/jax/core/compile/backend_compile_duration"  # jax.monitoring's event per XLA compilation
+
+
+@contextlib.contextmanager
+def compile_events():
+    """The ``(function name, seconds)`` of every XLA compilation inside the block (``jax.monitoring``)."""
+    seen = []
+
+    def listener(event, duration, **kw):
+        if event == BACKEND_COMPILE:
+            seen.append((kw.get("fun_name"), duration))
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield seen
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+
+
+def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None, dt=None, progress=False):
+    """``(loop, compile_s)``: ``ctrl.simulate(x0, steps, plant, ..., compiled=False)`` with every decision timed,
+    and ``compile_s`` the seconds to trace and compile one decision (``ctrl.step``) for these shapes.
+
+    ``compile_s`` is measured on a fresh compilation: the first ``step`` call
+    less the same decision's time in the loop (the first step of the loop
+    decides from the same state). Where this process compiled an equal
+    controller's step before, that call compiles nothing (no XLA compilation
+    is seen); the decision is then compiled ahead of time once more
+    (``jax.jit(ctrl.step).lower(...).compile()``), which is what is timed.
+    """
+    state = ctrl.init(x0, u0)
+    p0 = None if params is None else jax.tree_util.tree_map(lambda a: a[0], params)
+    with compile_events() as seen:
+        t0 = time.perf_counter()
+        jax.block_until_ready(ctrl.step(state, x0, p0))
+        first = time.perf_counter() - t0
+    loop = ctrl.simulate(x0, steps, plant, params=params, u0=u0, dt=dt, progress=progress, compiled=False)
+    if seen:
+        return loop, first - float(loop.solve_times[0])
+    t0 = time.perf_counter()
+    jax.jit(ctrl.step).lower(state, x0, p0).compile()
+    return loop, time.perf_counter() - t0
