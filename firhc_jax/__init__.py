@@ -13,6 +13,8 @@ Public API (see each object's docstring; notation in ``firhc_jax.problem``):
   horizon law (eq. 4), one decision at a time (``init``/``step``) or a whole
   closed loop (``simulate``), which saves and plots.
 * ``with_input_memory``: the switching-penalty problem transform.
+* ``LinearTracking``: exact tracking MPC of a linear plant at long horizons
+  (the sphere decoder as a lower bound of sDFS).
 * ``solve_batch``: many states (and parameter sets) at once, over all devices.
 * ``clear_cache``, ``set_cache_size``, ``cache_info``: the bounded cache of
   compiled searches.
@@ -28,6 +30,7 @@ from .diagnostics import check_lower_bound, check_problem
 from .exhaustive import exhaustive
 from .linear import (discretize, horizon_windows, input_change_cost, linear_dynamics, product_controls,
                      tracking_cost)
+from .linear_tracking import LinearTracking
 from .problem import Problem, quadratic_cost
 from .profile import profile
 from .result import SearchResult
@@ -35,8 +38,8 @@ from .sdfs import sdfs
 from .transforms import InputMemory, with_input_memory
 
 __all__ = ["Problem", "quadratic_cost", "discretize", "linear_dynamics", "product_controls", "tracking_cost",
-           "input_change_cost", "horizon_windows", "sdfs", "exhaustive", "SearchResult", "FIRHC", "ControllerState",
-           "StepInfo", "ClosedLoop", "InfeasibleError", "InputMemory", "with_input_memory", "solve_batch",
-           "clear_cache", "set_cache_size", "cache_info", "check_problem", "check_lower_bound", "diagnostics",
-           "profile"]
+           "input_change_cost", "horizon_windows", "LinearTracking", "sdfs", "exhaustive", "SearchResult", "FIRHC",
+           "ControllerState", "StepInfo", "ClosedLoop", "InfeasibleError", "InputMemory", "with_input_memory",
+           "solve_batch", "clear_cache", "set_cache_size", "cache_info", "check_problem", "check_lower_bound",
+           "diagnostics", "profile"]
 __version__ = "0.2.0"

@@ -145,7 +145,6 @@ def test_cli_writes_the_summary_recorded_before_the_port_and_its_files(tmp_path)
     (["--cycles", "0"], "--cycles: must be a number > 0"),
     (["--lambda-u", "-1"], ">= 0"),
     (["--model", "rk4"], "invalid choice"),
-    (["--levels", "3"], "invalid choice"),
 ])
 def test_cli_rejects_bad_input(argv, message, capsys):
     with pytest.raises(SystemExit) as e:

@@ -28,6 +28,7 @@ import numpy as np
 
 import firhc_jax as fj
 from firhc_jax.models import inverter as model
+from firhc_jax.models.three_level import MAX_HORIZON as THREE_LEVEL_MAX_HORIZON
 
 from ._args import number, output_dir
 from ._timing import timed_closed_loop
@@ -206,18 +207,21 @@ def register(subparsers) -> None:
         "inverter", help="current control of a two-level three-phase inverter, 8 switch states (FCS-MPC)",
         description="FIRHC current control of a two-level voltage source inverter feeding an RL load "
                     "(520 V, 10 ohm, 10 mH, Ts = 25 us, 10 A at 50 Hz); writes summary.json and a figure.")
-    p.add_argument("--horizon", "-N", type=number(int, 1, MAX_HORIZON), default=3,
-                   help=f"prediction horizon N (1-{MAX_HORIZON}, default 3)")
+    p.add_argument("--horizon", "-N", type=number(int, 1, THREE_LEVEL_MAX_HORIZON), default=3,
+                   help=f"prediction horizon N (1-{MAX_HORIZON} with --levels 2, 1-{THREE_LEVEL_MAX_HORIZON} "
+                        "with 3; default 3)")
     p.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs",
                    help="search (default sdfs); exhaustive visits 8+...+8^N nodes per step")
     p.add_argument("--out", type=output_dir, default="out/inverter", help="output folder (default out/inverter)")
     p.add_argument("--cycles", type=number(float, 0, low_open=True), default=2.0,
                    help="simulated fundamental cycles of 20 ms, rounded down to whole samples (default 2)")
-    p.add_argument("--lambda-u", type=number(float, 0), default=1.0,
-                   help="switching penalty in A^2 per leg change, charged against the previous input (default 1)")
+    p.add_argument("--lambda-u", type=number(float, 0), default=None,
+                   help="switching penalty in A^2 per leg change, charged against the previous input "
+                        "(default 1; 0.1 per unit leg step with --levels 3)")
     p.add_argument("--bound", action="store_true", help="sDFS with the admissible lower bound (docs/bounds.md)")
-    p.add_argument("--levels", type=int, choices=(2,), default=2,
-                   help="inverter levels: 2, the two-level inverter (8 switch states)")
+    p.add_argument("--levels", type=int, choices=(2, 3), default=2,
+                   help="inverter levels: 2, the two-level inverter (8 switch states, default); 3, the three-level "
+                        "inverter (27 states) on fj.LinearTracking (docs/inverter.md)")
     p.add_argument("--model", choices=model.DISCRETISATIONS, default="exact",
                    help="prediction model: exact zero-order hold (default) or forward Euler; the plant is exact")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -226,6 +230,14 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     """Run the experiment described by the parsed ``args``; returns the exit status (0)."""
+    if args.levels == 3:
+        from .inverter_three_level import run as run_three_level
+
+        return run_three_level(args)
+    if args.horizon > MAX_HORIZON:
+        raise SystemExit(f"inverter: --horizon must be between 1 and {MAX_HORIZON} with --levels 2, "
+                         f"got {args.horizon}")
+    args.lambda_u = 1.0 if args.lambda_u is None else args.lambda_u
     jax.config.update("jax_enable_x64", True)
     params = model.InverterParams()
     steps = int(args.cycles * params.steps_per_cycle)

@@ -1,0 +1,382 @@
+"""Exact tracking for linear plants with a finite input set at long horizons:
+the sphere decoder as a lower bound of the sorted search.
+
+The problem (``LinearTracking``): x(k+1) = A x(k) + B u(k) + d(k), y = C x,
+every u(k) a row of ``controls``, and
+
+    J(U) = sum_{k=0}^{N-1} ||y_ref[k] - C x(k+1)||_Q^2 + lambda_u ||u(k) - u(k-1)||^2,   u(-1) = u_prev,
+
+optionally with |u_i(k) - u_i(k-1)| <= max_step for every component and step.
+
+Why this is the sphere decoder (Geyer and Quevedo, IEEE TPEL 29(12), 2014).
+Stacking the horizon, J(U) = ||F U - g||^2 with F static (A, B, C, Q,
+lambda_u, N) and g linear in (x, u_prev, y_ref, d). A QR factorisation of F
+with its columns reversed completes the square without inverting anything:
+J(U) = c + ||V U - h||^2 with V lower triangular. The decoder's partial
+distance of a prefix u(0..k) (c plus the rows of V up to u(k)) is J's minimum
+over every *continuous* completion of the prefix, which is also the prefix's
+own cost plus W_{k+1}(x(k+1), u(k)), the unconstrained cost-to-go of the steps
+left: a quadratic in the state the prefix reaches (the plant is Markov). So
+the decoder is the sorted search on the problem in its own coordinates with
+W as ``lower_bound``: the same keys, the same nodes in the same order (peers
+sorted by key: the Schnorr-Euchner order), and the incumbent is the decoder's
+radius, which ``warm_start`` (the shifted previous sequence) sets first. W is
+at least the decoder's distance where F is rank deficient (singular Q,
+lambda_u = 0, more inputs than outputs): the decoder then loses the part of
+the suffix that no input reaches.
+
+In this form the search state is the plant's own, ``[x, u, u - u_prev]``,
+plus the stage cost and the bound of the step that led to it (n + 2m + 2
+numbers instead of the decoder's N m partial sums), and the cost a search
+returns is J itself, accumulated stage by stage. W_k is kept factored,
+W_k(s) = ||T_k s + w_k||^2 + s_k for s = [x; u_prev]: T_k is static, w_k and
+s_k are linear and quadratic in (y_ref, d) and travel as params, so new
+states, references and disturbances never recompile. One node is one step
+with its M inputs (not one input component per level as in the decoder), and
+where F is rank deficient W is strictly tighter than the decoder's distance:
+both measured in docs/inverter.md.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+import jax
+import jax.numpy as jnp
+
+from .checks import as_state
+from .problem import Problem, is_tracer, positive_int, weight
+from .result import SearchResult
+from .sdfs import sdfs
+
+
+class LinearTracking:
+    """Exact finite-input tracking MPC for a linear plant (module docstring).
+
+    Args:
+      A: ``[n, n]``, B: ``[n, m]``: the discrete-time model x+ = A x + B u + d.
+      controls: ``[M, m]`` finite input set (``[M]`` when m = 1).
+      horizon: N >= 1.
+      C: ``[p, n]`` output matrix (default I).
+      Q: ``[p, p]`` symmetric positive semidefinite output weight (default I).
+      lambda_u: weight (>= 0) of ||u(k) - u(k-1)||^2, the first step against u_prev.
+      max_step: optional bound (>= 0) on |u_i(k) - u_i(k-1)|, every component
+        and step, the first against u_prev: a hard constraint.
+
+    Attributes:
+      problem: the ``fj.Problem`` the search solves (``step_index=True``): state
+        ``[x, u, u - u_prev, stage cost, W]`` ``[n + 2m + 2]`` (``observe``),
+        params of one decision from ``params``, ``lower_bound`` the cost-to-go
+        W. Use it with any solver: ``fj.sdfs``, ``fj.solve_batch``, ``fj.FIRHC``.
+        ``problem.replace(lower_bound=None)`` is the plain sorted search of the
+        same problem.
+
+    The factorisation is done once here, in float64 (NumPy); the search runs in
+    the dtype of the state given to it.
+    """
+
+    def __init__(self, A, B, controls, horizon, *, C=None, Q=None, lambda_u=0.0, max_step=None):
+        A = _matrix("A", A)
+        n = A.shape[0]
+        if A.shape != (n, n):
+            raise ValueError(f"A must be square [n, n], got shape {A.shape}")
+        B = _matrix("B", B)
+        if B.shape[0] != n:
+            raise ValueError(f"B must be [n, m] with n = {n} rows like A, got shape {B.shape}")
+        m = B.shape[1]
+        C = np.eye(n) if C is None else _matrix("C", C)
+        if C.shape[1] != n:
+            raise ValueError(f"C must be [p, n] with n = {n} columns like A, got shape {C.shape}")
+        p = C.shape[0]
+        Q = np.eye(p) if Q is None else _matrix("Q", Q)
+        if Q.shape != (p, p):
+            raise ValueError(f"Q must be [p, p] = [{p}, {p}] like the rows of C, got shape {Q.shape}")
+        N = positive_int("horizon", horizon)
+        lambda_u = _scalar("lambda_u", lambda_u)
+        max_step = None if max_step is None else _scalar("max_step", max_step)
+        self.A, self.B, self.C, self.Q = A, B, C, Q
+        self.lambda_u, self.max_step, self.horizon = lambda_u, max_step, N
+        self.n, self.m, self.p = n, m, p
+        M, M_data, Ms = child_map(A, B, C, psd_factor("Q", Q), lambda_u, N)
+        # M_norm: the Frobenius norm of each step's W rows, for the bound on their rounding
+        model = {"M": M, "M_norm": np.linalg.norm(M[:, n + p:], axis=(1, 2)), "lambda_u": np.float64(lambda_u)}
+        if max_step is not None:
+            model["max_step"] = np.float64(max_step)
+        self._host = {"model": model, "M_data": M_data, "Ms": Ms}  # float64
+        self._device = {}  # dtype -> the same on the device
+        self.problem = Problem(_dynamics, controls, _stage_cost, N, lower_bound=_lower_bound,
+                               constraint=None if max_step is None else _constraint, step_index=True)
+        if self.problem.input_dim != m:
+            raise ValueError(f"controls must have m = {m} columns like B, got shape {self.problem.controls.shape}")
+
+    @property
+    def controls(self) -> np.ndarray:
+        """``[M, m]`` the input set (read-only)."""
+        return self.problem.controls
+
+    # -- one decision ------------------------------------------------------------
+    @staticmethod
+    def observe(x, u_prev, p=None):
+        """The search state ``[x, u_prev, 0, 0, 0]`` ``[n + 2m + 2]`` from the
+        plant state ``x`` ``[n]`` and the input applied last ``[m]``. The
+        signature of ``fj.FIRHC``'s ``observe`` (``p`` unused); one function for
+        every tracker, so controllers of equal shapes share their compiled loop."""
+        x = jnp.asarray(x)
+        u_prev = jnp.asarray(u_prev, x.dtype)
+        return jnp.concatenate([x, u_prev, jnp.zeros(u_prev.shape[0] + 2, x.dtype)])
+
+    def params(self, y_ref, d=None) -> dict:
+        """The params of ``problem`` for a reference ``y_ref`` ``[..., N, p]``
+        (y_ref[k] is the target of C x(k+1)) and disturbance ``d`` ``[..., N, n]``
+        (default 0), in y_ref's floating dtype. Leading axes batch: one row per
+        state for ``fj.solve_batch``, one per step for ``FIRHC.simulate``.
+
+        Returns the model (``M``, ``M_norm``, ``lambda_u``, ``max_step``: ``child_map``),
+        the data part of each step's map (``off`` ``[..., N, 2n + p + m]``,
+        ``off_err`` a bound on the rounding of its cost-to-go rows, ``s``
+        ``[..., N]``), and the data itself (``y_ref``, ``d``: a closed loop's
+        plant gets the same params, e.g. ``A x + B u + p["d"][0]``). Give the
+        state (``observe``) the same dtype."""
+        y_ref = jnp.asarray(y_ref)
+        if not jnp.issubdtype(y_ref.dtype, jnp.floating):
+            y_ref = y_ref.astype(jax.dtypes.canonicalize_dtype(np.float64))
+        lead, N = y_ref.shape[:-2], self.horizon
+        if y_ref.shape[-2:] != (N, self.p):
+            raise ValueError(f"y_ref must be [N, p] = [{N}, {self.p}] (with optional leading axes), "
+                             f"got shape {tuple(y_ref.shape)}")
+        d = jnp.zeros(lead + (N, self.n), y_ref.dtype) if d is None else jnp.asarray(d, y_ref.dtype)
+        if d.shape != lead + (N, self.n):
+            raise ValueError(f"d must be [N, n] = [{N}, {self.n}] with y_ref's leading axes {lead}, "
+                             f"got shape {tuple(d.shape)}")
+        return _params(self._factors(y_ref.dtype), y_ref, d)
+
+    def _factors(self, dtype):
+        key = jnp.dtype(dtype)
+        if key not in self._device:
+            self._device[key] = jax.tree_util.tree_map(lambda a: jnp.asarray(a, key), self._host)
+        return self._device[key]
+
+    def solve(self, x, u_prev, y_ref, d=None, *, warm_start=None, max_nodes=None) -> SearchResult:
+        """The exact minimiser of J from state ``x`` ``[n]`` after input
+        ``u_prev`` ``[m]``, for ``y_ref`` ``[N, p]`` and ``d`` ``[N, n]`` (default 0).
+
+        ``cost`` is J, ``sequence`` indexes ``controls`` (infeasible under
+        ``max_step``: cost +inf, sequence -1, NaN input). ``warm_start``
+        ``[N]`` is evaluated first and becomes the initial radius if feasible;
+        ``max_nodes`` as in ``fj.sdfs``. Runs in ``x``'s floating dtype;
+        works under ``jax.jit`` and ``jax.vmap``, and new values never
+        recompile."""
+        x = as_state(x, "x")
+        if x.shape != (self.n,):
+            raise ValueError(f"x must be [n] = [{self.n}], got shape {tuple(x.shape)}")
+        u_prev = _vector("u_prev", u_prev, (self.m,), x.dtype)
+        y_ref = _vector("y_ref", y_ref, (self.horizon, self.p), x.dtype)
+        d = None if d is None else _vector("d", d, (self.horizon, self.n), x.dtype)
+        return sdfs(self.problem, self.observe(x, u_prev), params=self.params(y_ref, d), warm_start=warm_start,
+                    max_nodes=max_nodes)
+
+
+# ---------------------------------------------------------------------------
+# The problem's callables: one set for every model, which travels in params (a new A, B, Q or reference of the
+# same shapes never recompiles). State z = [x (n), u (m), u - u_prev (m), stage cost, bound] ``[n + 2m + 2]``:
+# one affine map of [x; u] per child (``child_map``) gives its state, the residual of its stage cost and that of
+# its cost-to-go (one matrix product instead of several: measured in docs/inverter.md), and the stage cost and
+# the bound just read their entries.
+# ---------------------------------------------------------------------------
+
+def _sizes(z, u, prm):
+    m = u.shape[0]
+    n = z.shape[0] - 2 * m - 2
+    return n, m, prm["M"].shape[1] - 2 * n - m  # n, m, p
+
+
+def _dynamics(z, u, k, prm):
+    n, m, p = _sizes(z, u, prm)
+    xu = jnp.concatenate([z[:n], u.astype(z.dtype)])
+    out = prm["M"][k] @ xu + prm["off"][k]  # [x(k+1) (n), sqrt(Q) (y_ref[k] - C x(k+1)) (p), W's residual v (n + m)]
+    # W = ||v||^2 + s, rounded down by a bound on the rounding of v (its terms nearly cancel, and W must stay
+    # admissible): ||v_true|| >= ||v|| - ||v - v_true||, with ||v - v_true|| <= gamma (||M_v|| ||[x; u]|| + ||off_v||)
+    # + the rounding of off_v.
+    v, off_v = out[n + p:], prm["off"][k][n + p:]
+    err = _gamma(z.dtype, n + m) * (prm["M_norm"][k] * jnp.sqrt(xu @ xu) + jnp.sqrt(off_v @ off_v)) + prm["off_err"][k]
+    bound = jnp.maximum(jnp.sqrt(v @ v) - err, 0) ** 2 * (1 - _gamma(z.dtype, n + m)) + prm["s"][k]
+    e, du = out[n:n + p], xu[n:] - z[n:n + m]
+    stage = e @ e + prm["lambda_u"] * (du @ du)
+    return jnp.concatenate([out[:n], xu[n:], du, stage[None], bound[None]])
+
+
+def _stage_cost(z, u, k, prm):
+    return z[-2]
+
+
+def _lower_bound(z, steps_left, prm):
+    return z[-1]
+
+
+def _constraint(z, u, k, prm):
+    m = u.shape[0]
+    return jnp.all(jnp.abs(z[-2 - m:-2]) <= prm["max_step"])
+
+
+@jax.jit
+def _params(factors, y_ref, d):
+    dtype = y_ref.dtype
+    lead = y_ref.shape[:-2]
+    data = jnp.concatenate([y_ref.reshape(lead + (-1,)), d.reshape(lead + (-1,))], axis=-1)  # [..., N(p + n)]
+    gamma = _gamma(dtype, data.shape[-1])
+
+    def apply(M):  # M data and a bound on its rounding error
+        return (jnp.einsum("kid,...d->...ki", M, data),
+                gamma * jnp.einsum("kid,...d->...ki", jnp.abs(M), jnp.abs(data)))
+
+    off, off_err = apply(factors["M_data"])
+    e, e_err = apply(factors["Ms"])
+    n_w = factors["model"]["M"].shape[2]  # n + m rows of W's residual, the last of off
+    model = {k: jnp.broadcast_to(v, lead + v.shape) for k, v in factors["model"].items()}
+    return {**model, "off": off, "off_err": jnp.sqrt(jnp.sum(off_err[..., -n_w:] ** 2, axis=-1)),
+            "s": _norm2_below(e, e_err), "y_ref": y_ref, "d": d}
+
+
+# ---------------------------------------------------------------------------
+# The static factorisation (NumPy, float64).
+# ---------------------------------------------------------------------------
+
+def cost_to_go(A, B, C, sqrt_q, lambda_u, N):
+    """Factors of the unconstrained cost-to-go of the last N - k steps, k = 0 .. N-1.
+
+    W_k(x, u_prev) = min over real u(k .. N-1) of the cost of those steps from
+    x(k) = x after input u_prev; with s = [x; u_prev] and data = [vec(y_ref);
+    vec(d)]: W_k = ||T[k] s + Mw[k] data||^2 + ||Ms[k] data||^2.
+
+    Returns ``T`` ``[N, n+m, n+m]``, ``Mw`` ``[N, n+m, N(p+n)]``, ``Ms``
+    ``[N, r, N(p+n)]`` (rows padded with zeros; r <= N(p+m)). W_k = ||P (G_s s + G_d data)||^2
+    where F U - (G_s s + G_d data) is the stacked residual of the steps left
+    and P projects onto the complement of F's range (from its SVD); a QR
+    factorisation of P G_s splits it into the square part T and the rest.
+    """
+    n, m = B.shape
+    p = sqrt_q.shape[0]
+    powers = [np.eye(n)]
+    for _ in range(N):
+        powers.append(A @ powers[-1])
+    q_c = sqrt_q @ C
+    nd, ns = N * (p + n), n + m
+    T, Mw, rests = np.zeros((N, ns, ns)), np.zeros((N, ns, nd)), []
+    for k in range(N):
+        S = N - k
+        F = np.zeros((S * (p + m), S * m))
+        Gs, Gd = np.zeros((S * (p + m), ns)), np.zeros((S * (p + m), nd))
+        for j in range(S):  # step k + j: tracking rows, then switching rows
+            r = slice(j * p, (j + 1) * p)
+            for i in range(j + 1):
+                F[r, i * m:(i + 1) * m] = q_c @ powers[j - i] @ B
+                Gd[r, N * p + (k + i) * n:N * p + (k + i + 1) * n] = -q_c @ powers[j - i]
+            Gs[r, :n] = -q_c @ powers[j + 1]
+            Gd[r, (k + j) * p:(k + j + 1) * p] = sqrt_q
+            r = slice(S * p + j * m, S * p + (j + 1) * m)
+            F[r, j * m:(j + 1) * m] = np.sqrt(lambda_u) * np.eye(m)
+            if j:
+                F[r, (j - 1) * m:j * m] = -np.sqrt(lambda_u) * np.eye(m)
+            else:
+                Gs[r, n:] = np.sqrt(lambda_u) * np.eye(m)
+        U, sv, _ = np.linalg.svd(F)
+        # Directions of (nearly) zero gain count as reachable: W only gets smaller, so it stays a lower bound.
+        rank = int(np.sum(sv > np.finfo(float).eps * max(F.shape) * sv[0])) if sv.size and sv[0] > 0 else 0
+        perp = U[:, rank:].T  # [R - rank, R]
+        Ue, Te = np.linalg.qr(perp @ Gs, mode="complete")
+        rows = min(ns, Te.shape[0])
+        T[k, :rows] = Te[:rows]
+        Mw[k, :rows] = Ue[:, :rows].T @ perp @ Gd
+        rests.append(Ue[:, rows:].T @ perp @ Gd)
+    Ms = np.zeros((N, max(r.shape[0] for r in rests), nd))
+    for k, rest in enumerate(rests):
+        Ms[k, :rest.shape[0]] = rest
+    return T, Mw, Ms
+
+
+def child_map(A, B, C, sqrt_q, lambda_u, N):
+    """The affine map from a node to a child, per input index k.
+
+    For the child of input u(k) from state x(k) after u(k-1):
+    ``M[k] [x; u] + M_data[k] data`` = [x(k+1); sqrt(Q) (y_ref[k] - C x(k+1));
+    T_{k+1} [x(k+1); u] + w_{k+1}], whose last part's squared norm plus
+    ``||Ms[k] data||^2`` is W_{k+1}(x(k+1), u(k)) (``cost_to_go``; 0 at k = N-1).
+
+    Returns ``M`` ``[N, n + p + n + m, n + m]``, ``M_data``
+    ``[N, n + p + n + m, N(p + n)]`` and ``Ms`` ``[N, r, N(p + n)]``."""
+    n, m = B.shape
+    p = sqrt_q.shape[0]
+    T, Mw, Ms = cost_to_go(A, B, C, sqrt_q, lambda_u, N)
+    nd, q_c = N * (p + n), sqrt_q @ C
+    M, M_data = np.zeros((N, 2 * n + p + m, n + m)), np.zeros((N, 2 * n + p + m, nd))
+    for k in range(N):
+        d_k = np.zeros((n, nd))
+        d_k[:, N * p + k * n:N * p + (k + 1) * n] = np.eye(n)  # selects d[k] from data
+        M[k, :n] = np.hstack([A, B])
+        M_data[k, :n] = d_k
+        M[k, n:n + p] = -q_c @ M[k, :n]
+        M_data[k, n:n + p] = -q_c @ d_k
+        M_data[k, n:n + p, k * p:(k + 1) * p] += sqrt_q  # y_ref[k]
+        if k + 1 < N:
+            Tx, Tu = T[k + 1][:, :n], T[k + 1][:, n:]
+            M[k, n + p:] = Tx @ M[k, :n] + np.hstack([np.zeros((n + m, n)), Tu])
+            M_data[k, n + p:] = Tx @ d_k + Mw[k + 1]
+    Ms_next = np.concatenate([Ms[1:], np.zeros_like(Ms[:1])])
+    return M, M_data, Ms_next
+
+
+def _gamma(dtype, terms: int):
+    """Relative rounding bound of a dot product of ``terms`` terms (with margin)."""
+    return jnp.finfo(dtype).eps * (terms + 2)
+
+
+def _norm2_below(v, err):
+    """A lower bound of ||v_true||^2 over the last axis, given |v - v_true| <= err
+    elementwise: W must never exceed the true cost-to-go (T s and w nearly
+    cancel, so their rounding matters in float32)."""
+    sq = jnp.sum(jnp.maximum(jnp.abs(v) - err, 0) ** 2, axis=-1)
+    return sq * (1 - _gamma(v.dtype, v.shape[-1]))
+
+
+def psd_factor(name: str, Q) -> np.ndarray:
+    """``L`` ``[p, p]`` with L^T L = Q, for a symmetric positive semidefinite
+    ``Q`` (checked by ``fj.problem.weight``: else a ``ValueError`` naming ``name``)."""
+    w, vecs = np.linalg.eigh(weight(name, Q))
+    return np.sqrt(np.clip(w, 0, None))[:, None] * vecs.T
+
+
+def _matrix(name, a) -> np.ndarray:
+    if is_tracer(a):
+        raise TypeError(f"{name} must be concrete values, not a traced array: the model is factorised once, "
+                        "in NumPy, when LinearTracking is built")
+    try:
+        arr = np.asarray(a, dtype=float)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{name} must be a real 2-D array: {e}") from None
+    if arr.ndim != 2 or 0 in arr.shape:
+        raise ValueError(f"{name} must be a non-empty 2-D array, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf")
+    return arr
+
+
+def _scalar(name, value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a real number, got {value!r}") from None
+    if not np.isfinite(v) or v < 0:
+        raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+    return v
+
+
+def _vector(name, a, shape, dtype):
+    if not is_tracer(a):
+        arr = np.asarray(a)
+        if arr.dtype.kind not in "biuf":
+            raise TypeError(f"{name} must be a real array {list(shape)}, got dtype {arr.dtype}")
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} contains NaN or inf")
+        a = arr
+    if tuple(a.shape) != shape:
+        raise ValueError(f"{name} must have shape {list(shape)}, got {tuple(a.shape)}")
+    return jnp.asarray(a, dtype)

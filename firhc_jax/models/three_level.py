@@ -1,0 +1,44 @@
+"""Three-level three-phase inverter feeding an RL load, as a ``LinearTracking`` problem.
+
+Each leg x in {a, b, c} connects its phase to the negative rail, the neutral
+point or the positive rail of the dc link: u_x in {-1, 0, 1} applies
+Vdc/2 * u_x. The 3^3 = 27 switch states ``SWITCH_STATES`` ``[27, 3]`` (in
+``itertools.product`` order) give 19 distinct alpha-beta voltages: states
+that differ by the same step on every leg apply the same voltage (common
+mode), and only the switching term tells them apart. In the alpha-beta frame
+(amplitude-invariant Clarke transform ``CLARKE``) the load is
+L di/dt = v - R i, decoupled and identical in alpha and beta; over one sample
+with v held the exact solution is i(k+1) = a i(k) + B u(k), a = exp(-R Ts / L).
+
+The controller tracks a sinusoidal current reference i_ref along the
+horizon, charges lambda_u ||u(k) - u(k-1)||^2 and forbids a leg to jump from
+-1 to +1 in one sample (max_step = 1, so the squared and absolute switching
+penalties coincide). The circuit is issue 21's: R = 2 ohm, L = 2 mH,
+Vdc = 400 V, Ts = 25 us, 20 A at 50 Hz (``PARAMS``).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..linear import discretize, product_controls
+from ..linear_tracking import LinearTracking
+from .inverter import InverterParams
+
+MAX_HORIZON = 30  # the command line's limit; N = 15 already takes about a second per decision at lambda_u = 0.1
+PARAMS = InverterParams(vdc=400.0, r=2.0, l=2e-3, ts=25e-6, amplitude=20.0, frequency=50.0)
+SWITCH_STATES = product_controls([-1.0, 0.0, 1.0], repeat=3)  # [27, 3]
+CLARKE = np.array([[2.0, -1.0, -1.0], [0.0, math.sqrt(3.0), -math.sqrt(3.0)]]) / 3.0  # [2, 3] abc -> alpha-beta
+
+
+def model(params: InverterParams = PARAMS) -> tuple[np.ndarray, np.ndarray]:
+    """``(A [2, 2], B [2, 3])``: alpha-beta currents (A) one sample later, from leg levels u in {-1, 0, 1}^3."""
+    return discretize(-params.r / params.l * np.eye(2), params.vdc / (2.0 * params.l) * CLARKE, params.ts)
+
+
+def tracking(horizon: int, lambda_u: float = 0.1, params: InverterParams = PARAMS,
+             max_step: float | None = 1.0) -> LinearTracking:
+    """The current controller: track i_ref along the horizon (Q = I, A^2), lambda_u per unit leg step (A^2)."""
+    A, B = model(params)
+    return LinearTracking(A, B, SWITCH_STATES, horizon, lambda_u=lambda_u, max_step=max_step)

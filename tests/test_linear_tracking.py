@@ -1,0 +1,385 @@
+"""fj.LinearTracking: exact against a brute force of J written here, equal to the
+plain sorted search of the same problem in its own coordinates, warm starts,
+no recompilation, the closed loop and batches."""
+import contextlib
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import firhc_jax as fj
+from firhc_jax.models import thermal, three_level
+from reference import same_cost
+
+SETTINGS = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+# Fixed shapes, so that one compiled search serves every example: (n, m, p, N, levels per input). The model is
+# in the params: a new random problem of the same shapes does not recompile.
+# mimo has more inputs than outputs: with lambda_u = 0 its stacked F is rank deficient.
+# long: a horizon long enough that part of the cost-to-go is out of every input's reach (W's data-only term).
+SHAPES = {"siso": (2, 1, 1, 4, (-1.0, 0.0, 1.0)), "mimo": (3, 3, 2, 3, (-1.0, 0.0, 1.0)),
+          "long": (1, 1, 1, 6, (-1.0, 0.0, 1.0))}
+NONE = np.full(3, -1)  # mimo's "no warm start": the same compiled search as a warm-started call
+
+
+class Case:
+    """A random LinearTracking problem and one decision's data (NumPy, float64)."""
+
+    def __init__(self, shape, max_step, seed):
+        n, m, p, N, levels = SHAPES[shape]
+        rng = np.random.default_rng(seed)
+        A = rng.normal(size=(n, n))
+        self.A = A * rng.uniform(0.3, 0.95) / max(np.max(np.abs(np.linalg.eigvals(A))), 1e-9)
+        self.B, self.C = rng.normal(size=(n, m)), rng.normal(size=(p, n))
+        root = rng.normal(size=(rng.integers(1, p + 1), p))  # Q = L^T L, possibly singular
+        self.Q = root.T @ root
+        self.lambda_u = 0.0 if rng.random() < 0.25 else float(rng.uniform(0, 2))
+        self.max_step = 1.0 if max_step else None
+        self.controls = np.array(list(itertools.product(levels, repeat=m)))
+        self.N = N
+        self.x = rng.normal(size=n)
+        # u_prev: a control, or (1 in 5) a real vector that max_step may leave no way out of
+        self.u_prev = self.controls[rng.integers(len(self.controls))] * (1.0 if rng.random() < 0.8 else 2.5)
+        self.y_ref, self.d = rng.normal(size=(N, p)), 0.3 * rng.normal(size=(N, n))
+
+    def tracker(self):
+        controls = self.controls[:, 0] if self.controls.shape[1] == 1 else self.controls  # [M] means m = 1
+        return fj.LinearTracking(self.A, self.B, controls, self.N, C=self.C, Q=self.Q, lambda_u=self.lambda_u,
+                                 max_step=self.max_step)
+
+    def J(self, sequences):
+        """J of index sequences ``[S, N]`` (+inf where max_step is broken), the issue's definition term by term."""
+        U = self.controls[np.asarray(sequences)]  # [S, N, m]
+        x = np.broadcast_to(self.x, U.shape[:1] + self.x.shape)
+        u_last = np.broadcast_to(self.u_prev, U.shape[:1] + self.u_prev.shape)
+        cost, ok = np.zeros(U.shape[0]), np.ones(U.shape[0], bool)
+        for k in range(self.N):
+            x = x @ self.A.T + U[:, k] @ self.B.T + self.d[k]
+            e = self.y_ref[k] - x @ self.C.T
+            du = U[:, k] - u_last
+            cost += np.einsum("si,ij,sj->s", e, self.Q, e) + self.lambda_u * np.sum(du * du, axis=1)
+            if self.max_step is not None:
+                ok &= np.all(np.abs(du) <= self.max_step, axis=1)
+            u_last = U[:, k]
+        return np.where(ok, cost, np.inf)
+
+    def brute_force(self):
+        seqs = np.array(list(itertools.product(range(len(self.controls)), repeat=self.N)))
+        return float(np.min(self.J(seqs)))
+
+
+def check(case, result, what):
+    best = case.brute_force()
+    assert same_cost(float(result.cost), best), (what, float(result.cost), best)
+    assert bool(result.feasible) == np.isfinite(best), what
+    if np.isfinite(best):  # the sequence really achieves it
+        seq = np.asarray(result.sequence)
+        assert same_cost(case.J(seq[None])[0], best), (what, seq)
+        np.testing.assert_array_equal(np.asarray(result.first_input), case.controls[seq[0]])
+    else:
+        assert np.all(np.asarray(result.sequence) == -1) and np.all(np.isnan(np.asarray(result.first_input)))
+
+
+cases = st.builds(Case, st.just("mimo"), st.booleans(), st.integers(0, 2**32 - 1))
+
+
+@SETTINGS
+@given(cases)
+def test_solve_is_the_brute_force_minimum_of_J(case):
+    lt = case.tracker()
+    result = lt.solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=NONE)
+    check(case, result, "solve")
+    assert result.cost.dtype == jnp.float64 and bool(result.complete)
+
+
+def _plain_dynamics(z, u, k, p):
+    n, m = p["B"].shape
+    return jnp.concatenate([p["A"] @ z[:n] + p["B"] @ u + p["d"][k], u, u - z[n:n + m]])
+
+
+def _plain_stage_cost(z, u, k, p):
+    n, m = p["B"].shape
+    e, du = p["y_ref"][k] - p["C"] @ z[:n], z[n + m:]
+    return jnp.maximum(e @ p["Q"] @ e, 0.0) + p["lambda_u"] * (du @ du)
+
+
+def _plain_max_step(z, u, k, p):
+    return jnp.all(jnp.abs(z[p["B"].shape[0] + p["B"].shape[1]:]) <= 1.0)
+
+
+@SETTINGS
+@given(cases)
+def test_plain_sorted_search_in_the_original_coordinates_finds_the_same_optimum(case):
+    """The problem written directly (state [x, u, u - u_prev], step index, params), without the bound."""
+    plain = fj.Problem(_plain_dynamics, case.controls, _plain_stage_cost, case.N,
+                       constraint=_plain_max_step if case.max_step else None, step_index=True)
+    params = {"A": case.A, "B": case.B, "C": case.C, "Q": case.Q, "lambda_u": np.float64(case.lambda_u),
+              "y_ref": case.y_ref, "d": case.d}
+    z0 = np.concatenate([case.x, case.u_prev, np.zeros_like(case.u_prev)])
+    plain_result = fj.sdfs(plain, z0, params=params)
+    check(case, plain_result, "plain sdfs")
+    lt_result = case.tracker().solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=NONE)
+    assert same_cost(float(lt_result.cost), float(plain_result.cost))
+
+
+@SETTINGS
+@given(cases, st.integers(0, 2**32 - 1))
+def test_warm_start_never_changes_the_optimum_and_an_infeasible_one_is_ignored(case, seed):
+    lt = case.tracker()
+    cold = lt.solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=NONE)
+    rng = np.random.default_rng(seed)
+    ws = rng.integers(0, len(case.controls), case.N)
+    warm = lt.solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=ws)
+    check(case, warm, "random warm start")
+    if not np.isfinite(case.J(ws[None])[0]):  # infeasible: ignored, only its N evaluations counted
+        np.testing.assert_array_equal(np.asarray(warm.sequence), np.asarray(cold.sequence))
+        assert int(warm.nodes) == int(cold.nodes) + case.N
+    if bool(cold.feasible):  # the optimum as the initial radius: nothing cheaper to find
+        best = lt.solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=np.asarray(cold.sequence))
+        check(case, best, "optimal warm start")
+        assert int(best.nodes) <= int(cold.nodes) + case.N
+
+
+def test_an_infeasible_warm_start_under_max_step_is_ignored():
+    case = Case("mimo", True, 7)
+    case.u_prev = np.array([-1.0, -1.0, -1.0])
+    lt = case.tracker()
+    cold = lt.solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=NONE)
+    jump = np.full(case.N, 26)  # u = [+1, +1, +1] right after [-1, -1, -1]: breaks max_step at k = 0
+    assert not np.isfinite(case.J(jump[None])[0])
+    warm = lt.solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=jump)
+    check(case, warm, "infeasible warm start")
+    np.testing.assert_array_equal(np.asarray(warm.sequence), np.asarray(cold.sequence))
+
+
+@contextlib.contextmanager
+def compilations():
+    """Names of the functions XLA compiles inside the block (jax.monitoring's compile events)."""
+    seen = []
+
+    def listener(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            seen.append(kw.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield seen
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+
+
+def test_new_states_references_and_disturbances_never_recompile():
+    with compilations() as seen:  # the event is still reported under this name (else the check below is void)
+        jax.jit(lambda a: a * 3)(np.arange(4.0))
+    assert seen, "no compile event observed: jax.monitoring's event name changed"
+    case = Case("mimo", True, 3)
+    lt = case.tracker()
+    lt.solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=NONE)  # compiles
+    jitted = jax.jit(lambda x, u, y, d: lt.solve(x, u, y, d).cost)
+    jitted(case.x, case.u_prev, case.y_ref, case.d)
+    Case("mimo", True, 4).tracker().solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=NONE)
+    rng = np.random.default_rng(0)
+    with compilations() as seen:
+        for _ in range(3):
+            x, y, d = rng.normal(size=case.x.shape), rng.normal(size=case.y_ref.shape), rng.normal(size=case.d.shape)
+            u = case.controls[rng.integers(len(case.controls))]
+            lt.solve(x, u, y, d, warm_start=rng.integers(0, len(case.controls), case.N))
+            jitted(x, u, y, d)
+            # a new model of the same shapes is new params too: the same compiled search
+            Case("mimo", True, int(rng.integers(100))).tracker().solve(x, u, y, d, warm_start=NONE)
+    assert seen == [], seen
+
+
+def test_float32_search_stays_float32_and_exact_to_its_precision():
+    case = Case("mimo", False, 11)
+    lt = case.tracker()
+    result = lt.solve(case.x.astype(np.float32), case.u_prev, case.y_ref, case.d, warm_start=NONE)
+    assert result.cost.dtype == jnp.float32
+    best = case.brute_force()
+    assert abs(float(result.cost) - best) <= 1e-5 * max(best, 1.0)
+    assert case.J(np.asarray(result.sequence)[None])[0] <= best + 1e-5 * max(best, 1.0)
+
+
+def test_closed_loop_with_firhc_decides_the_brute_force_optimum_at_every_step():
+    case = Case("mimo", True, 5)
+    lt = case.tracker()
+    steps = 6
+    rng = np.random.default_rng(1)
+    y_refs = rng.normal(size=(steps,) + case.y_ref.shape)
+    ds = 0.3 * rng.normal(size=(steps,) + case.d.shape)
+    ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
+
+    def plant(x, u, p):
+        return jnp.asarray(case.A) @ x + jnp.asarray(case.B) @ u + p["d"][0]
+
+    u0 = case.controls[0]
+    run = ctrl.simulate(case.x, steps, plant, params=lt.params(y_refs, ds), u0=u0)
+    x, u_prev = case.x, u0
+    for k in range(steps):
+        case.x, case.u_prev, case.y_ref, case.d = x, u_prev, y_refs[k], ds[k]
+        assert same_cost(float(run.predicted_costs[k]), case.brute_force()), k
+        u_prev = case.controls[int(run.input_indices[k])]
+        x = case.A @ x + case.B @ u_prev + ds[k][0]
+        np.testing.assert_allclose(np.asarray(run.states[k + 1]), x, rtol=1e-12, atol=1e-12)
+
+
+def test_vmap_over_many_states_matches_brute_force():
+    """jax.vmap of lt.solve (fj.solve_batch runs in the README test: test_readme_long_horizon_snippet_runs)."""
+    case = Case("siso", True, 9)
+    lt = case.tracker()
+    rng = np.random.default_rng(2)
+    B = 6
+    X = rng.normal(size=(B,) + case.x.shape)
+    U = case.controls[rng.integers(len(case.controls), size=B)]
+    Y, D = rng.normal(size=(B,) + case.y_ref.shape), 0.3 * rng.normal(size=(B,) + case.d.shape)
+    vmapped = jax.jit(jax.vmap(lt.solve))(X, U, Y, D)
+    for b in range(B):
+        case.x, case.u_prev, case.y_ref, case.d = X[b], U[b], Y[b], D[b]
+        check(case, jax.tree_util.tree_map(lambda a, b=b: a[b], vmapped), f"vmap row {b}")
+
+
+def unconstrained_cost_to_go(case, k, x, u_prev):
+    """min over real u(k .. N-1) of the cost of steps k .. N-1 from x(k) = x after u_prev (least squares on the
+    residuals of J, which are affine in the inputs)."""
+    m = case.B.shape[1]
+    w, vecs = np.linalg.eigh(case.Q)
+    sq = np.sqrt(np.clip(w, 0, None))[:, None] * vecs.T  # sq^T sq = Q
+
+    def residuals(U):
+        out, xx, last = [], x, u_prev
+        for j in range(k, case.N):
+            u = U[(j - k) * m:(j - k + 1) * m]
+            xx = case.A @ xx + case.B @ u + case.d[j]
+            out += [sq @ (case.y_ref[j] - case.C @ xx), np.sqrt(case.lambda_u) * (u - last)]
+            last = u
+        return np.concatenate(out)
+
+    size = (case.N - k) * m
+    r0 = residuals(np.zeros(size))
+    jac = np.stack([residuals(e) - r0 for e in np.eye(size)], axis=1)
+    best = np.linalg.lstsq(jac, -r0, rcond=None)[0]
+    return float(np.sum(residuals(best) ** 2))
+
+
+@SETTINGS
+@given(st.builds(Case, st.sampled_from(["mimo", "long"]), st.booleans(), st.integers(0, 2**32 - 1)))
+def test_the_bound_is_the_unconstrained_cost_to_go(case):
+    """W_k (the lower bound at a node k steps deep) is the minimum over real inputs of the steps left, from the
+    node's state: admissible, since the real inputs include the finite ones, and no looser."""
+    lt = case.tracker()
+    params = lt.params(case.y_ref, case.d)
+    rng = np.random.default_rng(int(case.x[0] * 1e6) % 2**32)
+    child = jax.jit(lt.problem.dynamics)
+    for k in range(1, case.N):  # a child k steps deep: from a random node at depth k - 1 with a random input
+        parent = lt.observe(rng.normal(size=case.x.shape), case.controls[rng.integers(len(case.controls))])
+        z = child(parent, case.controls[rng.integers(len(case.controls))], np.int32(k - 1), params)
+        n, m = case.x.shape[0], case.controls.shape[1]
+        true = unconstrained_cost_to_go(case, k, np.asarray(z[:n]), np.asarray(z[n:n + m]))
+        w = float(lt.problem.lower_bound(z, np.int32(case.N - k), params))
+        assert abs(w - true) <= 1e-9 * max(true, 1.0), (k, w, true)  # both exact up to rounding
+    # In float32 W is rounded down by a bound on its own rounding: never above the true cost-to-go.
+    f32 = np.float32
+    case.y_ref, case.d = case.y_ref.astype(f32).astype(float), case.d.astype(f32).astype(float)
+    params = lt.params(case.y_ref.astype(f32), case.d.astype(f32))
+    for k in range(1, case.N):
+        parent = lt.observe(rng.normal(size=case.x.shape).astype(f32), case.controls[rng.integers(len(case.controls))])
+        z = child(parent, case.controls[rng.integers(len(case.controls))].astype(f32), np.int32(k - 1), params)
+        n, m = case.x.shape[0], case.controls.shape[1]
+        true = unconstrained_cost_to_go(case, k, np.asarray(z[:n], float), np.asarray(z[n:n + m], float))
+        w = float(lt.problem.lower_bound(z, np.int32(case.N - k), params))
+        assert w <= true and w >= true - 1e-3 * max(true, 1.0), (k, w, true)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"Q": [[1.0, 0.5], [0.0, 1.0]]}, "weight Q must be a symmetric"),
+    ({"Q": [[1.0, 2.0], [2.0, 1.0]]}, "weight Q must be positive semidefinite"),
+    ({"Q": np.eye(3)}, r"Q must be \[p, p\]"),
+    ({"C": np.ones((2, 3))}, "C must be"),
+    ({"lambda_u": -1.0}, "lambda_u must be finite and >= 0"),
+    ({"max_step": float("nan")}, "max_step must be finite"),
+    ({"A": np.ones((2, 3))}, "A must be square"),
+    ({"A": [[np.nan, 0], [0, 1]]}, "A contains NaN"),
+    ({"B": np.ones((3, 1))}, "B must be"),
+    ({"controls": np.ones((4, 2))}, "controls must have m = 1"),
+    ({"horizon": 0}, "horizon"),
+])
+def test_bad_arguments_are_refused_by_name(kwargs, match):
+    args = {"A": np.eye(2) * 0.5, "B": np.ones((2, 1)), "controls": [-1.0, 0.0, 1.0], "horizon": 3,
+            "C": np.ones((2, 2))}
+    args.update(kwargs)
+    with pytest.raises((ValueError, TypeError), match=match):
+        fj.LinearTracking(args.pop("A"), args.pop("B"), args.pop("controls"), args.pop("horizon"), **args)
+
+
+@pytest.mark.parametrize("which, value, match", [
+    ("x", np.zeros(3), r"x must be \[n\]"), ("u_prev", np.zeros(2), "u_prev must have shape"),
+    ("y_ref", np.zeros((2, 1)), "y_ref must have shape"), ("d", np.zeros((4, 1)), "d must have shape"),
+    ("y_ref", np.full((4, 1), np.nan), "y_ref contains NaN")])
+def test_bad_decision_data_is_refused_by_name(which, value, match):
+    lt = fj.LinearTracking(np.eye(2) * 0.5, np.ones((2, 1)), [-1.0, 0.0, 1.0], 4, C=np.ones((1, 2)))
+    args = {"x": np.zeros(2), "u_prev": np.zeros(1), "y_ref": np.zeros((4, 1)), "d": np.zeros((4, 2))}
+    args[which] = value
+    with pytest.raises(ValueError, match=match):
+        lt.solve(**args)
+
+
+def test_three_level_inverter_model():
+    A, B = three_level.model()
+    assert three_level.SWITCH_STATES.shape == (27, 3)
+    np.testing.assert_allclose(B @ np.ones(3), 0.0, atol=1e-15)  # the common mode applies no voltage
+    assert len({tuple(np.round(B @ u, 12)) for u in three_level.SWITCH_STATES}) == 19
+    # one sample of +Vdc/2 on leg a from zero current: about Vdc/2 * 2/3 * Ts / L
+    np.testing.assert_allclose(B @ np.array([1.0, 0.0, 0.0]), [400 / 3 * 25e-6 / 2e-3, 0.0], rtol=2e-2)
+
+
+def test_thermal_model_steady_state_and_calm_states():
+    A, B, d = thermal.model()
+    x = np.full(4, thermal.ThermalParams().ambient)
+    np.testing.assert_allclose(A @ x + d, x, atol=1e-12)  # ambient is an equilibrium with the heaters off
+    X, U = thermal.calm_states(5, np.random.default_rng(0))
+    np.testing.assert_allclose(X @ thermal.OUTPUTS.T, np.broadcast_to(thermal.ThermalParams().set_point, (5, 2)),
+                               atol=0.05)
+    assert set(map(tuple, U)) <= set(map(tuple, thermal.HEATERS))
+
+
+def test_readme_long_horizon_snippet_runs():
+    """The README's "Long horizons for linear plants" block, after the API tour's imports, as written."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).parent.parent / "README.md").read_text()
+    tour = re.findall(r"```python\n(.*?)```", text, re.S)[0]
+    section = text.split("### Long horizons for linear plants", 1)[1].split("\n#", 1)[0]
+    block = re.findall(r"```python\n(.*?)```", section, re.S)[0]
+    namespace = {}
+    exec(compile(tour.split("\n\n", 1)[0], "README.md tour imports", "exec"), namespace)
+    exec(compile(block, "README.md long horizons", "exec"), namespace)
+    res, loop, many, lt = namespace["res"], namespace["loop"], namespace["many"], namespace["lt"]
+    assert bool(res.feasible) and not np.any(np.isnan(np.asarray(loop.inputs))) and loop.states.shape == (41, 2)
+    assert same_cost(float(loop.predicted_costs[0]), float(res.cost))  # the loop's first decision is res's
+    for b, x in enumerate(namespace["X"]):  # fj.solve_batch: each row is lt.solve's optimum
+        one = lt.solve(x, np.zeros(3), namespace["reference"](0))
+        assert same_cost(float(many.cost[b]), float(one.cost)) and bool(many.feasible[b])
+
+
+@pytest.mark.slow
+def test_cli_three_level_inverter_writes_summary_and_figure(tmp_path):
+    import json
+
+    from firhc_jax import cli
+
+    argv = ["inverter", "--levels", "3", "--horizon", "3", "--cycles", "0.1", "--out", str(tmp_path), "--no-progress"]
+    assert cli.main(argv) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["levels"] == 3 and summary["horizon"] == 3 and summary["lambda_u"] == 0.1 and summary["steps"] == 80
+    assert 0 < summary["thd"] < 0.2 and 0 < summary["switching_frequency_hz"] < 20_000
+    assert summary["nodes_max"] <= 27 + 27**2 + 27**3 + 3
+    assert (tmp_path / "inverter3_N3.png").stat().st_size > 10_000
+    with pytest.raises(SystemExit, match="apply to --levels 2 only"):
+        cli.main(["inverter", "--levels", "3", "--solver", "exhaustive", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="with --levels 2"):
+        cli.main(["inverter", "--horizon", "10", "--out", str(tmp_path)])
