@@ -23,10 +23,10 @@ from typing import Any, Callable, Hashable
 import jax
 
 DEFAULT_MAX_SIZE = 64
-# The most entries one call uses: a closed loop with a fallback touches up to 7 while it compiles (its check, the
-# loop, and the checks and searches it traces for both problems; tests/test_soak.py). LRU at this size keeps them
-# all, so a repeated call finds every one; below it, a call can evict its own and recompile every time.
-MIN_SIZE = 8
+# At least the most entries one call uses (9: a closed loop with a fallback on the exhaustive solver, while it
+# compiles; docs/cache.md), with room for a few more: LRU at this size keeps them all, so a repeated call finds every
+# one; below it, a call can evict its own and recompile every time. tests/test_soak.py checks every kind of call.
+MIN_SIZE = 16
 _entries: "collections.OrderedDict[Hashable, Any]" = collections.OrderedDict()
 _max_size = DEFAULT_MAX_SIZE
 _stats = {"hits": 0, "misses": 0}
@@ -69,8 +69,8 @@ def set_cache_size(max_size: int) -> None:
     max_size = positive_int("max_size", max_size)
     if max_size < MIN_SIZE:
         raise ValueError(f"max_size must be at least {MIN_SIZE}, got {max_size}: one call (a closed loop with a "
-                         f"fallback) uses up to {MIN_SIZE - 1} entries, and a smaller cache would evict them "
-                         "and recompile on every call")
+                         "fallback) uses several entries, and a smaller cache could evict them and recompile on "
+                         "every call")
     _max_size = max_size
     while len(_entries) > _max_size:
         _entries.popitem(last=False)

@@ -29,23 +29,25 @@ def _run(body: str) -> dict:
 
 @pytest.mark.slow
 def test_rebuilt_problems_do_not_pile_up():
-    """19 rebuilt problems through a cache of 8 entries (the smallest allowed; 2 per problem): the 12 compiled
-    after the first 7 (by then the cache has evicted, and the allocator has warmed up) leave maps and memory
-    flat. Unbounded (checked with ``set_cache_size(10**6)``), those 12 added about 970 maps and 43 MB."""
+    """Rebuilt problems through a cache of the smallest size allowed (2 entries a problem): the 12 compiled
+    after the cache has begun to evict (and the allocator has warmed up) leave maps and memory flat. Unbounded
+    (checked with ``set_cache_size(10**6)``), 12 problems added about 970 maps and 43 MB."""
     r = _run("""
-        fj.set_cache_size(8)
+        fj.set_cache_size(fj.cache.MIN_SIZE)
+        first = fj.cache.MIN_SIZE // 2 + 2  # 2 problems after the first eviction
         counts = {}
-        for i in range(19):
+        for i in range(first + 13):
             p = fj.Problem(lambda x, u: 0.5 * x + u, [-1.0, 0.0, 1.0], fj.quadratic_cost(1.0, 0.001 * i), 2)
             fj.sdfs(p, jnp.ones(1))
-            if i in (6, 18):
+            if i in (first, first + 12):
                 counts[i] = usage()
-        print(json.dumps({"maps": [counts[6][0], counts[18][0]], "rss": [counts[6][1], counts[18][1]],
-                          "cache": fj.cache_info()["size"]}))
+        print(json.dumps({"maps": [counts[first][0], counts[first + 12][0]],
+                          "rss": [counts[first][1], counts[first + 12][1]],
+                          "cache": fj.cache_info()["size"], "max": fj.cache.MIN_SIZE}))
     """)
     assert r["maps"][1] - r["maps"][0] < 200, r
     assert r["rss"][1] - r["rss"][0] < 20 * 2**20, r
-    assert r["cache"] <= 8
+    assert r["cache"] <= r["max"]
 
 
 @pytest.mark.slow
