@@ -15,7 +15,8 @@ Public API (see each object's docstring; notation in ``firhc_jax.problem``):
 * ``with_input_memory``: the switching-penalty problem transform.
 * ``LinearTracking``: exact tracking MPC of a linear plant at long horizons
   (the sphere decoder as a lower bound of sDFS).
-* ``solve_batch``: many states (and parameter sets) at once, over all devices.
+* ``solve_batch``: many states (and parameter sets) at once, over every core and device.
+* ``profile``: expansion throughput of your own problem, by solver setting.
 * ``clear_cache``, ``set_cache_size``, ``cache_info``: the bounded cache of
   compiled searches.
 * ``check_problem``, ``check_lower_bound``: sampled checks of the promises
