@@ -122,7 +122,7 @@ def _exhaustive(problem: Problem, x0, params, *, chunk_nodes: int) -> SearchResu
     (best_cost, best_index, stats), _ = jax.lax.scan(scan_chunk, (inf, jnp.array(0, jnp.int32), stats), xs)
 
     weights = jnp.array([M**k for k in range(N - 1, -1, -1)], jnp.int32) if M > 1 else jnp.ones((N,), jnp.int32)
-    return finish(problem, best_cost, (best_index // weights) % M, stats, True)
+    return finish(problem, best_cost, (best_index // weights) % M, stats, True, x0, params)
 
 
 def exhaustive(problem: Problem, x0, *, params=None, method: str = "levels",

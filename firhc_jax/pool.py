@@ -230,5 +230,5 @@ def pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_wi
 
     carry = next_work(pool, rows, jnp.array(0, jnp.int32))
     _, rows, _, _ = jax.lax.while_loop(lambda c: jnp.any(c[3].depth >= 0), body, carry)
-    return jax.vmap(lambda c, p, st, cut: finish(problem, c, p, st, cut == 0))(rows.cost, rows.path, rows.stats,
-                                                                              rows.cut)
+    return jax.vmap(lambda c, path, st, cut, x, p: finish(problem, c, path, st, cut == 0, x, p))(
+        rows.cost, rows.path, rows.stats, rows.cut, X, params)

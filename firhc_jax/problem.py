@@ -32,6 +32,11 @@ three per-step callables take ``k`` after their usual arguments:
 * ``terminal_cost(x[, p]) -> scalar >= 0``: optional cost of the last predicted
   state ``x(k+N)`` (do-mpc's ``mterm``), added to every complete sequence.
   Costs still only grow along a path, so pruning stays exact.
+* ``first_input_of(x0, sequence[, p]) -> u`` ``[m]``: optional, for a problem
+  whose controls stand for *classes* of plant inputs that the search merges
+  (``fj.LinearTracking``: switch states of equal effect, the cheapest member
+  chosen inside the node): the input to apply for the optimal ``sequence``
+  ``[N]`` from ``x0``. Default: ``controls[sequence[0]]``.
 * ``lower_bound(x, steps_left[, p]) -> scalar``: optional admissible bound on
   the cost still to come from ``x`` after ``steps_left`` (traced int32, >= 1)
   more inputs: their stage costs plus the terminal cost, ``+inf`` where the
@@ -91,6 +96,8 @@ class Problem:
       terminal_cost: optional ``terminal_cost(x_N[, p]) -> scalar >= 0``.
       constraint: optional ``constraint(x_next, u[, k][, p]) -> bool``.
       step_index: pass ``k`` to ``dynamics``, ``stage_cost`` and ``constraint``.
+      first_input_of: optional ``first_input_of(x0, sequence[, p]) -> [m]``,
+        the input to apply for an optimal sequence (module docstring).
 
     A ``Problem`` is a pytree with no array leaves: the callables, the horizon
     and the control set are static, compiled into the search as constants.
@@ -109,12 +116,13 @@ class Problem:
     terminal_cost: Optional[Callable] = None
     constraint: Optional[Callable] = None
     step_index: bool = False
+    first_input_of: Optional[Callable] = None
 
     def __post_init__(self):
         for name in ("dynamics", "stage_cost"):
             if not callable(getattr(self, name)):
                 raise TypeError(f"Problem.{name} must be callable, got {type(getattr(self, name)).__name__}")
-        for name in ("terminal", "lower_bound", "terminal_cost", "constraint"):
+        for name in ("terminal", "lower_bound", "terminal_cost", "constraint", "first_input_of"):
             value = getattr(self, name)
             if value is not None and not callable(value):
                 raise TypeError(f"Problem.{name} must be callable or None, got {type(value).__name__}")
@@ -186,6 +194,19 @@ class Problem:
             return jnp.ones((), bool)
         return call(self.constraint, params, x_next, u, *self._k(k))
 
+    def first_input(self, x0, sequence, params=None):
+        """The input to apply for the optimal ``sequence`` ``[N]`` from ``x0``
+        (``first_input_of``, default ``controls[sequence[0]]``), in ``input_dtype``;
+        a ``ValueError`` if ``first_input_of`` returns another shape than ``[m]``."""
+        dtype = input_dtype(self)
+        if self.first_input_of is None:
+            return jnp.asarray(self.controls, dtype)[jnp.maximum(sequence[0], 0)]
+        u = jnp.asarray(call(self.first_input_of, params, x0, sequence))
+        if u.shape != (self.input_dim,):
+            raise ValueError(f"first_input_of must return one input of shape [m] = [{self.input_dim}], "
+                             f"got shape {tuple(u.shape)}")
+        return u.astype(dtype)
+
     def model_plant(self, x, u, params=None):
         """The model as a plant of the closed loop: ``dynamics`` at step index 0."""
         return self.next_state(x, u, 0, params)
@@ -194,7 +215,8 @@ class Problem:
         return (jnp.asarray(k, jnp.int32),) if self.step_index else ()
 
 
-_CALLABLE_FIELDS = ("dynamics", "stage_cost", "terminal", "lower_bound", "terminal_cost", "constraint")
+_CALLABLE_FIELDS = ("dynamics", "stage_cost", "terminal", "lower_bound", "terminal_cost", "constraint",
+                    "first_input_of")
 _MAX_HORIZON = 100_000
 
 

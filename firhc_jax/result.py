@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .nodes import SearchStats
-from .problem import Problem, input_dtype
+from .problem import Problem
 
 
 class SearchResult(NamedTuple):
@@ -24,7 +24,8 @@ class SearchResult(NamedTuple):
 
     cost: jax.Array  # [] optimal accumulated cost, +inf if infeasible
     sequence: jax.Array  # [N] int32 indices into controls, -1 if infeasible
-    first_input: jax.Array  # [m] floating: controls[sequence[0]], the input to apply (eq. 4); NaN if infeasible
+    first_input: jax.Array  # [m] floating: controls[sequence[0]] (or Problem.first_input_of), the input to apply
+    #                           (eq. 4); NaN if infeasible
     nodes: jax.Array  # [] int32 child nodes computed (the paper's count)
     feasible: jax.Array  # [] bool some sequence met the terminal constraint (with a finite cost)
     iterations: jax.Array  # [] int32 batched expansions of this search's nodes: sdfs: loop iterations;
@@ -36,12 +37,11 @@ class SearchResult(NamedTuple):
     complete: jax.Array  # [] bool the search ran to the end (not stopped by max_nodes): the result is optimal
 
 
-def finish(problem: Problem, cost, sequence, stats: SearchStats, complete) -> SearchResult:
-    """Assemble a ``SearchResult`` from a search's final state."""
+def finish(problem: Problem, cost, sequence, stats: SearchStats, complete, x0, params) -> SearchResult:
+    """Assemble a ``SearchResult`` from a search's final state (``x0``, ``params``: its root's)."""
     feasible = jnp.isfinite(cost)
     sequence = jnp.where(feasible, sequence, -1).astype(jnp.int32)
-    controls = jnp.asarray(problem.controls, input_dtype(problem))
-    first = jnp.where(feasible, controls[jnp.maximum(sequence[0], 0)], jnp.nan)
+    first = jnp.where(feasible, problem.first_input(x0, sequence, params), jnp.nan)
     return SearchResult(cost=cost, sequence=sequence, first_input=first, nodes=stats.nodes, feasible=feasible,
                         iterations=stats.iterations, negative_cost=stats.negative,
                         nan_encountered=stats.nonfinite, overflow=stats.overflow,

@@ -170,7 +170,7 @@ def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int,
 
     carry = _Carry(*next_nodes(stack, best_cost), best_cost, best_path, stats)
     out = jax.lax.while_loop(lambda c: (c.row >= 0) & (c.stats.nodes <= limit), body, carry)
-    return finish(problem, out.best_cost, out.best_path, out.stats, out.row < 0)
+    return finish(problem, out.best_cost, out.best_path, out.stats, out.row < 0, x0, params)
 
 
 def _check_warm_start(problem: Problem, warm_start):
