@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 
 from .checks import as_state
-from .problem import Problem, is_tracer, positive_int, weight
+from .problem import Problem, _check_controls, is_tracer, positive_int, weight
 from .result import SearchResult
 from .sdfs import sdfs
 
@@ -96,33 +96,47 @@ class LinearTracking:
         self.A, self.B, self.C, self.Q = A, B, C, Q
         self.lambda_u, self.max_step, self.horizon = lambda_u, max_step, N
         self.n, self.m, self.p = n, m, p
+        controls = _check_controls(controls)
+        if controls.shape[1] != m:
+            raise ValueError(f"controls must have m = {m} columns like B, got shape {controls.shape}")
+        self._controls = controls
+        members = input_classes(B, controls)  # [C, R]
+        self.num_classes, self.class_size = members.shape
+        self._class_of = np.zeros(len(controls), np.int32)  # [M] the class of each input
+        for j, row in enumerate(members):
+            self._class_of[row[row >= 0]] = j
         M, M_data, Ms = child_map(A, B, C, psd_factor("Q", Q), lambda_u, N)
-        # M_norm: the Frobenius norm of each step's W rows, for the bound on their rounding
-        model = {"M": M, "M_norm": np.linalg.norm(M[:, n + p:], axis=(1, 2)), "lambda_u": np.float64(lambda_u)}
+        T = cost_to_go(A, B, C, psd_factor("Q", Q), lambda_u, N)[0]
+        Tu = np.concatenate([T[1:, :, n:], np.zeros((1, n + m, m))])  # [N, n + m, m]: W_{k+1}'s rows of u(k)
+        filled = np.where(members >= 0, members, members[:, :1])  # padding repeats the first member
+        model = {"M": M, "M_norm": np.linalg.norm(M[:, n + p:], axis=(1, 2)), "lambda_u": np.float64(lambda_u),
+                 "Tu": Tu, "Tu_norm": np.linalg.norm(Tu, axis=(1, 2)),
+                 "members": controls.astype(float)[filled],  # [C, R, m]
+                 "member_index": filled.astype(float), "member_ok": (members >= 0).astype(float)}  # [C, R]
         if max_step is not None:
             model["max_step"] = np.float64(max_step)
         self._host = {"model": model, "M_data": M_data, "Ms": Ms}  # float64
         self._device = {}  # dtype -> the same on the device
-        self.problem = Problem(_dynamics, controls, _stage_cost, N, lower_bound=_lower_bound,
-                               constraint=None if max_step is None else _constraint, step_index=True)
-        if self.problem.input_dim != m:
-            raise ValueError(f"controls must have m = {m} columns like B, got shape {self.problem.controls.shape}")
+        self.problem = Problem(_dynamics, controls[members[:, 0]], _stage_cost, N, lower_bound=_lower_bound,
+                               constraint=_constraint, step_index=True, first_input_of=_first_input)
+        self.observe = _observer(self.class_size)
 
     @property
     def controls(self) -> np.ndarray:
         """``[M, m]`` the input set (read-only)."""
-        return self.problem.controls
+        return self._controls
 
-    # -- one decision ------------------------------------------------------------
-    @staticmethod
-    def observe(x, u_prev, p=None):
-        """The search state ``[x, u_prev, 0, 0, 0]`` ``[n + 2m + 2]`` from the
-        plant state ``x`` ``[n]`` and the input applied last ``[m]``. The
-        signature of ``fj.FIRHC``'s ``observe`` (``p`` unused); one function for
-        every tracker, so controllers of equal shapes share their compiled loop."""
-        x = jnp.asarray(x)
-        u_prev = jnp.asarray(u_prev, x.dtype)
-        return jnp.concatenate([x, u_prev, jnp.zeros(u_prev.shape[0] + 2, x.dtype)])
+    @property
+    def class_of(self) -> np.ndarray:
+        """``[M]`` the class (row of ``problem.controls``) of each input (read-only)."""
+        return self._class_of
+
+    def sequence(self, z0, classes, params):
+        """``[N]`` int32 indices into ``controls``: the cheapest inputs of the
+        optimal class sequence ``classes`` ``[N]`` (a ``SearchResult.sequence``
+        of ``problem``) from the search state ``z0`` (``observe``); -1 where it
+        is -1 (infeasible). Its J is the search's cost."""
+        return _sequence(z0, classes, params)
 
     def params(self, y_ref, d=None) -> dict:
         """The params of ``problem`` for a reference ``y_ref`` ``[..., N, p]``
@@ -171,37 +185,83 @@ class LinearTracking:
         u_prev = _vector("u_prev", u_prev, (self.m,), x.dtype)
         y_ref = _vector("y_ref", y_ref, (self.horizon, self.p), x.dtype)
         d = None if d is None else _vector("d", d, (self.horizon, self.n), x.dtype)
-        return sdfs(self.problem, self.observe(x, u_prev), params=self.params(y_ref, d), warm_start=warm_start,
-                    max_nodes=max_nodes)
+        if warm_start is not None:  # indices into controls -> their classes (all -1 stays none)
+            ws = jnp.asarray(warm_start)
+            if ws.shape != (self.horizon,) or not jnp.issubdtype(ws.dtype, jnp.integer):
+                raise ValueError(f"warm_start must be [N] = [{self.horizon}] integer indices into controls, "
+                                 f"got {ws.dtype} of shape {tuple(ws.shape)}")
+            inside = (ws >= 0) & (ws < len(self._controls))
+            warm_start = jnp.where(inside, jnp.asarray(self._class_of)[jnp.clip(ws, 0, len(self._controls) - 1)],
+                                   jnp.where(ws < 0, ws, self.num_classes))
+        z0, params = self.observe(x, u_prev), self.params(y_ref, d)
+        result = sdfs(self.problem, z0, params=params, warm_start=warm_start, max_nodes=max_nodes)
+        return result._replace(sequence=self.sequence(z0, result.sequence, params))
 
 
 # ---------------------------------------------------------------------------
 # The problem's callables: one set for every model, which travels in params (a new A, B, Q or reference of the
-# same shapes never recompiles). State z = [x (n), u (m), u - u_prev (m), stage cost, bound] ``[n + 2m + 2]``:
-# one affine map of [x; u] per child (``child_map``) gives its state, the residual of its stage cost and that of
-# its cost-to-go (one matrix product instead of several: measured in docs/inverter.md), and the stage cost and
-# the bound just read their entries.
+# same shapes never recompiles). A child is a *class* of inputs with the same effect B u on the plant (the
+# inverter's switch states of one voltage vector: ``input_classes``); only the switching term tells its members
+# apart, so the child keeps all R of them: state z = [x (n), members' inputs U (R m), their switching costs o (R),
+# stage cost, bound] ``[n + R (m + 1) + 2]``. o[e] is the cheapest switching of the steps so far that ends on
+# member e, less that of the cheapest member (whose cost the stage cost carries): a min-plus step per child (the
+# Viterbi recursion), so the tree branches on the C classes and never on members of one class. One affine map of
+# [x; u] per child (``child_map``) gives its state, the residual of its stage cost and that of its cost-to-go
+# (one matrix product instead of several: measured in docs/inverter.md).
 # ---------------------------------------------------------------------------
 
 def _sizes(z, u, prm):
-    m = u.shape[0]
-    n = z.shape[0] - 2 * m - 2
-    return n, m, prm["M"].shape[1] - 2 * n - m  # n, m, p
+    R, m = prm["members"].shape[-2:]
+    n = z.shape[0] - R * (m + 1) - 2
+    return n, m, R, prm["M"].shape[1] - 2 * n - m  # n, m, R, p
+
+
+def _entries(z, n, m, R):
+    """The node's members ``[R, m]`` and their switching costs ``[R]`` (``_ABSENT``: none)."""
+    return z[n:n + R * m].reshape(R, m), z[n + R * m:n + R * (m + 1)]
+
+
+def _switch(u_from, o_from, u_to, ok_to, prm):
+    """One min-plus step of the switching costs: for each member ``u_to`` ``[R', m]`` the cheapest
+    o_from[e] + lambda_u ||u_to - u_from[e]||^2 over the allowed predecessors e (``[R', R]``), and the argmin."""
+    du = u_to[:, None, :] - u_from[None, :, :]
+    allowed = ok_to[:, None] & (o_from[None, :] < _ABSENT / 2)
+    if "max_step" in prm:
+        allowed &= jnp.all(jnp.abs(du) <= prm["max_step"], axis=-1)
+    S = jnp.where(allowed, o_from[None, :] + prm["lambda_u"] * jnp.sum(du * du, axis=-1), _ABSENT)
+    return jnp.min(S, axis=1), jnp.argmin(S, axis=1)
+
+
+def _class(u, prm):
+    """The class of input ``u`` ``[m]`` (the first whose members include it)."""
+    hit = jnp.any(jnp.all(prm["members"] == u.astype(prm["members"].dtype), axis=-1) & (prm["member_ok"] > 0), axis=-1)
+    return jnp.argmax(hit)
 
 
 def _dynamics(z, u, k, prm):
-    n, m, p = _sizes(z, u, prm)
-    xu = jnp.concatenate([z[:n], u.astype(z.dtype)])
+    n, m, R, p = _sizes(z, u, prm)
+    j = _class(u, prm)
+    U, ok = prm["members"][j].astype(z.dtype), prm["member_ok"][j] > 0  # [R, m], [R]
+    xu = jnp.concatenate([z[:n], U[0]])
     out = prm["M"][k] @ xu + prm["off"][k]  # [x(k+1) (n), sqrt(Q) (y_ref[k] - C x(k+1)) (p), W's residual v (n + m)]
+    dU = U - U[0]
+    v = out[n + p:] + dU @ prm["Tu"][k].T  # [R, n + m] the residual of W_{k+1}(x(k+1), member)
     # W = ||v||^2 + s, rounded down by a bound on the rounding of v (its terms nearly cancel, and W must stay
-    # admissible): ||v_true|| >= ||v|| - ||v - v_true||, with ||v - v_true|| <= gamma (||M_v|| ||[x; u]|| + ||off_v||)
-    # + the rounding of off_v.
-    v, off_v = out[n + p:], prm["off"][k][n + p:]
-    err = _gamma(z.dtype, n + m) * (prm["M_norm"][k] * jnp.sqrt(xu @ xu) + jnp.sqrt(off_v @ off_v)) + prm["off_err"][k]
-    bound = jnp.maximum(jnp.sqrt(v @ v) - err, 0) ** 2 * (1 - _gamma(z.dtype, n + m)) + prm["s"][k]
-    e, du = out[n:n + p], xu[n:] - z[n:n + m]
-    stage = e @ e + prm["lambda_u"] * (du @ du)
-    return jnp.concatenate([out[:n], xu[n:], du, stage[None], bound[None]])
+    # admissible): ||v_true|| >= ||v|| - ||v - v_true||, with ||v - v_true|| <= gamma (||M_v|| ||[x; u]|| + ||off_v||
+    # + ||Tu|| ||du||) + the rounding of off_v.
+    off_v = prm["off"][k][n + p:]
+    g = _gamma(z.dtype, n + 2 * m)
+    err = g * (prm["M_norm"][k] * jnp.sqrt(xu @ xu) + jnp.sqrt(off_v @ off_v)
+               + prm["Tu_norm"][k] * jnp.sqrt(jnp.sum(dU * dU, axis=1))) + prm["off_err"][k]
+    W = jnp.maximum(jnp.sqrt(jnp.sum(v * v, axis=1)) - err, 0) ** 2 * (1 - g) + prm["s"][k]
+    cost, _ = _switch(*_entries(z, n, m, R), U, ok, prm)
+    switching = jnp.min(cost)
+    o = jnp.where(cost < _ABSENT / 2, cost - switching, _ABSENT)
+    # o + W: one more rounding of each sum, taken off the bound too
+    bound = jnp.min(jnp.where(o < _ABSENT / 2, (o + W) * (1 - g), _ABSENT))
+    e = out[n:n + p]
+    stage = jnp.where(switching < _ABSENT / 2, e @ e + switching, _ABSENT)
+    return jnp.concatenate([out[:n], U.reshape(-1), o, stage[None], bound[None]])
 
 
 def _stage_cost(z, u, k, prm):
@@ -213,8 +273,84 @@ def _lower_bound(z, steps_left, prm):
 
 
 def _constraint(z, u, k, prm):
-    m = u.shape[0]
-    return jnp.all(jnp.abs(z[-2 - m:-2]) <= prm["max_step"])
+    """Some member of the class can follow the node's (max_step)."""
+    return z[-2] < _ABSENT / 2
+
+
+def _members(z0, classes, prm):
+    """``[N]`` the member (0 .. R-1) of each class of ``classes`` on the cheapest switching path from the
+    root ``z0``: the min-plus recursion of ``_dynamics`` forward, then its argmins backward."""
+    R, m = prm["members"].shape[-2:]
+    n = z0.shape[0] - R * (m + 1) - 2
+    j = jnp.maximum(classes, 0)
+
+    def forward(carry, jk):
+        U_from, o_from = carry
+        U, ok = prm["members"][jk].astype(z0.dtype), prm["member_ok"][jk] > 0
+        cost, came_from = _switch(U_from, o_from, U, ok, prm)
+        return (U, cost), came_from
+
+    (_, last), came_from = jax.lax.scan(forward, _entries(z0, n, m, R), j)  # came_from [N, R]
+
+    def backward(e, came):
+        return came[e], e
+
+    _, picked = jax.lax.scan(backward, jnp.argmin(last).astype(came_from.dtype), came_from, reverse=True)
+    return picked
+
+
+@jax.jit
+def _sequence(z0, classes, prm):
+    picked = _members(z0, classes, prm)
+    return jnp.where(classes >= 0, prm["member_index"][jnp.maximum(classes, 0), picked].astype(jnp.int32), -1)
+
+
+def _first_input(z0, classes, prm):
+    """``first_input_of``: the member of the first class on the cheapest switching path."""
+    return prm["members"][jnp.maximum(classes[0], 0), _members(z0, classes, prm)[0]]
+
+
+_OBSERVERS = {}
+
+
+def _observer(R: int):
+    """``observe`` for trackers whose classes have R members: one function per R, so that controllers of
+    equal shapes share their compiled loop."""
+    if R not in _OBSERVERS:
+        def observe(x, u_prev, p=None):
+            """The search state ``[x, u_prev (R times), o = [0, absent...], 0, 0]`` ``[n + R (m + 1) + 2]``
+            from the plant state ``x`` ``[n]`` and the input applied last ``u_prev`` ``[m]``. The signature
+            of ``fj.FIRHC``'s ``observe`` (``p`` unused)."""
+            x = jnp.asarray(x)
+            u_prev = jnp.asarray(u_prev, x.dtype)
+            o = jnp.full((R,), _ABSENT, x.dtype).at[0].set(0)
+            return jnp.concatenate([x, jnp.tile(u_prev, R), o, jnp.zeros(2, x.dtype)])
+
+        _OBSERVERS[R] = observe
+    return _OBSERVERS[R]
+
+
+_ABSENT = 1e30  # the switching cost of no member (a finite sentinel: the searches discard non-finite states)
+
+
+def input_classes(B, controls) -> np.ndarray:
+    """``[C, R]`` indices into ``controls`` ``[M, m]`` grouped by their effect
+    B u on the plant (equal up to rounding: 64 eps of the largest |B u|),
+    classes in the order of their first input, padded with -1."""
+    effect = controls @ B.T  # [M, n]
+    tol = 64 * np.finfo(float).eps * max(1.0, float(np.max(np.abs(effect), initial=0.0)))
+    classes = []
+    for i in range(len(controls)):
+        for c in classes:
+            if np.max(np.abs(effect[i] - effect[c[0]]), initial=0.0) <= tol:
+                c.append(i)
+                break
+        else:
+            classes.append([i])
+    out = np.full((len(classes), max(len(c) for c in classes)), -1)
+    for j, c in enumerate(classes):
+        out[j, :len(c)] = c
+    return out
 
 
 @jax.jit

@@ -21,8 +21,10 @@ SETTINGS = settings(max_examples=15, deadline=None, suppress_health_check=[Healt
 # in the params: a new random problem of the same shapes does not recompile.
 # mimo has more inputs than outputs: with lambda_u = 0 its stacked F is rank deficient.
 # long: a horizon long enough that part of the cost-to-go is out of every input's reach (W's data-only term).
+# common: B 1 = 0, so inputs that differ by a step on every component have the same effect (the inverter's
+# common mode): 27 inputs in 19 classes, which the search merges.
 SHAPES = {"siso": (2, 1, 1, 4, (-1.0, 0.0, 1.0)), "mimo": (3, 3, 2, 3, (-1.0, 0.0, 1.0)),
-          "long": (1, 1, 1, 6, (-1.0, 0.0, 1.0))}
+          "long": (1, 1, 1, 6, (-1.0, 0.0, 1.0)), "common": (2, 3, 2, 3, (-1.0, 0.0, 1.0))}
 NONE = np.full(3, -1)  # mimo's "no warm start": the same compiled search as a warm-started call
 
 
@@ -35,6 +37,8 @@ class Case:
         A = rng.normal(size=(n, n))
         self.A = A * rng.uniform(0.3, 0.95) / max(np.max(np.abs(np.linalg.eigvals(A))), 1e-9)
         self.B, self.C = rng.normal(size=(n, m)), rng.normal(size=(p, n))
+        if shape == "common":
+            self.B -= self.B.mean(axis=1, keepdims=True)
         root = rng.normal(size=(rng.integers(1, p + 1), p))  # Q = L^T L, possibly singular
         self.Q = root.T @ root
         self.lambda_u = 0.0 if rng.random() < 0.25 else float(rng.uniform(0, 2))
@@ -84,7 +88,7 @@ def check(case, result, what):
         assert np.all(np.asarray(result.sequence) == -1) and np.all(np.isnan(np.asarray(result.first_input)))
 
 
-cases = st.builds(Case, st.just("mimo"), st.booleans(), st.integers(0, 2**32 - 1))
+cases = st.builds(Case, st.sampled_from(["mimo", "common"]), st.booleans(), st.integers(0, 2**32 - 1))
 
 
 @SETTINGS
@@ -204,9 +208,13 @@ def test_float32_search_stays_float32_and_exact_to_its_precision():
     assert case.J(np.asarray(result.sequence)[None])[0] <= best + 1e-5 * max(best, 1.0)
 
 
-def test_closed_loop_with_firhc_decides_the_brute_force_optimum_at_every_step():
-    case = Case("mimo", True, 5)
+@pytest.mark.parametrize("shape", ["mimo", "common"])
+def test_closed_loop_with_firhc_decides_the_brute_force_optimum_at_every_step(shape):
+    """Each step applies the first input of an optimal sequence: with classes of inputs (common), the member
+    that ``first_input_of`` picks from the whole optimal plan."""
+    case = Case(shape, True, 5)
     lt = case.tracker()
+    assert lt.num_classes == (19 if shape == "common" else 27)
     steps = 6
     rng = np.random.default_rng(1)
     y_refs = rng.normal(size=(steps,) + case.y_ref.shape)
@@ -221,8 +229,12 @@ def test_closed_loop_with_firhc_decides_the_brute_force_optimum_at_every_step():
     x, u_prev = case.x, u0
     for k in range(steps):
         case.x, case.u_prev, case.y_ref, case.d = x, u_prev, y_refs[k], ds[k]
-        assert same_cost(float(run.predicted_costs[k]), case.brute_force()), k
-        u_prev = case.controls[int(run.input_indices[k])]
+        best = case.brute_force()
+        assert same_cost(float(run.predicted_costs[k]), best), k
+        u_prev = np.asarray(run.inputs[k])
+        first = int(np.flatnonzero(np.all(case.controls == u_prev, axis=1))[0])
+        rest = itertools.product(range(len(case.controls)), repeat=case.N - 1)
+        assert same_cost(float(np.min(case.J(np.array([(first,) + r for r in rest])))), best), k
         x = case.A @ x + case.B @ u_prev + ds[k][0]
         np.testing.assert_allclose(np.asarray(run.states[k + 1]), x, rtol=1e-12, atol=1e-12)
 
@@ -276,7 +288,10 @@ def test_the_bound_is_the_unconstrained_cost_to_go(case):
     child = jax.jit(lt.problem.dynamics)
     for k in range(1, case.N):  # a child k steps deep: from a random node at depth k - 1 with a random input
         parent = lt.observe(rng.normal(size=case.x.shape), case.controls[rng.integers(len(case.controls))])
-        z = child(parent, case.controls[rng.integers(len(case.controls))], np.int32(k - 1), params)
+        u = case.controls[rng.integers(len(case.controls))]
+        z = child(parent, u, np.int32(k - 1), params)
+        if not bool(lt.problem.allowed(z, u, k - 1, params)):  # max_step: no child, its bound unused
+            continue
         n, m = case.x.shape[0], case.controls.shape[1]
         true = unconstrained_cost_to_go(case, k, np.asarray(z[:n]), np.asarray(z[n:n + m]))
         w = float(lt.problem.lower_bound(z, np.int32(case.N - k), params))
@@ -287,7 +302,10 @@ def test_the_bound_is_the_unconstrained_cost_to_go(case):
     params = lt.params(case.y_ref.astype(f32), case.d.astype(f32))
     for k in range(1, case.N):
         parent = lt.observe(rng.normal(size=case.x.shape).astype(f32), case.controls[rng.integers(len(case.controls))])
-        z = child(parent, case.controls[rng.integers(len(case.controls))].astype(f32), np.int32(k - 1), params)
+        u = case.controls[rng.integers(len(case.controls))].astype(f32)
+        z = child(parent, u, np.int32(k - 1), params)
+        if not bool(lt.problem.allowed(z, u, k - 1, params)):
+            continue
         n, m = case.x.shape[0], case.controls.shape[1]
         true = unconstrained_cost_to_go(case, k, np.asarray(z[:n], float), np.asarray(z[n:n + m], float))
         w = float(lt.problem.lower_bound(z, np.int32(case.N - k), params))
