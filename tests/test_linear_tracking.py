@@ -88,6 +88,13 @@ def check(case, result, what):
         assert np.all(np.asarray(result.sequence) == -1) and np.all(np.isnan(np.asarray(result.first_input)))
 
 
+def best_starting_with(case, u):
+    """The least J over the sequences whose first input is ``u`` ``[m]``."""
+    first = int(np.flatnonzero(np.all(case.controls == np.asarray(u), axis=1))[0])
+    rest = itertools.product(range(len(case.controls)), repeat=case.N - 1)
+    return float(np.min(case.J(np.array([(first,) + r for r in rest]))))
+
+
 cases = st.builds(Case, st.sampled_from(["mimo", "common"]), st.booleans(), st.integers(0, 2**32 - 1))
 
 
@@ -98,6 +105,12 @@ def test_solve_is_the_brute_force_minimum_of_J(case):
     result = lt.solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=NONE)
     check(case, result, "solve")
     assert result.cost.dtype == jnp.float64 and bool(result.complete)
+    # lt.problem searches classes; the input it applies starts an optimal sequence (first_input_of)
+    classes = fj.sdfs(lt.problem, lt.observe(case.x, case.u_prev), params=lt.params(case.y_ref, case.d),
+                      warm_start=NONE)
+    assert same_cost(float(classes.cost), float(result.cost))
+    if bool(classes.feasible):
+        assert same_cost(best_starting_with(case, classes.first_input), float(result.cost))
 
 
 def _plain_dynamics(z, u, k, p):
@@ -232,9 +245,7 @@ def test_closed_loop_with_firhc_decides_the_brute_force_optimum_at_every_step(sh
         best = case.brute_force()
         assert same_cost(float(run.predicted_costs[k]), best), k
         u_prev = np.asarray(run.inputs[k])
-        first = int(np.flatnonzero(np.all(case.controls == u_prev, axis=1))[0])
-        rest = itertools.product(range(len(case.controls)), repeat=case.N - 1)
-        assert same_cost(float(np.min(case.J(np.array([(first,) + r for r in rest])))), best), k
+        assert same_cost(best_starting_with(case, u_prev), best), k
         x = case.A @ x + case.B @ u_prev + ds[k][0]
         np.testing.assert_allclose(np.asarray(run.states[k + 1]), x, rtol=1e-12, atol=1e-12)
 
