@@ -54,40 +54,65 @@ def shifted(seq):
     return np.where(seq[0] >= 0, np.concatenate([seq[1:], seq[-1:]]), -1)
 
 
+def plain_problem(lt):
+    """The plain sDFS of ``lt``'s problem, as a user writes it without LinearTracking: every input of
+    ``lt.controls`` a child (no classes), state ``[x, u, u - u_prev]``, no bound; the data from
+    ``lt.params``. Returns ``(problem, observe(x, u_prev))``."""
+    A, B, C, Q = (jnp.asarray(a) for a in (lt.A, lt.B, lt.C, lt.Q))
+    n, m = lt.n, lt.m
+
+    def dynamics(z, u, k, p):
+        return jnp.concatenate([A @ z[:n] + B @ u + p["d"][k], u, u - z[n:n + m]])
+
+    def stage_cost(z, u, k, p):
+        e, du = p["y_ref"][k] - C @ z[:n], z[n + m:]
+        return jnp.maximum(e @ Q @ e, 0.0) + p["lambda_u"] * (du @ du)
+
+    def constraint(z, u, k, p):
+        return jnp.all(jnp.abs(z[n + m:]) <= p["max_step"])
+
+    prob = fj.Problem(dynamics, lt.controls, stage_cost, lt.horizon,
+                      constraint=None if lt.max_step is None else constraint, step_index=True)
+    return prob, lambda x, u_prev: jnp.concatenate([jnp.asarray(x), jnp.asarray(u_prev), jnp.zeros(lt.m)])
+
+
 def inverter_loop(N, steps, lambda_u, plain_cap=None, plain_every=1):
     """The LinearTracking closed loop from the reference at t = 0, each decision jitted (compiled first) and
-    timed; with ``plain_cap``, every ``plain_every``-th decision is also solved by the plain sDFS (the same
-    problem without the bound, the same warm start, at most ``plain_cap`` nodes), right after it, so that
-    both see the same machine load. Returns the tracker and per-decision records."""
+    timed; with ``plain_cap``, every ``plain_every``-th decision is also solved by the plain sDFS
+    (``plain_problem``: no classes, no bound; the same warm start, at most ``plain_cap`` nodes), right after
+    it, so that both see the same machine load. Returns the tracker and per-decision records."""
     lt = three_level.tracking(N, lambda_u)
     A, B = three_level.model()
     refs = inverter.horizon_references(three_level.PARAMS, steps, N)  # [T, N, 2]
     ours = jax.jit(lambda z, p, ws: fj.sdfs(lt.problem, z, params=p, warm_start=ws))
-    plain = lt.problem.replace(lower_bound=None)
+    plain, plain_observe = plain_problem(lt)
     base = jax.jit(lambda z, p, ws, cap: fj.sdfs(plain, z, params=p, warm_start=ws, max_nodes=cap))
     x, u = inverter.reference(three_level.PARAMS, 0.0), np.zeros(3)
-    seq = np.full(N, -1, np.int32)
-    rec = {key: [] for key in ("z", "p", "ws", "nodes", "s", "seq", "plain_nodes", "plain_s", "plain_complete",
-                               "plain_index")}
+    seq = inputs = np.full(N, -1, np.int32)  # the last plan: classes, and the inputs they stand for
+    rec = {key: [] for key in ("z", "p", "ws", "ws_inputs", "nodes", "s", "seq", "plain_nodes", "plain_s",
+                               "plain_complete", "plain_index")}
     for k in range(steps):
         z, p, ws = jax.block_until_ready((lt.observe(jnp.asarray(x), u), lt.params(jnp.asarray(refs[k])),
                                           jnp.asarray(shifted(seq))))  # ready: the timings hold the searches only
+        ws_inputs = jnp.asarray(shifted(inputs))
         if k == 0:
             timed(ours, z, p, ws)  # compile
         res, s = timed(ours, z, p, ws)
-        seq = np.asarray(res.sequence)
-        for key, v in (("z", z), ("p", p), ("ws", ws), ("nodes", int(res.nodes)), ("s", s), ("seq", seq)):
+        seq, inputs = np.asarray(res.sequence), np.asarray(lt.sequence(z, res.sequence, p))
+        for key, v in (("z", z), ("p", p), ("ws", ws), ("ws_inputs", ws_inputs), ("nodes", int(res.nodes)),
+                       ("s", s), ("seq", seq)):
             rec[key].append(v)
         if plain_cap is not None and k % plain_every == 0:
+            zp = plain_observe(x, u)
             if k == 0:
-                timed(base, z, p, ws, plain_cap)
-            other, s = timed(base, z, p, ws, plain_cap)
+                timed(base, zp, p, ws_inputs, plain_cap)
+            other, s = timed(base, zp, p, ws_inputs, plain_cap)
             if bool(other.complete):  # both exact: the same optimal cost
                 assert np.isclose(float(other.cost), float(res.cost), rtol=1e-9), (k, float(other.cost), res.cost)
             for key, v in (("plain_nodes", int(other.nodes)), ("plain_s", s), ("plain_complete", bool(other.complete)),
                            ("plain_index", k)):
                 rec[key].append(v)
-        u = three_level.SWITCH_STATES[seq[0]]
+        u = np.asarray(res.first_input)
         x = A @ x + B @ u
     return lt, rec
 
@@ -211,9 +236,10 @@ def section_granularity(args):
         out = {name: ([], [], []) for name in forms}
         for k in range(len(rec["z"])):
             for name, decide in forms.items():
+                ws = rec["ws"] if name.startswith("LinearTracking") else rec["ws_inputs"]  # classes or inputs
                 if k == 0:
-                    timed(decide, rec["z"][0], rec["p"][0], rec["ws"][0])
-                res, s = timed(decide, rec["z"][k], rec["p"][k], rec["ws"][k])
+                    timed(decide, rec["z"][0], rec["p"][0], ws[0])
+                res, s = timed(decide, rec["z"][k], rec["p"][k], ws[k])
                 for lst, v in zip(out[name], (int(res.nodes), s, int(res.iterations)), strict=True):
                     lst.append(v)
         for name, (nodes, secs, its) in out.items():
@@ -233,16 +259,17 @@ def section_granularity(args):
     ws = jnp.full(N, -1, jnp.int32)
     forms = {"decoder form, node per step": decoder_decide(lt, False),
              "LinearTracking": jax.jit(lambda z, p, ws: fj.sdfs(lt.problem, z, params=p, warm_start=ws)),
-             "plain sDFS": jax.jit(lambda z, p, ws: fj.sdfs(lt.problem.replace(lower_bound=None), z, params=p,
-                                                            warm_start=ws))}
+             "plain sDFS": jax.jit(lambda z, p, ws: fj.sdfs(plain, z, params=p, warm_start=ws))}
+    plain, plain_observe = plain_problem(lt)
     out = {name: ([], []) for name in forms}
     for i, (x, u) in enumerate(zip(X, U, strict=True)):
         z = lt.observe(jnp.asarray(x), u)
         costs = []
         for name, decide in forms.items():
+            zi = plain_observe(x, u) if name == "plain sDFS" else z
             if i == 0:
-                timed(decide, z, p, ws)
-            res, s = timed(decide, z, p, ws)
+                timed(decide, zi, p, ws)
+            res, s = timed(decide, zi, p, ws)
             out[name][0].append(int(res.nodes))
             out[name][1].append(s)
             costs.append(float(res.cost))
@@ -257,7 +284,7 @@ def section_thermal(args):
     X, U = thermal.calm_states(args.thermal_states, np.random.default_rng(0))
     _, _, d = thermal.model()
     p = lt.params(np.broadcast_to(thermal.ThermalParams().set_point, (N, 2)), np.broadcast_to(d, (N, 4)))
-    plain = lt.problem.replace(lower_bound=None)
+    plain, plain_observe = plain_problem(lt)
     ours = jax.jit(lambda z: fj.sdfs(lt.problem, z, params=p))
     base = jax.jit(lambda z, cap: fj.sdfs(plain, z, params=p, max_nodes=cap))
     print(f"\n## Thermal process, N = {N}, lambda_u = {args.thermal_lambda_u}, {args.thermal_states} calm states "
@@ -265,12 +292,12 @@ def section_thermal(args):
     print(f"{'search':<14} {'nodes mean':>11} {'nodes max':>11} {'ms median':>9} {'ms max':>9}  note")
     rows = {"LinearTracking": ([], [], []), "plain sDFS": ([], [], [])}
     for i, (x, u) in enumerate(zip(X, U, strict=True)):
-        z = lt.observe(jnp.asarray(x), u)
+        z, zp = lt.observe(jnp.asarray(x), u), plain_observe(x, u)
         if i == 0:
             timed(ours, z)
-            timed(base, z, args.thermal_max_nodes)
+            timed(base, zp, args.thermal_max_nodes)
         r1, s1 = timed(ours, z)
-        r2, s2 = timed(base, z, args.thermal_max_nodes)
+        r2, s2 = timed(base, zp, args.thermal_max_nodes)
         if bool(r2.complete):
             assert np.isclose(float(r1.cost), float(r2.cost), rtol=1e-9), i
         for name, r, s in (("LinearTracking", r1, s1), ("plain sDFS", r2, s2)):
@@ -294,11 +321,13 @@ def section_batch(args):
     print(f"\n## Batch: {B} inverter states (reference phase uniform, current within 1 A of it, u_prev random), "
           f"N = {N}, fj.solve_batch (pool, {args.lanes} lanes)")
     print(f"{'search':<14} {'rows':>6} {'s':>8} {'states/s':>9} {'nodes/s':>12} {'nodes mean':>11}  note")
-    plain = lt.problem.replace(lower_bound=None)
+    plain, plain_observe = plain_problem(lt)
+    Zp = jax.vmap(plain_observe)(jnp.asarray(X), jnp.asarray(U))
     for name, prob, rows, cap in (("LinearTracking", lt.problem, B, None),
                                   ("LinearTracking", lt.problem, args.batch_plain, None),
                                   ("plain sDFS", plain, args.batch_plain, args.plain_max_nodes)):
-        z, p = Z[:rows], jax.tree_util.tree_map(operator.itemgetter(slice(0, rows)), P)
+        z = (Zp if prob is plain else Z)[:rows]
+        p = jax.tree_util.tree_map(operator.itemgetter(slice(0, rows)), P)
         fj.solve_batch(prob, z[:2], params=jax.tree_util.tree_map(operator.itemgetter(slice(0, 2)), p),
                        lanes=args.lanes)  # compiles
         res, s = timed(functools.partial(fj.solve_batch, prob, z, params=p, lanes=args.lanes, max_nodes=cap))

@@ -279,24 +279,21 @@ def _constraint(z, u, k, prm):
 
 def _members(z0, classes, prm):
     """``[N]`` the member (0 .. R-1) of each class of ``classes`` on the cheapest switching path from the
-    root ``z0``: the min-plus recursion of ``_dynamics`` forward, then its argmins backward."""
+    root ``z0``: the min-plus recursion of ``_dynamics`` forward, then its argmins backward (unrolled: N is
+    small, and a loop of a few small operations costs more as a loop)."""
     R, m = prm["members"].shape[-2:]
     n = z0.shape[0] - R * (m + 1) - 2
-    j = jnp.maximum(classes, 0)
-
-    def forward(carry, jk):
-        U_from, o_from = carry
+    U_from, o_from = _entries(z0, n, m, R)
+    came_from = []
+    for jk in jnp.maximum(classes, 0):
         U, ok = prm["members"][jk].astype(z0.dtype), prm["member_ok"][jk] > 0
-        cost, came_from = _switch(U_from, o_from, U, ok, prm)
-        return (U, cost), came_from
-
-    (_, last), came_from = jax.lax.scan(forward, _entries(z0, n, m, R), j)  # came_from [N, R]
-
-    def backward(e, came):
-        return came[e], e
-
-    _, picked = jax.lax.scan(backward, jnp.argmin(last).astype(came_from.dtype), came_from, reverse=True)
-    return picked
+        o_from, back = _switch(U_from, o_from, U, ok, prm)
+        U_from = U
+        came_from.append(back)
+    picked = [jnp.argmin(o_from)]
+    for back in came_from[:0:-1]:
+        picked.append(back[picked[-1]])
+    return jnp.stack(picked[::-1])
 
 
 @jax.jit
