@@ -4,8 +4,10 @@ Sections (each prints a table; every search is exact unless a row says "capped")
 
 * inverter: the three-level inverter closed loop (``firhc_jax.models.three_level``,
   lambda_u = 0.1, max_step = 1) for each N: nodes and time per decision of
-  LinearTracking, then the plain sDFS (the same problem without the bound,
-  the same warm start) on the same decisions, capped at ``--plain-max-nodes``.
+  LinearTracking, then the plain sDFS (``plain_problem``: the 27 switch
+  states as children, no bound, the same warm start) on the same decisions,
+  capped at ``--plain-max-nodes``; both pop ``three_level.pop_width(N)``
+  nodes an iteration, as the app does.
 * granularity: one node per step (M = 27 children) against one node per leg
   (3 levels each), both in the decoder's own coordinates (state: the N m
   partial sums of V U - h), against LinearTracking's form (state [x, u, du]);
@@ -84,9 +86,10 @@ def inverter_loop(N, steps, lambda_u, plain_cap=None, plain_every=1):
     lt = three_level.tracking(N, lambda_u)
     A, B = three_level.model()
     refs = inverter.horizon_references(three_level.PARAMS, steps, N)  # [T, N, 2]
-    ours = jax.jit(lambda z, p, ws: fj.sdfs(lt.problem, z, params=p, warm_start=ws))
+    K = three_level.pop_width(N)  # the app's, for both searches
+    ours = jax.jit(lambda z, p, ws: fj.sdfs(lt.problem, z, params=p, warm_start=ws, pop_width=K))
     plain, plain_observe = plain_problem(lt)
-    base = jax.jit(lambda z, p, ws, cap: fj.sdfs(plain, z, params=p, warm_start=ws, max_nodes=cap))
+    base = jax.jit(lambda z, p, ws, cap: fj.sdfs(plain, z, params=p, warm_start=ws, max_nodes=cap, pop_width=K))
     x, u = inverter.reference(three_level.PARAMS, 0.0), np.zeros(3)
     seq = inputs = np.full(N, -1, np.int32)  # the last plan: classes, and the inputs they stand for
     rec = {key: [] for key in ("z", "p", "ws", "ws_inputs", "nodes", "s", "seq", "plain_nodes", "plain_s",

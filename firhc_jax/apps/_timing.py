@@ -4,11 +4,15 @@ The loop is the deployment path, ``FIRHC.simulate(..., compiled=False)``: a
 Python loop of the compiled ``step`` with each decision timed in
 ``solve_times``. Before it, the decision is compiled for the run's shapes and
 that compilation is timed on its own, so ``compile_s`` is tracing plus
-compilation and ``solve_times`` never include it.
+compilation and ``solve_times`` never include it. The loop runs with
+Python's cyclic garbage collector paused, as a real-time loop would run
+(``gc.disable``/``gc.freeze``): one collection of the run's records took
+130-160 ms inside a single decision (docs/inverter.md).
 """
 from __future__ import annotations
 
 import contextlib
+import gc
 import time
 
 import jax
@@ -32,6 +36,19 @@ def compile_events():
         jax.monitoring.unregister_event_duration_listener(listener)
 
 
+@contextlib.contextmanager
+def collector_paused():
+    """Python's cyclic garbage collector off inside the block (as it was before, after it), then one collection."""
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
+        gc.collect()
+
+
 def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None, dt=None, progress=False):
     """``(loop, compile_s)``: ``ctrl.simulate(x0, steps, plant, ..., compiled=False)`` with every decision timed,
     and ``compile_s`` the seconds to trace and compile one decision (``ctrl.step``) for these shapes.
@@ -49,7 +66,8 @@ def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None,
         t0 = time.perf_counter()
         jax.block_until_ready(ctrl.step(state, x0, p0))
         first = time.perf_counter() - t0
-    loop = ctrl.simulate(x0, steps, plant, params=params, u0=u0, dt=dt, progress=progress, compiled=False)
+    with collector_paused():
+        loop = ctrl.simulate(x0, steps, plant, params=params, u0=u0, dt=dt, progress=progress, compiled=False)
     if seen:
         return loop, first - float(loop.solve_times[0])
     t0 = time.perf_counter()

@@ -37,7 +37,7 @@ def closed_loop(horizon: int, steps: int, lambda_u: float = LAMBDA_U, progress: 
     every decision timed after one compilation (``_timing.timed_closed_loop``). Needs float64."""
     params = three_level.PARAMS
     lt = three_level.tracking(horizon, lambda_u)
-    ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
+    ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True, pop_width=three_level.pop_width(horizon))
     p = lt.params(jnp.asarray(two_level.horizon_references(params, steps, horizon)))  # leading axis: steps
     i0 = jnp.asarray(two_level.initial_currents(params))
     loop, compile_time = timed_closed_loop(ctrl, i0, steps, _plant(), params=p, u0=jnp.zeros(3), dt=params.ts,
@@ -71,6 +71,7 @@ def summarize(run: InverterRun, horizon: int, lambda_u: float) -> dict:
         "levels": 3,
         "horizon": horizon,
         "lambda_u": lambda_u,
+        "pop_width": three_level.pop_width(horizon),
         "thd": float(np.mean(thds)),
         "switching_frequency_hz": float(changes.mean() / (2.0 * seconds)),
         "rms_tracking_error": float(np.sqrt(np.mean(errors**2))),
