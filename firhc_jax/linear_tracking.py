@@ -25,16 +25,33 @@ at least the decoder's distance where F is rank deficient (singular Q,
 lambda_u = 0, more inputs than outputs): the decoder then loses the part of
 the suffix that no input reaches.
 
-In this form the search state is the plant's own, ``[x, u, u - u_prev]``,
-plus the stage cost and the bound of the step that led to it (n + 2m + 2
-numbers instead of the decoder's N m partial sums), and the cost a search
-returns is J itself, accumulated stage by stage. W_k is kept factored,
-W_k(s) = ||T_k s + w_k||^2 + s_k for s = [x; u_prev]: T_k is static, w_k and
-s_k are linear and quadratic in (y_ref, d) and travel as params, so new
-states, references and disturbances never recompile. One node is one step
-with its M inputs (not one input component per level as in the decoder), and
-where F is rank deficient W is strictly tighter than the decoder's distance:
-both measured in docs/inverter.md.
+Inputs of equal effect are merged. Where B u_i = B u_j (up to rounding: the
+inverter's switch states that differ by one step on every leg, its common
+mode), two inputs lead to the same plant state and differ only in the
+switching term. Branching on both would search the same subtree twice for
+every such choice along a path, so a node branches on the C *classes* of
+inputs (``input_classes``) and keeps, for each member of its class, the
+cheapest switching of the steps so far that ends on that member (a min-plus
+step per child: the Viterbi recursion over at most R members). Its cost is
+then J's minimum over every sequence of inputs of that class sequence, and
+its bound the smallest of (member's switching + W from that member). Exact:
+the optimum is the cheapest class sequence with its cheapest members, which
+``sequence`` recovers from the plan (forward min-plus, argmins backward), and
+``first_input_of`` gives the member to apply now. On the three-level inverter
+(27 inputs, 19 classes, N = 10, lambda_u = 0.1) this computes 28 times fewer
+nodes than the plain sorted search (docs/inverter.md); without equal-effect
+inputs (R = 1) the node is the plain one.
+
+In this form the search state is the plant's own: ``[x, U, o, stage, W]``
+with U the class's R inputs and o their switching costs above the cheapest
+(n + R (m + 1) + 2 numbers instead of the decoder's N m partial sums), and
+the cost a search returns is J itself, accumulated stage by stage. W_k is
+kept factored, W_k(s) = ||T_k s + w_k||^2 + s_k for s = [x; u_prev]: T_k is
+static, w_k and s_k are linear and quadratic in (y_ref, d) and travel as
+params, so new states, references and disturbances never recompile. One node
+is one step with its C classes (not one input component per level as in the
+decoder), and where F is rank deficient W is strictly tighter than the
+decoder's distance: both measured in docs/inverter.md.
 """
 from __future__ import annotations
 
@@ -63,12 +80,17 @@ class LinearTracking:
         and step, the first against u_prev: a hard constraint.
 
     Attributes:
-      problem: the ``fj.Problem`` the search solves (``step_index=True``): state
-        ``[x, u, u - u_prev, stage cost, W]`` ``[n + 2m + 2]`` (``observe``),
-        params of one decision from ``params``, ``lower_bound`` the cost-to-go
-        W. Use it with any solver: ``fj.sdfs``, ``fj.solve_batch``, ``fj.FIRHC``.
-        ``problem.replace(lower_bound=None)`` is the plain sorted search of the
-        same problem.
+      problem: the ``fj.Problem`` the search solves (``step_index=True``): one
+        child per class of inputs (its controls ``[C, m]``: each class's first
+        input), state ``[x, U, o, stage cost, W]`` ``[n + R (m + 1) + 2]``
+        (``observe``), params of one decision from ``params``, ``lower_bound``
+        the cost-to-go W, ``first_input_of`` the member to apply. Use it with
+        any solver: ``fj.sdfs``, ``fj.solve_batch``, ``fj.FIRHC``: their
+        ``first_input`` is the exact optimum's; their ``sequence`` indexes
+        classes (``sequence`` maps it to inputs).
+      num_classes, class_size: C classes of at most R inputs (``input_classes``).
+      observe: ``observe(x, u_prev[, p])``, the search state at plant state
+        ``x`` after input ``u_prev``.
 
     The factorisation is done once here, in float64 (NumPy); the search runs in
     the dtype of the state given to it.

@@ -366,6 +366,50 @@ def test_three_level_inverter_model():
     np.testing.assert_allclose(B @ np.array([1.0, 0.0, 0.0]), [400 / 3 * 25e-6 / 2e-3, 0.0], rtol=2e-2)
 
 
+def test_the_inverter_switch_states_form_19_classes_of_equal_voltage():
+    lt = three_level.tracking(2)
+    A, B = three_level.model()
+    assert (lt.num_classes, lt.class_size) == (19, 3)
+    sizes = np.bincount(lt.class_of)
+    assert sorted(sizes) == [1] * 12 + [2] * 6 + [3]  # large and medium vectors, small vectors, zero
+    for j in range(19):  # members of a class apply the same voltage; different classes do not
+        volts = B @ lt.controls[lt.class_of == j].T
+        np.testing.assert_allclose(volts, np.broadcast_to(volts[:, :1], volts.shape), atol=1e-12)
+    reps = B @ lt.problem.controls.T  # [2, 19]
+    assert np.min(np.linalg.norm(reps[:, :, None] - reps[:, None, :], axis=0) + 10 * np.eye(19)) > 1.0
+    np.testing.assert_array_equal(lt.problem.controls, lt.controls[[np.flatnonzero(lt.class_of == j)[0]
+                                                                    for j in range(19)]])
+
+
+def test_first_input_of_must_return_one_input():
+    problem = fj.Problem(lambda x, u: x + u, [-1.0, 1.0], lambda x, u: x @ x, 2,
+                         first_input_of=lambda x0, seq: jnp.zeros(2))
+    with pytest.raises(ValueError, match=r"first_input_of must return one input of shape \[m\] = \[1\]"):
+        fj.sdfs(problem, np.ones(1))
+    with pytest.raises(TypeError, match="first_input_of must be callable"):
+        fj.Problem(lambda x, u: x + u, [-1.0, 1.0], lambda x, u: x @ x, 2, first_input_of=3)
+
+
+def test_solve_batch_applies_the_optimal_member_of_each_row():
+    """fj.solve_batch on lt.problem (the work pool, and vmap): each row's first_input starts an optimal
+    sequence, on a plant whose inputs form classes."""
+    rng = np.random.default_rng(4)
+    cases = [Case("common", True, int(s)) for s in rng.integers(0, 2**31, 5)]
+    case = cases[0]
+    lt = case.tracker()
+    X = np.stack([c.x for c in cases])
+    U = np.stack([c.controls[rng.integers(27)] for c in cases])
+    Y, D = np.stack([c.y_ref for c in cases]), np.stack([c.d for c in cases])
+    for solver in ("sdfs", "sdfs-vmap"):
+        out = fj.solve_batch(lt.problem, jax.vmap(lt.observe)(X, U), params=lt.params(Y, D), solver=solver)
+        for b in range(len(cases)):
+            case.x, case.u_prev, case.y_ref, case.d = X[b], U[b], Y[b], D[b]
+            best = case.brute_force()
+            assert same_cost(float(out.cost[b]), best), (solver, b)
+            if np.isfinite(best):
+                assert same_cost(best_starting_with(case, out.first_input[b]), best), (solver, b)
+
+
 def test_thermal_model_steady_state_and_calm_states():
     A, B, d = thermal.model()
     x = np.full(4, thermal.ThermalParams().ambient)
