@@ -217,7 +217,10 @@ class LinearTracking:
                                    jnp.where(ws < 0, ws, self.num_classes))
         z0, params = self.observe(x, u_prev), self.params(y_ref, d)
         result = sdfs(self.problem, z0, params=params, warm_start=warm_start, max_nodes=max_nodes)
-        return result._replace(sequence=self.sequence(z0, result.sequence, params))
+        sequence = self.sequence(z0, result.sequence, params)
+        # the first of these inputs (first_input_of may break a tie between members the other way)
+        first = jnp.asarray(self._controls, result.first_input.dtype)[jnp.maximum(sequence[0], 0)]
+        return result._replace(sequence=sequence, first_input=jnp.where(result.feasible, first, jnp.nan))
 
 
 # ---------------------------------------------------------------------------
@@ -301,21 +304,24 @@ def _constraint(z, u, k, prm):
 
 def _members(z0, classes, prm):
     """``[N]`` the member (0 .. R-1) of each class of ``classes`` on the cheapest switching path from the
-    root ``z0``: the min-plus recursion of ``_dynamics`` forward, then its argmins backward (unrolled: N is
-    small, and a loop of a few small operations costs more as a loop)."""
+    root ``z0``: the min-plus recursion of ``_dynamics`` forward, then its argmins backward."""
     R, m = prm["members"].shape[-2:]
     n = z0.shape[0] - R * (m + 1) - 2
-    U_from, o_from = _entries(z0, n, m, R)
-    came_from = []
-    for jk in jnp.maximum(classes, 0):
+    j = jnp.maximum(classes, 0)
+
+    def forward(carry, jk):
+        U_from, o_from = carry
         U, ok = prm["members"][jk].astype(z0.dtype), prm["member_ok"][jk] > 0
-        o_from, back = _switch(U_from, o_from, U, ok, prm)
-        U_from = U
-        came_from.append(back)
-    picked = [jnp.argmin(o_from)]
-    for back in came_from[:0:-1]:
-        picked.append(back[picked[-1]])
-    return jnp.stack(picked[::-1])
+        cost, came_from = _switch(U_from, o_from, U, ok, prm)
+        return (U, cost), came_from
+
+    (_, last), came_from = jax.lax.scan(forward, _entries(z0, n, m, R), j)  # came_from [N, R]
+
+    def backward(e, came):
+        return came[e], e
+
+    _, picked = jax.lax.scan(backward, jnp.argmin(last).astype(came_from.dtype), came_from, reverse=True)
+    return picked
 
 
 @jax.jit
@@ -325,8 +331,28 @@ def _sequence(z0, classes, prm):
 
 
 def _first_input(z0, classes, prm):
-    """``first_input_of``: the member of the first class on the cheapest switching path."""
-    return prm["members"][jnp.maximum(classes[0], 0), _members(z0, classes, prm)[0]]
+    """``first_input_of``: the first member on the cheapest switching path of ``classes`` from ``z0``.
+
+    This runs in every decision, so without a loop: the switching costs between the members of consecutive
+    classes are R x R matrices, all built at once, and their min-plus product (associative) is reduced
+    pairwise, log2(N) vectorised levels (a scan costs several microseconds a step on XLA:CPU, and an
+    unrolled recursion made the work pool's compile time grow steeply with N: 340 s at N = 10)."""
+    R, m = prm["members"].shape[-2:]
+    n = z0.shape[0] - R * (m + 1) - 2
+    j = jnp.maximum(classes, 0)
+    U, ok = prm["members"][j].astype(z0.dtype), prm["member_ok"][j] > 0  # [N, R, m], [N, R]
+    first, _ = _switch(*_entries(z0, n, m, R), U[0], ok[0], prm)  # [R] the root to each first member
+    du = U[1:, None, :, :] - U[:-1, :, None, :]  # [N-1, R (from), R (to), m]
+    allowed = ok[:-1, :, None] & ok[1:, None, :]
+    if "max_step" in prm:
+        allowed &= jnp.all(jnp.abs(du) <= prm["max_step"], axis=-1)
+    chain = jnp.where(allowed, prm["lambda_u"] * jnp.sum(du * du, axis=-1), _ABSENT)  # [N-1, R, R]
+    while chain.shape[0] > 1:  # min-plus products of neighbours; an odd one out waits a level
+        pairs = chain.shape[0] // 2 * 2
+        product = jnp.min(chain[:pairs:2, :, :, None] + chain[1:pairs:2, None, :, :], axis=2)
+        chain = jnp.concatenate([product, chain[pairs:]])
+    rest = jnp.min(chain[0], axis=1) if chain.shape[0] else jnp.zeros((R,), z0.dtype)
+    return U[0][jnp.argmin(first + rest)]
 
 
 _OBSERVERS = {}
@@ -403,7 +429,7 @@ def cost_to_go(A, B, C, sqrt_q, lambda_u, N):
     vec(d)]: W_k = ||T[k] s + Mw[k] data||^2 + ||Ms[k] data||^2.
 
     Returns ``T`` ``[N, n+m, n+m]``, ``Mw`` ``[N, n+m, N(p+n)]``, ``Ms``
-    ``[N, r, N(p+n)]`` (rows padded with zeros; r <= N(p+m)). W_k = ||P (G_s s + G_d data)||^2
+    ``[N, N(p+m), N(p+n)]`` (rows padded with zeros). W_k = ||P (G_s s + G_d data)||^2
     where F U - (G_s s + G_d data) is the stacked residual of the steps left
     and P projects onto the complement of F's range (from its SVD); a QR
     factorisation of P G_s splits it into the square part T and the rest.
@@ -442,7 +468,7 @@ def cost_to_go(A, B, C, sqrt_q, lambda_u, N):
         T[k, :rows] = Te[:rows]
         Mw[k, :rows] = Ue[:, :rows].T @ perp @ Gd
         rests.append(Ue[:, rows:].T @ perp @ Gd)
-    Ms = np.zeros((N, max(r.shape[0] for r in rests), nd))
+    Ms = np.zeros((N, N * (p + m), nd))  # rows for every rank: a new model of the same sizes has the same shapes
     for k, rest in enumerate(rests):
         Ms[k, :rest.shape[0]] = rest
     return T, Mw, Ms
@@ -457,7 +483,7 @@ def child_map(A, B, C, sqrt_q, lambda_u, N):
     ``||Ms[k] data||^2`` is W_{k+1}(x(k+1), u(k)) (``cost_to_go``; 0 at k = N-1).
 
     Returns ``M`` ``[N, n + p + n + m, n + m]``, ``M_data``
-    ``[N, n + p + n + m, N(p + n)]`` and ``Ms`` ``[N, r, N(p + n)]``."""
+    ``[N, n + p + n + m, N(p + n)]`` and ``Ms`` ``[N, N(p + m), N(p + n)]``."""
     n, m = B.shape
     p = sqrt_q.shape[0]
     T, Mw, Ms = cost_to_go(A, B, C, sqrt_q, lambda_u, N)
