@@ -397,7 +397,7 @@ def test_first_input_of_must_return_one_input():
 
 
 def test_solve_batch_applies_the_optimal_member_of_each_row():
-    """fj.solve_batch on lt.problem (the work pool, and vmap): each row's first_input starts an optimal
+    """fj.solve_batch on lt.problem (the work pool, vmap, exhaustive): each row's first_input starts an optimal
     sequence, on a plant whose inputs form classes."""
     rng = np.random.default_rng(4)
     cases = [Case("common", True, int(s)) for s in rng.integers(0, 2**31, 5)]
@@ -406,7 +406,7 @@ def test_solve_batch_applies_the_optimal_member_of_each_row():
     X = np.stack([c.x for c in cases])
     U = np.stack([c.controls[rng.integers(27)] for c in cases])
     Y, D = np.stack([c.y_ref for c in cases]), np.stack([c.d for c in cases])
-    for solver in ("sdfs", "sdfs-vmap"):
+    for solver in ("sdfs", "sdfs-vmap", "exhaustive"):
         out = fj.solve_batch(lt.problem, jax.vmap(lt.observe)(X, U), params=lt.params(Y, D), solver=solver)
         for b in range(len(cases)):
             case.x, case.u_prev, case.y_ref, case.d = X[b], U[b], Y[b], D[b]
