@@ -258,15 +258,16 @@ def _switch(u_from, o_from, u_to, ok_to, prm):
 
 
 def _class(u, prm):
-    """The class of input ``u`` ``[m]`` (the first whose members include it)."""
+    """``(class, found)``: the first class whose members include input ``u`` ``[m]``, and whether one does."""
     hit = jnp.any(jnp.all(prm["members"] == u.astype(prm["members"].dtype), axis=-1) & (prm["member_ok"] > 0), axis=-1)
-    return jnp.argmax(hit)
+    C = hit.shape[0]
+    return jnp.minimum(jnp.min(jnp.where(hit, jnp.arange(C), C)), C - 1), jnp.any(hit)
 
 
 def _dynamics(z, u, k, prm):
     n, m, R, p = _sizes(z, u, prm)
-    j = _class(u, prm)
-    U, ok = prm["members"][j].astype(z.dtype), prm["member_ok"][j] > 0  # [R, m], [R]
+    j, found = _class(u, prm)  # an input of no class (not a control) has no child
+    U, ok = prm["members"][j].astype(z.dtype), (prm["member_ok"][j] > 0) & found  # [R, m], [R]
     xu = jnp.concatenate([z[:n], U[0]])
     out = prm["M"][k] @ xu + prm["off"][k]  # [x(k+1) (n), sqrt(Q) (y_ref[k] - C x(k+1)) (p), W's residual v (n + m)]
     dU = U - U[0]

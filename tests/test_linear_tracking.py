@@ -463,3 +463,14 @@ def test_cli_three_level_inverter_writes_summary_and_figure(tmp_path):
         cli.main(["inverter", "--levels", "3", "--solver", "exhaustive", "--out", str(tmp_path)])
     with pytest.raises(SystemExit, match="with --levels 2"):
         cli.main(["inverter", "--horizon", "10", "--out", str(tmp_path)])
+
+
+def test_an_input_outside_the_controls_has_no_child():
+    """The problem's dynamics on an input of no class: discarded (constraint False), never read as class 0."""
+    lt = three_level.tracking(2)
+    p = lt.params(np.zeros((2, 2)))
+    z = lt.observe(np.zeros(2), np.zeros(3))
+    stray = np.array([0.5, 0.0, 0.0])
+    assert not bool(lt.problem.allowed(lt.problem.next_state(z, stray, 0, p), stray, 0, p))
+    rep = lt.problem.controls[0]
+    assert bool(lt.problem.allowed(lt.problem.next_state(z, rep, 0, p), rep, 0, p))
