@@ -127,9 +127,7 @@ class LinearTracking:
         self._class_of = np.zeros(len(controls), np.int32)  # [M] the class of each input
         for j, row in enumerate(members):
             self._class_of[row[row >= 0]] = j
-        M, M_data, Ms = child_map(A, B, C, psd_factor("Q", Q), lambda_u, N)
-        T = cost_to_go(A, B, C, psd_factor("Q", Q), lambda_u, N)[0]
-        Tu = np.concatenate([T[1:, :, n:], np.zeros((1, n + m, m))])  # [N, n + m, m]: W_{k+1}'s rows of u(k)
+        M, M_data, Ms, Tu = child_map(A, B, C, psd_factor("Q", Q), lambda_u, N)
         filled = np.where(members >= 0, members, members[:, :1])  # padding repeats the first member
         model = {"M": M, "M_norm": np.linalg.norm(M[:, n + p:], axis=(1, 2)), "lambda_u": np.float64(lambda_u),
                  "Tu": Tu, "Tu_norm": np.linalg.norm(Tu, axis=(1, 2)),
@@ -484,7 +482,10 @@ def child_map(A, B, C, sqrt_q, lambda_u, N):
     ``||Ms[k] data||^2`` is W_{k+1}(x(k+1), u(k)) (``cost_to_go``; 0 at k = N-1).
 
     Returns ``M`` ``[N, n + p + n + m, n + m]``, ``M_data``
-    ``[N, n + p + n + m, N(p + n)]`` and ``Ms`` ``[N, N(p + m), N(p + n)]``."""
+    ``[N, n + p + n + m, N(p + n)]``, ``Ms`` ``[N, N(p + m), N(p + n)]`` and
+    ``Tu`` ``[N, n + m, m]``, the columns of u(k) in T_{k+1} (0 at k = N-1):
+    how W's residual moves with the child's input, for the other members
+    of its class."""
     n, m = B.shape
     p = sqrt_q.shape[0]
     T, Mw, Ms = cost_to_go(A, B, C, sqrt_q, lambda_u, N)
@@ -503,7 +504,8 @@ def child_map(A, B, C, sqrt_q, lambda_u, N):
             M[k, n + p:] = Tx @ M[k, :n] + np.hstack([np.zeros((n + m, n)), Tu])
             M_data[k, n + p:] = Tx @ d_k + Mw[k + 1]
     Ms_next = np.concatenate([Ms[1:], np.zeros_like(Ms[:1])])
-    return M, M_data, Ms_next
+    Tu = np.concatenate([T[1:, :, n:], np.zeros((1, n + m, m))])
+    return M, M_data, Ms_next, Tu
 
 
 def _gamma(dtype, terms: int):
