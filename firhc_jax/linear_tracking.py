@@ -38,7 +38,7 @@ its bound the smallest of (member's switching + W from that member). Exact:
 the optimum is the cheapest class sequence with its cheapest members, which
 ``sequence`` recovers from the plan (forward min-plus, argmins backward), and
 ``first_input_of`` gives the member to apply now. On the three-level inverter
-(27 inputs, 19 classes, N = 10, lambda_u = 0.1) this computes 28 times fewer
+(27 inputs, 19 classes, N = 10, lambda_u = 0.1) this computes 27 times fewer
 nodes than the plain sorted search (docs/inverter.md); without equal-effect
 inputs (R = 1) the node is the plain one.
 
