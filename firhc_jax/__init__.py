@@ -18,7 +18,8 @@ Public API (see each object's docstring; notation in ``firhc_jax.problem``):
 * ``solve_batch``: many states (and parameter sets) at once, over every core and device.
 * ``profile``: expansion throughput of your own problem, by solver setting.
 * ``clear_cache``, ``set_cache_size``, ``cache_info``: the bounded cache of
-  compiled searches.
+  compiled searches; ``enable_compilation_cache``: keep compilations on disk
+  across runs (opt in).
 * ``check_problem``, ``check_lower_bound``: sampled checks of the promises
   exactness rests on (non-negative costs, admissible bounds).
 """
@@ -26,6 +27,7 @@ from .batch import solve_batch
 from . import diagnostics
 from .cache import cache_info, clear_cache, set_cache_size
 from .closed_loop import ClosedLoop
+from .compilation_cache import enable_compilation_cache
 from .controller import FIRHC, ControllerState, InfeasibleError, StepInfo
 from .diagnostics import check_lower_bound, check_problem
 from .exhaustive import exhaustive
@@ -41,6 +43,6 @@ from .transforms import InputMemory, with_input_memory
 __all__ = ["Problem", "quadratic_cost", "discretize", "linear_dynamics", "product_controls", "tracking_cost",
            "input_change_cost", "horizon_windows", "LinearTracking", "sdfs", "exhaustive", "SearchResult", "FIRHC",
            "ControllerState", "StepInfo", "ClosedLoop", "InfeasibleError", "InputMemory", "with_input_memory",
-           "solve_batch", "clear_cache", "set_cache_size", "cache_info", "check_problem", "check_lower_bound",
-           "diagnostics", "profile"]
+           "solve_batch", "clear_cache", "set_cache_size", "cache_info", "enable_compilation_cache", "check_problem",
+           "check_lower_bound", "diagnostics", "profile"]
 __version__ = "0.2.0"

@@ -1,7 +1,10 @@
 """Command line: ``python -m firhc_jax <subcommand>``.
 
 Each application module registers its own subcommand through
-``register(subparsers)`` and sets ``func`` on its parser.
+``register(subparsers)`` and sets ``func`` on its parser. Every command keeps
+its compilations in JAX's persistent compilation cache
+(``firhc_jax.enable_compilation_cache``), so a second run skips XLA's
+compilation; ``--no-cache`` turns that off for one run.
 """
 from __future__ import annotations
 
@@ -9,6 +12,7 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 
 # Subcommand modules, in the order shown by --help.
 _APPS = ("firhc_jax.apps.example", "firhc_jax.apps.hopper", "firhc_jax.apps.tanks", "firhc_jax.apps.inverter",
@@ -29,7 +33,30 @@ def build_parser() -> argparse.ArgumentParser:
                 raise
             continue
         module.register(sub)
+    for command in _leaves(parser):
+        command.add_argument("--no-cache", action="store_true",
+                             help="do not read or write the persistent compilation cache "
+                                  "($XDG_CACHE_HOME/firhc_jax, else ~/.cache/firhc_jax)")
     return parser
+
+
+def _leaves(parser: argparse.ArgumentParser):
+    """The parsers that run a command: ``parser`` itself, or the leaves below its subcommands."""
+    groups = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not groups:
+        yield parser
+    for group in groups:
+        for child in dict.fromkeys(group.choices.values()):  # aliases map to the same parser
+            yield from _leaves(child)
+
+
+def _use_compilation_cache() -> None:
+    from .compilation_cache import enable_compilation_cache
+
+    try:
+        enable_compilation_cache()
+    except OSError as e:  # a read-only home: the run goes on, compiling as if --no-cache were given
+        warnings.warn(f"{e}; running without the persistent compilation cache", stacklevel=2)
 
 
 def main(argv=None) -> int:
@@ -38,6 +65,8 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    if not getattr(args, "no_cache", False):
+        _use_compilation_cache()
     return int(args.func(args) or 0)
 
 

@@ -17,6 +17,8 @@ import time
 
 import jax
 
+from ._status import stage
+
 BACKEND_COMPILE = "/jax/core/compile/backend_compile_duration"  # jax.monitoring's event per XLA compilation
 
 
@@ -62,7 +64,7 @@ def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None,
     """
     state = ctrl.init(x0, u0)
     p0 = None if params is None else jax.tree_util.tree_map(lambda a: a[0], params)
-    with compile_events() as seen:
+    with compile_events() as seen, stage("compiling the decision"):
         t0 = time.perf_counter()
         jax.block_until_ready(ctrl.step(state, x0, p0))
         first = time.perf_counter() - t0
@@ -70,6 +72,7 @@ def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None,
         loop = ctrl.simulate(x0, steps, plant, params=params, u0=u0, dt=dt, progress=progress, compiled=False)
     if seen:
         return loop, first - float(loop.solve_times[0])
-    t0 = time.perf_counter()
-    jax.jit(ctrl.step).lower(state, x0, p0).compile()
-    return loop, time.perf_counter() - t0
+    with stage("timing the decision's compilation"):
+        t0 = time.perf_counter()
+        jax.jit(ctrl.step).lower(state, x0, p0).compile()
+        return loop, time.perf_counter() - t0

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._args import number, output_dir
+from ._status import stage
 
 DT = 0.05  # s, control period
 # The example checks sDFS against exhaustive search, which visits all 3 + 9 + ... + 3^N nodes at every step:
@@ -67,9 +68,10 @@ def run(args) -> int:
     runs, summary = {}, {"horizon": args.horizon, "steps": args.steps, "tree_size": problem.tree_size()}
     for solver in ("sdfs", "exhaustive"):
         ctrl = fj.FIRHC(problem, solver, fallback="unconstrained")
-        t0 = time.perf_counter()
-        ctrl.simulate(x0, args.steps, progress=True).states.block_until_ready()  # compile + run
-        compile_and_run = time.perf_counter() - t0
+        with stage(f"{solver}: compiling the closed loop and running it once"):
+            t0 = time.perf_counter()
+            ctrl.simulate(x0, args.steps, progress=True).states.block_until_ready()  # compile + run
+            compile_and_run = time.perf_counter() - t0
         t0 = time.perf_counter()
         runs[solver] = ctrl.simulate(x0, args.steps, progress=True)
         runs[solver].states.block_until_ready()
@@ -82,8 +84,9 @@ def run(args) -> int:
     same = bool(np.array_equal(runs["sdfs"].input_indices, runs["exhaustive"].input_indices))
     summary["same_inputs"] = same
     summary["final_state"] = np.asarray(runs["sdfs"].states[-1]).tolist()
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    _plot(runs["sdfs"], out / "example.png")
+    with stage(f"writing summary.json and example.png to {out}"):
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        _plot(runs["sdfs"], out / "example.png")
 
     print(f"pendulum, N={args.horizon}, {args.steps} steps, full tree {problem.tree_size():,} nodes per step")
     print(f"{'solver':<12}{'nodes min/mean/max':>24}{'ms/step':>10}{'infeasible':>12}")

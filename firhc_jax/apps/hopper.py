@@ -33,6 +33,7 @@ import firhc_jax as fj
 from firhc_jax.models import hopper as hm
 
 from ._args import number, output_dir
+from ._status import stage
 from ._timing import timed_closed_loop
 
 
@@ -75,7 +76,8 @@ def simulate(seconds: float = 2.0, horizon: int = 6, solver: str = "sdfs", param
                                             progress=progress)
     else:
         loop, compile_s = ctrl.simulate(X0, steps, hm.plant(params), dt=hm.CONTROL_PERIOD, progress=progress), None
-    fine = _fine_trajectory(params)(loop.states[:-1], loop.inputs)  # [S, SUBSTEPS, 6]
+    with stage(f"re-integrating the plant at {hm.PLANT_DT * 1e6:g} us for the figures"):
+        fine = jax.block_until_ready(_fine_trajectory(params)(loop.states[:-1], loop.inputs))  # [S, SUBSTEPS, 6]
     return loop, np.concatenate([np.asarray(X0)[None], np.asarray(fine).reshape(-1, 6)]), compile_s
 
 
@@ -276,10 +278,11 @@ def run(args) -> int:
     wall = time.perf_counter() - t0
     summary = summarize(loop, X, args.horizon, args.solver, args.seconds, params, wall, args.bound, args.warm,
                         args.pop_width, compile_s)
-    figures(loop, X, params, args.out)
-    with open(os.path.join(args.out, "summary.json"), "w") as f:
-        json.dump(summary, f, indent=2)
-    loop.save(os.path.join(args.out, "closed_loop.npz"))
+    with stage(f"writing Figs. 4-8, summary.json and closed_loop.npz to {args.out}"):
+        figures(loop, X, params, args.out)
+        with open(os.path.join(args.out, "summary.json"), "w") as f:
+            json.dump(summary, f, indent=2)
+        loop.save(os.path.join(args.out, "closed_loop.npz"))
 
     def fmt(value, spec, scale=1.0):
         return "n/a" if value is None else format(scale * value, spec)

@@ -31,6 +31,7 @@ from firhc_jax.models import inverter as model
 from firhc_jax.models.three_level import MAX_HORIZON as THREE_LEVEL_MAX_HORIZON
 
 from ._args import number, output_dir
+from ._status import stage
 from ._timing import timed_closed_loop
 
 MAX_HORIZON = 8  # 8^8 sequences; exhaustive search is already slow there
@@ -247,13 +248,14 @@ def run(args) -> int:
     result = closed_loop(args.horizon, args.solver, steps, args.lambda_u, params, args.model,
                          progress=not args.no_progress, bound=args.bound)
     summary = summarize(result, args.horizon, args.solver, args.lambda_u, params, args.model, args.levels)
-    (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    result.loop.save(args.out / "closed_loop.npz")
     figure = args.out / f"inverter_N{args.horizon}_{args.solver}.png"
-    plot(result, figure, params,
-         title=f"Inverter FIRHC, N = {args.horizon}, {args.solver}, $\\lambda_u$ = {args.lambda_u:g} A$^2$: "
-               f"rms error {summary['rms_tracking_error']:.3f} A, "
-               f"{summary['switching_frequency_hz'] / 1e3:.2f} kHz per leg")
+    with stage(f"writing summary.json, closed_loop.npz and {figure.name} to {args.out}"):
+        (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        result.loop.save(args.out / "closed_loop.npz")
+        plot(result, figure, params,
+             title=f"Inverter FIRHC, N = {args.horizon}, {args.solver}, $\\lambda_u$ = {args.lambda_u:g} A$^2$: "
+                   f"rms error {summary['rms_tracking_error']:.3f} A, "
+                   f"{summary['switching_frequency_hz'] / 1e3:.2f} kHz per leg")
     print(f"inverter N={args.horizon} {args.solver} lambda_u={args.lambda_u:g}: rms tracking error "
           f"{summary['rms_tracking_error']:.4f} A, amplitude {summary['current_amplitude']:.4f} A, "
           f"THD {summary['thd'] * 100:.2f} %, switching {summary['switching_frequency_hz']:.0f} Hz per leg, "

@@ -26,6 +26,7 @@ import firhc_jax as fj
 from firhc_jax.models import inverter as two_level
 from firhc_jax.models import three_level
 
+from ._status import stage
 from ._timing import timed_closed_loop
 from .inverter import InverterRun, distortion, plot
 
@@ -111,12 +112,13 @@ def run(args) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     result = closed_loop(args.horizon, steps, lambda_u, progress=not args.no_progress)
     summary = summarize(result, args.horizon, lambda_u)
-    (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    result.loop.save(args.out / "closed_loop.npz")
     figure = args.out / f"inverter3_N{args.horizon}.png"
-    plot(result, figure, three_level.PARAMS,
-         title=f"Three-level inverter, LinearTracking, N = {args.horizon}, $\\lambda_u$ = {lambda_u:g} A$^2$: "
-               f"{summary['switching_frequency_hz'] / 1e3:.2f} kHz per leg")
+    with stage(f"writing summary.json, closed_loop.npz and {figure.name} to {args.out}"):
+        (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        result.loop.save(args.out / "closed_loop.npz")
+        plot(result, figure, three_level.PARAMS,
+             title=f"Three-level inverter, LinearTracking, N = {args.horizon}, $\\lambda_u$ = {lambda_u:g} A$^2$: "
+                   f"{summary['switching_frequency_hz'] / 1e3:.2f} kHz per leg")
     print(f"inverter --levels 3 N={args.horizon} lambda_u={lambda_u:g}: THD {summary['thd'] * 100:.2f} %, "
           f"switching {summary['switching_frequency_hz']:.0f} Hz per leg, rms error "
           f"{summary['rms_tracking_error']:.3f} A, nodes/step {summary['nodes_mean']:,.0f} mean / "

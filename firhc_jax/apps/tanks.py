@@ -26,6 +26,7 @@ import firhc_jax as fj
 from firhc_jax.models import tanks as model
 
 from ._args import number, output_dir
+from ._status import stage
 from ._timing import timed_closed_loop
 
 MAX_HORIZON = 10  # 17^10 sequences: beyond this even sDFS's worst steps become impractical
@@ -180,12 +181,13 @@ def run(args) -> int:
     loop, compile_s = simulate(problem, args.solver, steps, progress=not args.no_progress, timed=True, dt=params.ts)
     summary = summarize(loop, compile_s, problem, args.solver, params, tolerance=args.tolerance,
                         switch_penalty=args.switch_penalty, terminal_tol=args.terminal_tol)
-    (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    loop.save(args.out / "closed_loop.npz")
     figure = args.out / f"tanks_N{args.horizon}_{args.solver}.png"
-    plot(loop, figure, params, tolerance=args.tolerance,
-         title=f"Three-tank FIRHC, N = {args.horizon}, {args.solver}: "
-               f"nodes/step min {summary['nodes_min']}, mean {summary['nodes_mean']:.0f}, max {summary['nodes_max']}")
+    with stage(f"writing summary.json, closed_loop.npz and {figure.name} to {args.out}"):
+        (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        loop.save(args.out / "closed_loop.npz")
+        plot(loop, figure, params, tolerance=args.tolerance,
+             title=f"Three-tank FIRHC, N = {args.horizon}, {args.solver}: nodes/step min {summary['nodes_min']}, "
+                   f"mean {summary['nodes_mean']:.0f}, max {summary['nodes_max']}")
     settled = summary["settling_time_s"]
     print(f"tanks N={args.horizon} {args.solver}: final levels "
           f"{', '.join(f'{h:.4f}' for h in summary['final_levels'])} m, "
