@@ -51,8 +51,13 @@ def _leaves(parser: argparse.ArgumentParser):
 
 
 def _use_compilation_cache() -> None:
+    """The default folder, unless this process already set one (``JAX_COMPILATION_CACHE_DIR``, a caller)."""
+    import jax
+
     from .compilation_cache import enable_compilation_cache
 
+    if jax.config.jax_compilation_cache_dir is not None:
+        return
     try:
         enable_compilation_cache()
     except OSError as e:  # a read-only home: the run goes on, compiling as if --no-cache were given

@@ -13,11 +13,13 @@ searches are jitted once per problem and setting, in the package's cache
 from __future__ import annotations
 
 import statistics
+import sys
 import time
 from typing import Callable
 
 import jax
 import numpy as np
+from tqdm.auto import tqdm
 
 from .batch import _check_batch, solve_batch
 from .cache import cached
@@ -69,7 +71,7 @@ def _row(solver: str, setting: str, seconds: float, first: float, results, solve
 
 
 def profile(problem: Problem, states, params=None, *, pop_widths=POP_WIDTHS, lanes=LANES, repeats: int = 3,
-            max_exhaustive_nodes: int = MAX_EXHAUSTIVE_NODES) -> list[dict]:
+            max_exhaustive_nodes: int = MAX_EXHAUSTIVE_NODES, progress: bool = False) -> list[dict]:
     """Time every search setting on ``states`` and mark the fastest.
 
     Args:
@@ -83,6 +85,7 @@ def profile(problem: Problem, states, params=None, *, pop_widths=POP_WIDTHS, lan
       repeats: timed calls after the compiling one; their median is used.
       max_exhaustive_nodes: ``fj.exhaustive`` is timed on evenly spaced states
         visiting at most this many nodes in all (none if one tree is larger).
+      progress: a bar on stderr naming the setting being compiled and timed.
 
     Returns one dict per setting, in the order above: ``solver`` (``"sdfs"``,
     ``"exhaustive"`` or ``"solve_batch"``), ``setting`` (e.g.
@@ -109,21 +112,28 @@ def profile(problem: Problem, states, params=None, *, pop_widths=POP_WIDTHS, lan
         raise ValueError("pop_widths and lanes are both empty: nothing to profile")
     one = [(X[i], jax.tree_util.tree_map(lambda a, i=i: a[i], params)) for i in range(S)]
 
-    rows = []
+    settings = []  # (setting, solver, how many states, the timed run, its options)
     for k in pop_widths:
         search = cached(("profile sdfs", problem.key, k),
                         lambda k=k: jax.jit(lambda x, p: sdfs(problem, x, params=p, pop_width=k)))
-        t, first, res = _timed(_each(search, one), repeats)
-        rows.append(_row("sdfs", f"sdfs pop_width={k}", t, first, res, S, pop_width=k))
+        settings.append((f"sdfs pop_width={k}", "sdfs", S, _each(search, one), {"pop_width": k}))
     count = min(S, max_exhaustive_nodes // problem.tree_size())
     if count:
         some = [one[i] for i in np.unique(np.linspace(0, S - 1, count).round().astype(int))]
         search = cached(("profile exhaustive", problem.key),
                         lambda: jax.jit(lambda x, p: exhaustive(problem, x, params=p)))
-        t, first, res = _timed(_each(search, some), repeats)
-        rows.append(_row("exhaustive", "exhaustive", t, first, res, len(some)))
+        settings.append(("exhaustive", "exhaustive", len(some), _each(search, some), {}))
     for slots in lanes:
-        t, first, res = _timed(lambda slots=slots: [solve_batch(problem, X, params=params, lanes=slots)], repeats)
-        rows.append(_row("solve_batch", f"solve_batch lanes={slots}", t, first, res, S, lanes=slots))
+        settings.append((f"solve_batch lanes={slots}", "solve_batch", S,
+                         lambda slots=slots: [solve_batch(problem, X, params=params, lanes=slots)], {"lanes": slots}))
+    rows = []
+    with tqdm(total=len(settings), desc="profile", unit="setting", disable=not progress, file=sys.stderr,
+              dynamic_ncols=True) as bar:
+        for setting, solver, solves, run, options in settings:
+            bar.set_description(f"profile: {setting} (compiling, then {repeats} timed runs)")
+            t, first, res = _timed(run, repeats)
+            rows.append(_row(solver, setting, t, first, res, solves, **options))
+            bar.update(1)
+        bar.set_description("profile")
     max(rows, key=lambda r: r["solves_per_second"])["fastest"] = True
     return rows

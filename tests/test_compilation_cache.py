@@ -92,3 +92,14 @@ def _parser_with(func):
     noop.set_defaults(func=func)
     noop.add_argument("--no-cache", action="store_true")
     return parser
+
+
+def test_the_cli_keeps_a_folder_this_process_already_chose(tmp_path):
+    before = jax.config.jax_compilation_cache_dir
+    try:
+        chosen = str(fj.enable_compilation_cache(tmp_path))
+        cli._use_compilation_cache()
+        assert jax.config.jax_compilation_cache_dir == chosen
+    finally:
+        if before is not None:
+            fj.enable_compilation_cache(before)

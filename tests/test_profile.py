@@ -92,7 +92,9 @@ def test_profile_command_prints_writes_and_names_the_fastest(user, tmp_path, cap
     out = tmp_path / "prof"
     assert main(["profile", "fj_profile_user:case", "--out", str(out), "--pop-widths", "1", "2", "--lanes", "4",
                  "--repeats", "1"]) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
+    assert "profile: sdfs pop_width=2 (compiling" in captured.err and "solve_batch lanes=4" in captured.err
     saved = json.loads((out / "profile.json").read_text())
     fastest = next(r["setting"] for r in saved["rows"] if r["fastest"])
     assert f"fastest: {fastest} (" in printed and "| sdfs pop_width=2 |" in printed

@@ -116,7 +116,7 @@ def run(args) -> int:
 
     try:
         rows = profile(problem, states, params, pop_widths=args.pop_widths, lanes=args.lanes, repeats=args.repeats,
-                       max_exhaustive_nodes=args.max_exhaustive_nodes)
+                       max_exhaustive_nodes=args.max_exhaustive_nodes, progress=True)
     except (TypeError, ValueError) as e:  # states or params the search refuses: its message, no traceback
         raise SystemExit(f"profile: {e}") from None
     best = next(r for r in rows if r["fastest"])
