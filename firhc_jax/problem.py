@@ -38,7 +38,8 @@ three per-step callables take ``k`` after their usual arguments:
   chosen inside the node): the input to apply for the optimal ``sequence``
   ``[N]`` from ``x0``. Default: ``controls[sequence[0]]``.
 * ``lower_bound(x, steps_left[, p]) -> scalar``: optional admissible bound on
-  the cost still to come from ``x`` after ``steps_left`` (traced int32, >= 1)
+  the cost still to come from ``x`` after ``steps_left`` (traced int32; N - 1
+  down to 0: it is evaluated at the leaves too, where its value is unused)
   more inputs: their stage costs plus the terminal cost, ``+inf`` where the
   terminal set or the constraints cannot be met in that many steps. With it
   every search prunes a node when ``cost + bound`` is not below the incumbent.
