@@ -52,6 +52,12 @@ params, so new states, references and disturbances never recompile. One node
 is one step with its C classes (not one input component per level as in the
 decoder), and where F is rank deficient W is strictly tighter than the
 decoder's distance: both measured in docs/inverter.md.
+
+W stays a lower bound at any scaling of Q, lambda_u and the units: which
+directions inputs reach is decided on F with unit rows and columns
+(``_rank``), and the factorisation's own error bound is taken off W
+(``cost_to_go``): weights whose ratio nears 1/eps weaken W towards 0, and
+the search towards the plain sorted search, which is still exact.
 """
 from __future__ import annotations
 
@@ -78,6 +84,8 @@ class LinearTracking:
       lambda_u: weight (>= 0) of ||u(k) - u(k-1)||^2, the first step against u_prev.
       max_step: optional bound (>= 0) on |u_i(k) - u_i(k-1)|, every component
         and step, the first against u_prev: a hard constraint.
+      max_memory: bytes the factorisation may take (``factor_memory``, which
+        grows as N^3); a larger one is refused before any work.
 
     Attributes:
       problem: the ``fj.Problem`` the search solves (``step_index=True``): one
@@ -87,7 +95,9 @@ class LinearTracking:
         the cost-to-go W, ``first_input_of`` the member to apply. Use it with
         any solver: ``fj.sdfs``, ``fj.solve_batch``, ``fj.FIRHC``: their
         ``first_input`` is the exact optimum's; their ``sequence`` indexes
-        classes (``sequence`` maps it to inputs).
+        classes (``sequence`` maps it to inputs). Its callables hold the model
+        as constants (a new tracker compiles its own search; ``solve`` passes
+        the model as params and does not).
       num_classes, class_size: C classes of at most R inputs (``input_classes``).
       observe: ``observe(x, u_prev[, p])``, the search state at plant state
         ``x`` after input ``u_prev``.
@@ -134,7 +144,7 @@ class LinearTracking:
         self._class_of = np.zeros(len(controls), np.int32)  # [M] the class of each input
         for j, row in enumerate(members):
             self._class_of[row[row >= 0]] = j
-        M, M_data, Ms, Tu, err_s, Gd_norm = child_map(A, B, C, psd_factor("Q", Q), lambda_u, N)
+        M, M_data, Ms, Tu, err_s, err_d = child_map(A, B, C, psd_factor("Q", Q), lambda_u, N)
         filled = np.where(members >= 0, members, members[:, :1])  # padding repeats the first member
         model = {"M": M, "M_norm": np.linalg.norm(M[:, n + p:], axis=(1, 2)), "lambda_u": np.float64(lambda_u),
                  "Tu": Tu, "Tu_norm": np.linalg.norm(Tu, axis=(1, 2)), "err_s": err_s,
@@ -143,7 +153,7 @@ class LinearTracking:
         if max_step is not None:
             model["max_step"] = np.float64(max_step)
         self._model = model  # float64, NumPy: the constants of problem's callables
-        self._data_maps = {"M_data": M_data, "Ms": Ms, "Gd_norm": Gd_norm}  # float64: what params applies
+        self._data_maps = {"M_data": M_data, "Ms": Ms, "err_d": err_d}  # float64: what params applies
         self._device = {}  # dtype -> the model and the data maps on the device, for solve and sequence
         reps = controls[members[:, 0]]
         self.problem = Problem(_bind(_dynamics, model), reps, _stage_cost, N, lower_bound=_lower_bound,
@@ -458,7 +468,7 @@ def _params(maps, y_ref, d):
     n_w = off.shape[-1] - d.shape[-1] - y_ref.shape[-1]  # n + m rows of W's residual, the last of off
     data_norm = jnp.sqrt(jnp.sum(data * data, axis=-1))
     return {"off": off, "off_err": jnp.sqrt(jnp.sum(off_err[..., -n_w:] ** 2, axis=-1)),
-            "s": _norm2_below(e, e_err), "g_err": maps["Gd_norm"] * (data_norm * (1 + gamma))[..., None],
+            "s": _norm2_below(e, e_err), "g_err": maps["err_d"] * (data_norm * (1 + gamma))[..., None],
             "y_ref": y_ref, "d": d}
 
 
