@@ -10,8 +10,8 @@ tracking costs along the horizon.
   with the reference ``r`` read from the parameters along the horizon.
 * ``input_change_cost(lambda_u)``: the switching penalty
   ``lambda_u ||u(k) - u(k-1)||^2`` for ``fj.with_input_memory``.
-* ``horizon_windows(signal, steps, horizon)``: a sampled reference cut into
-  the per-step parameters of a closed loop, ``[steps, N, ...]``.
+* ``horizon_windows(signal, steps, horizon, start=1)``: a sampled reference
+  cut into the per-step parameters of a closed loop, ``[steps, N, ...]``.
 
 Each callable returned here ignores arguments it does not use, so it fits a
 problem with or without ``step_index`` and ``params``. Matrices are checked and
@@ -20,21 +20,35 @@ used, so float32 and float64 problems share one definition.
 """
 from __future__ import annotations
 
-import itertools
+import math
 from typing import Callable
 
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from .problem import positive_int, weight, weighted_square
+from .problem import check_target, positive_int, weight, weighted_square
+
+_MAX_CONTROLS = 2**31 - 1  # the searches index inputs with int32
+
+
+def _real(name: str, a, what: str) -> np.ndarray:
+    """``a`` as a float64 array, or a ``TypeError`` naming ``name`` (complex values refused: NumPy would drop
+    their imaginary part with only a warning)."""
+    try:
+        given = np.asarray(a)
+    except ValueError:  # ragged lists
+        raise TypeError(f"{name} must be a real {what}, got {a!r}") from None
+    if given.dtype.kind == "c":
+        raise TypeError(f"{name} must be real, got complex dtype {given.dtype}")
+    try:
+        return np.array(given, dtype=float)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a real {what}, got {a!r}") from None
 
 
 def _matrix(name: str, a, shape=None) -> np.ndarray:
-    try:
-        arr = np.array(a, dtype=float)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a real matrix, got {a!r}") from None
+    arr = _real(name, a, "matrix")
     if arr.ndim != 2:
         raise ValueError(f"{name} must be a 2-D matrix, got shape {arr.shape}")
     if shape is not None and arr.shape != shape:
@@ -61,13 +75,21 @@ def discretize(A, B, Ts: float) -> tuple[np.ndarray, np.ndarray]:
     ``Bd = int_0^Ts exp(A s) ds B``, both from one matrix exponential of
     ``[[A, B], [0, 0]] Ts`` (float64 NumPy arrays)."""
     A, B = _state_input(A, B)
+    given = Ts
+    Ts = _real("Ts", Ts, "sampling period > 0")
+    if Ts.ndim != 0 or not np.isfinite(Ts) or Ts <= 0:
+        raise ValueError(f"Ts must be a finite sampling period > 0, got {given!r}")
     Ts = float(Ts)
-    if not np.isfinite(Ts) or Ts <= 0:
-        raise ValueError(f"Ts must be a finite sampling period > 0, got {Ts!r}")
     n, m = B.shape
     block = np.zeros((n + m, n + m))
     block[:n, :n], block[:n, n:] = A, B
-    E = scipy.linalg.expm(block * Ts)
+    with np.errstate(over="ignore", invalid="ignore"):
+        E = scipy.linalg.expm(block * Ts)
+    if not np.all(np.isfinite(E)):
+        rate = float(np.max(np.real(np.linalg.eigvals(A))))
+        raise ValueError(f"discretize: exp(A Ts) is not finite in float64 for Ts = {Ts!r} (the fastest growth "
+                         f"rate of A is {rate:.3g} per unit time, exp({rate * Ts:.3g}) per sample); "
+                         "shorten Ts or check A")
     return E[:n, :n], E[:n, n:]
 
 
@@ -79,7 +101,7 @@ def linear_dynamics(A, B, d=None) -> Callable:
     ``lambda x, u, k, p: f(x, u) + p["d"][k]``."""
     A, B = _state_input(A, B)
     if d is not None:
-        d = np.asarray(d, dtype=float)
+        d = _real("d", d, "vector")
         if d.shape != (A.shape[0],) or not np.all(np.isfinite(d)):
             raise ValueError(f"d must be a finite vector of shape ({A.shape[0]},), got {d!r}")
 
@@ -105,7 +127,18 @@ def product_controls(*levels, repeat: int = 1) -> np.ndarray:
         if arr.ndim != 1 or arr.size == 0:
             raise ValueError(f"levels[{i}] must be a non-empty 1-D list of values, got {lv!r}")
         sets.append(arr.tolist())
-    return np.array(list(itertools.product(*sets, repeat=repeat)))
+    M = math.prod(len(v) for v in sets) ** repeat
+    if M > _MAX_CONTROLS:
+        raise ValueError(f"product_controls would make {M:,} inputs (levels of sizes {[len(v) for v in sets]}, "
+                         f"repeat={repeat}), more than the {_MAX_CONTROLS:,} that the searches index with int32")
+    sets = sets * repeat
+    dtype = np.array([value for v in sets for value in v]).dtype  # as for the rows written out
+    out = np.empty((M, len(sets)), dtype)
+    inner = M
+    for j, v in enumerate(sets):  # itertools.product order: the last component changes fastest
+        inner //= len(v)
+        out[:, j] = np.tile(np.repeat(np.array(v, dtype), inner), M // (inner * len(v)))
+    return out
 
 
 def tracking_cost(C=None, Q=None, R=None, u_ref=None, ref: str = "ref") -> Callable:
@@ -127,7 +160,7 @@ def tracking_cost(C=None, Q=None, R=None, u_ref=None, ref: str = "ref") -> Calla
     C = None if C is None else _matrix("C", np.atleast_2d(C))
     Qw = weight("Q", 1.0 if Q is None else Q)
     Rw = None if R is None else weight("R", R)
-    if u_ref is not None and not np.all(np.isfinite(np.asarray(u_ref, dtype=float))):
+    if u_ref is not None and not np.all(np.isfinite(_real("u_ref", u_ref, "vector"))):
         raise ValueError(f"u_ref must be finite, got {u_ref!r}")
 
     def stage_cost(x_next, u, *rest):
@@ -135,14 +168,27 @@ def tracking_cost(C=None, Q=None, R=None, u_ref=None, ref: str = "ref") -> Calla
             raise TypeError("tracking_cost reads the reference from the parameters: solve with "
                             f"params={{'{ref}': ...}} (a [N, p] array with step_index=True, else [p])")
         p = rest[-1]
-        r = p[ref]
-        if len(rest) == 2:  # step_index: (k, p)
-            r = r.at[rest[0]].get(mode="fill", fill_value=jnp.nan)
+        r = jnp.asarray(p[ref])
         dtype = x_next.dtype
+        if C is not None and C.shape[1:] != x_next.shape:
+            raise ValueError(f"tracking_cost: C has shape {C.shape}, which does not fit the state x_next of shape "
+                             f"{tuple(x_next.shape)}: C must be [p, n] = [p, {x_next.shape[0]}]")
         y = x_next if C is None else jnp.asarray(C, dtype) @ x_next
-        cost = weighted_square(Qw, y - jnp.asarray(r, dtype))
+        step = len(rest) == 2  # step_index: (k, p)
+        if r.shape[step:] != y.shape or (step and r.ndim != 2):
+            form = f"[N, {y.shape[0]}]" if step else f"[{y.shape[0]}]"
+            raise ValueError(f"tracking_cost: params[{ref!r}] has shape {tuple(r.shape)}, but C x has shape "
+                             f"{tuple(y.shape)}: the reference must be {form}")
+        if step:
+            r = r.at[rest[0]].get(mode="fill", fill_value=jnp.nan)
+        check_target("tracking_cost", "Q", Qw, y, "the output C x")
+        cost = weighted_square(Qw, y - r.astype(dtype))
         if Rw is not None:
-            du = u.astype(dtype) - (0.0 if u_ref is None else jnp.asarray(u_ref, dtype))
+            du = u.astype(dtype)
+            check_target("tracking_cost", "R", Rw, du, "the input u")
+            if u_ref is not None:
+                check_target("tracking_cost", "u_ref", u_ref, du, "the input u", weight=False)
+                du = du - jnp.asarray(u_ref, dtype)
             cost = cost + weighted_square(Rw, du)
         return cost
 
@@ -176,16 +222,23 @@ def input_change_cost(lambda_u, norm: str = "squared") -> Callable:
     return switching_cost
 
 
-def horizon_windows(signal, steps: int, horizon: int) -> np.ndarray:
-    """``[steps, N, ...]``: for the decision at step t, ``signal[t+1 .. t+N]``,
-    the samples that the N predicted states ``x(t+1) .. x(t+N)`` should
-    follow (``signal`` ``[steps + N, ...]`` sampled at the control period,
-    ``signal[0]`` at t = 0). With ``tracking_cost`` and ``step_index`` pass
-    ``params={"ref": horizon_windows(r, T, N)}`` to ``FIRHC.simulate``."""
+def horizon_windows(signal, steps: int, horizon: int, start: int = 1) -> np.ndarray:
+    """``[steps, N, ...]``: for the decision at step t, ``signal[t+start .. t+start+N-1]``.
+
+    ``start=1`` (default): ``signal[t+1 .. t+N]``, the samples that the N
+    predicted states ``x(t+1) .. x(t+N)`` should follow (references on
+    states; with ``tracking_cost`` and ``step_index`` pass
+    ``params={"ref": horizon_windows(r, T, N)}`` to ``FIRHC.simulate``).
+    ``start=0``: ``signal[t .. t+N-1]``, the samples that go with the N inputs
+    ``u(t) .. u(t+N-1)`` (prices, demands, disturbances on inputs).
+    ``signal`` ``[steps + start + N - 1, ...]`` or longer, sampled at the
+    control period, ``signal[0]`` at t = 0."""
     steps, horizon = positive_int("steps", steps), positive_int("horizon", horizon)
+    start = positive_int("start", start, minimum=0)
     signal = np.asarray(signal)
-    if signal.ndim == 0 or signal.shape[0] < steps + horizon:
-        raise ValueError(f"signal needs at least steps + horizon = {steps + horizon} samples along its first "
+    need = steps + start + horizon - 1
+    if signal.ndim == 0 or signal.shape[0] < need:
+        raise ValueError(f"signal needs at least steps + start + horizon - 1 = {need} samples along its first "
                          f"axis, got shape {signal.shape}")
-    index = np.arange(steps)[:, None] + 1 + np.arange(horizon)[None, :]
+    index = np.arange(steps)[:, None] + start + np.arange(horizon)[None, :]
     return signal[index]

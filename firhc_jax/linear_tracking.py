@@ -52,6 +52,12 @@ params, so new states, references and disturbances never recompile. One node
 is one step with its C classes (not one input component per level as in the
 decoder), and where F is rank deficient W is strictly tighter than the
 decoder's distance: both measured in docs/inverter.md.
+
+W stays a lower bound at any scaling of Q, lambda_u and the units: which
+directions inputs reach is decided on F with unit rows and columns
+(``_rank``), and the factorisation's own error bound is taken off W
+(``cost_to_go``): weights whose ratio nears 1/eps weaken W towards 0, and
+the search towards the plain sorted search, which is still exact.
 """
 from __future__ import annotations
 
@@ -63,7 +69,7 @@ import jax.numpy as jnp
 from .checks import as_state
 from .problem import Problem, _check_controls, is_tracer, positive_int, weight
 from .result import SearchResult
-from .sdfs import sdfs
+from .sdfs import DEFAULT_MAX_MEMORY, sdfs
 
 
 class LinearTracking:
@@ -78,6 +84,8 @@ class LinearTracking:
       lambda_u: weight (>= 0) of ||u(k) - u(k-1)||^2, the first step against u_prev.
       max_step: optional bound (>= 0) on |u_i(k) - u_i(k-1)|, every component
         and step, the first against u_prev: a hard constraint.
+      max_memory: bytes the factorisation may take (``factor_memory``, which
+        grows as N^3); a larger one is refused before any work.
 
     Attributes:
       problem: the ``fj.Problem`` the search solves (``step_index=True``): one
@@ -87,7 +95,9 @@ class LinearTracking:
         the cost-to-go W, ``first_input_of`` the member to apply. Use it with
         any solver: ``fj.sdfs``, ``fj.solve_batch``, ``fj.FIRHC``: their
         ``first_input`` is the exact optimum's; their ``sequence`` indexes
-        classes (``sequence`` maps it to inputs).
+        classes (``sequence`` maps it to inputs). Its callables hold the model
+        as constants (a new tracker compiles its own search; ``solve`` passes
+        the model as params and does not).
       num_classes, class_size: C classes of at most R inputs (``input_classes``).
       observe: ``observe(x, u_prev[, p])``, the search state at plant state
         ``x`` after input ``u_prev``.
@@ -96,7 +106,8 @@ class LinearTracking:
     the dtype of the state given to it.
     """
 
-    def __init__(self, A, B, controls, horizon, *, C=None, Q=None, lambda_u=0.0, max_step=None):
+    def __init__(self, A, B, controls, horizon, *, C=None, Q=None, lambda_u=0.0, max_step=None,
+                 max_memory: int = DEFAULT_MAX_MEMORY):
         A = _matrix("A", A)
         n = A.shape[0]
         if A.shape != (n, n):
@@ -115,6 +126,12 @@ class LinearTracking:
         N = positive_int("horizon", horizon)
         lambda_u = _scalar("lambda_u", lambda_u)
         max_step = None if max_step is None else _scalar("max_step", max_step)
+        max_memory = positive_int("max_memory", max_memory)
+        need = factor_memory(n, m, p, N)
+        if need > max_memory:
+            raise ValueError(f"LinearTracking's factorisation at horizon N = {N} (n = {n}, m = {m}, p = {p}) needs "
+                             f"about {need:,} bytes, more than max_memory={max_memory:,} (it grows as N^3); "
+                             "shorten the horizon or raise max_memory")
         self.A, self.B, self.C, self.Q = A, B, C, Q
         self.lambda_u, self.max_step, self.horizon = lambda_u, max_step, N
         self.n, self.m, self.p = n, m, p
@@ -127,18 +144,24 @@ class LinearTracking:
         self._class_of = np.zeros(len(controls), np.int32)  # [M] the class of each input
         for j, row in enumerate(members):
             self._class_of[row[row >= 0]] = j
-        M, M_data, Ms, Tu = child_map(A, B, C, psd_factor("Q", Q), lambda_u, N)
+        M, M_data, Ms, Tu, err_s, err_d = child_map(A, B, C, psd_factor("Q", Q), lambda_u, N)
         filled = np.where(members >= 0, members, members[:, :1])  # padding repeats the first member
         model = {"M": M, "M_norm": np.linalg.norm(M[:, n + p:], axis=(1, 2)), "lambda_u": np.float64(lambda_u),
-                 "Tu": Tu, "Tu_norm": np.linalg.norm(Tu, axis=(1, 2)),
+                 "Tu": Tu, "Tu_norm": np.linalg.norm(Tu, axis=(1, 2)), "err_s": err_s,
                  "members": controls.astype(float)[filled],  # [C, R, m]
                  "member_index": filled.astype(float), "member_ok": (members >= 0).astype(float)}  # [C, R]
         if max_step is not None:
             model["max_step"] = np.float64(max_step)
-        self._host = {"model": model, "M_data": M_data, "Ms": Ms}  # float64
-        self._device = {}  # dtype -> the same on the device
-        self.problem = Problem(_dynamics, controls[members[:, 0]], _stage_cost, N, lower_bound=_lower_bound,
-                               constraint=_constraint, step_index=True, first_input_of=_first_input)
+        self._model = model  # float64, NumPy: the constants of problem's callables
+        self._data_maps = {"M_data": M_data, "Ms": Ms, "err_d": err_d}  # float64: what params applies
+        self._device = {}  # dtype -> the model and the data maps on the device, for solve and sequence
+        reps = controls[members[:, 0]]
+        self.problem = Problem(_bind(_dynamics, model), reps, _stage_cost, N, lower_bound=_lower_bound,
+                               constraint=_bind(_constraint, model), step_index=True,
+                               first_input_of=_bind(_first_input, model))
+        # solve's: the model travels in the params, so a new model of the same shapes reuses the compiled search
+        self._search_problem = Problem(_dynamics, reps, _stage_cost, N, lower_bound=_lower_bound,
+                                       constraint=_constraint, step_index=True, first_input_of=_first_input)
         self.observe = _observer(self.class_size)
 
     @property
@@ -156,7 +179,8 @@ class LinearTracking:
         optimal class sequence ``classes`` ``[N]`` (a ``SearchResult.sequence``
         of ``problem``) from the search state ``z0`` (``observe``); -1 where it
         is -1 (infeasible). Its J is the search's cost."""
-        return _sequence(z0, classes, params)
+        z0 = jnp.asarray(z0)
+        return _sequence(z0, classes, self._with_model(params, z0.dtype))
 
     def params(self, y_ref, d=None) -> dict:
         """The params of ``problem`` for a reference ``y_ref`` ``[..., N, p]``
@@ -164,12 +188,14 @@ class LinearTracking:
         (default 0), in y_ref's floating dtype. Leading axes batch: one row per
         state for ``fj.solve_batch``, one per step for ``FIRHC.simulate``.
 
-        Returns the model (``M``, ``M_norm``, ``lambda_u``, ``max_step``: ``child_map``),
-        the data part of each step's map (``off`` ``[..., N, 2n + p + m]``,
-        ``off_err`` a bound on the rounding of its cost-to-go rows, ``s``
-        ``[..., N]``), and the data itself (``y_ref``, ``d``: a closed loop's
-        plant gets the same params, e.g. ``A x + B u + p["d"][0]``). Give the
-        state (``observe``) the same dtype."""
+        Only what the data decides, per step: the data part of each step's map
+        (``off`` ``[..., N, 2n + p + m]``), bounds on the rounding of its
+        cost-to-go rows (``off_err`` ``[..., N]``) and on the factorisation's
+        own error (``g_err`` ``[..., N]``), the data-only part of the
+        cost-to-go (``s`` ``[..., N]``), and the data itself (``y_ref``,
+        ``d``: a closed loop's plant gets the same params, e.g.
+        ``A x + B u + p["d"][0]``). The model is held by ``problem``'s
+        callables. Give the state (``observe``) the same dtype."""
         y_ref = jnp.asarray(y_ref)
         if not jnp.issubdtype(y_ref.dtype, jnp.floating):
             y_ref = y_ref.astype(jax.dtypes.canonicalize_dtype(np.float64))
@@ -181,13 +207,19 @@ class LinearTracking:
         if d.shape != lead + (N, self.n):
             raise ValueError(f"d must be [N, n] = [{N}, {self.n}] with y_ref's leading axes {lead}, "
                              f"got shape {tuple(d.shape)}")
-        return _params(self._factors(y_ref.dtype), y_ref, d)
+        return _params(self._factors(y_ref.dtype)["maps"], y_ref, d)
 
-    def _factors(self, dtype):
+    def _factors(self, dtype) -> dict:
+        """The model and the data maps on the device in ``dtype`` (made once per dtype)."""
         key = jnp.dtype(dtype)
         if key not in self._device:
-            self._device[key] = jax.tree_util.tree_map(lambda a: jnp.asarray(a, key), self._host)
+            host = {"model": self._model, "maps": self._data_maps}
+            self._device[key] = jax.tree_util.tree_map(lambda a: jnp.asarray(a, key), host)
         return self._device[key]
+
+    def _with_model(self, params, dtype) -> dict:
+        """``params`` with the model's arrays added: the params of the module's own callables."""
+        return {**self._factors(dtype)["model"], **params}
 
     def solve(self, x, u_prev, y_ref, d=None, *, warm_start=None, max_nodes=None) -> SearchResult:
         """The exact minimiser of J from state ``x`` ``[n]`` after input
@@ -213,25 +245,40 @@ class LinearTracking:
             inside = (ws >= 0) & (ws < len(self._controls))
             warm_start = jnp.where(inside, jnp.asarray(self._class_of)[jnp.clip(ws, 0, len(self._controls) - 1)],
                                    jnp.where(ws < 0, ws, self.num_classes))
-        z0, params = self.observe(x, u_prev), self.params(y_ref, d)
-        result = sdfs(self.problem, z0, params=params, warm_start=warm_start, max_nodes=max_nodes)
-        sequence = self.sequence(z0, result.sequence, params)
+        z0, params = self.observe(x, u_prev), self._with_model(self.params(y_ref, d), x.dtype)
+        result = sdfs(self._search_problem, z0, params=params, warm_start=warm_start, max_nodes=max_nodes)
+        sequence = _sequence(z0, result.sequence, params)
         # the first of these inputs (first_input_of may break a tie between members the other way)
         first = jnp.asarray(self._controls, result.first_input.dtype)[jnp.maximum(sequence[0], 0)]
         return result._replace(sequence=sequence, first_input=jnp.where(result.feasible, first, jnp.nan))
 
 
 # ---------------------------------------------------------------------------
-# The problem's callables: one set for every model, which travels in params (a new A, B, Q or reference of the
-# same shapes never recompiles). A child is a *class* of inputs with the same effect B u on the plant (the
-# inverter's switch states of one voltage vector: ``input_classes``); only the switching term tells its members
-# apart, so the child keeps all R of them: state z = [x (n), members' inputs U (R m), their switching costs o (R),
-# stage cost, bound] ``[n + R (m + 1) + 2]``. o[e] is the cheapest switching of the steps so far that ends on
-# member e, less that of the cheapest member (whose cost the stage cost carries): a min-plus step per child (the
+# The problem's callables: one set for every model. ``LinearTracking.problem`` binds them to its model (``_bind``:
+# constants, so that a closed loop's per-step params carry only the step's data); ``solve`` passes the model in
+# the params (a new A, B, Q or lambda_u of the same shapes reuses its compiled search). A child is a *class* of
+# inputs with the same effect B u on the plant (the inverter's switch states of one voltage vector:
+# ``input_classes``); only the switching term tells its members apart, so the child keeps all R of them: state
+# z = [x (n), members' inputs U (R m), their switching costs o (R), stage cost, bound] ``[n + R (m + 1) + 2]``.
+# o[e] is the cheapest switching of the steps so far that ends on member e, less that of the cheapest member
+# (whose cost the stage cost carries), so o >= 0, and -1 marks a member that no allowed switching reaches (a
+# marker no cost can take, and finite: the searches discard non-finite states). A min-plus step per child (the
 # Viterbi recursion), so the tree branches on the C classes and never on members of one class. One affine map of
 # [x; u] per child (``child_map``) gives its state, the residual of its stage cost and that of its cost-to-go
 # (one matrix product instead of several: measured in docs/inverter.md).
 # ---------------------------------------------------------------------------
+
+def _bind(fn, model):
+    """``fn(z, ..., p)`` with ``model`` (float64 NumPy) added to ``p`` as constants in z's dtype."""
+    def bound(z, *args):
+        *rest, p = args
+        if not isinstance(p, dict):
+            raise TypeError("LinearTracking.problem reads each decision's data from its params: pass "
+                            "params=lt.params(y_ref, d)")
+        return fn(z, *rest, {**{k: jnp.asarray(v, z.dtype) for k, v in model.items()}, **p})
+
+    return bound
+
 
 def _sizes(z, u, prm):
     R, m = prm["members"].shape[-2:]
@@ -240,18 +287,19 @@ def _sizes(z, u, prm):
 
 
 def _entries(z, n, m, R):
-    """The node's members ``[R, m]`` and their switching costs ``[R]`` (``_ABSENT``: none)."""
+    """The node's members ``[R, m]`` and their switching costs ``[R]`` (-1: not reached)."""
     return z[n:n + R * m].reshape(R, m), z[n + R * m:n + R * (m + 1)]
 
 
 def _switch(u_from, o_from, u_to, ok_to, prm):
     """One min-plus step of the switching costs: for each member ``u_to`` ``[R', m]`` the cheapest
-    o_from[e] + lambda_u ||u_to - u_from[e]||^2 over the allowed predecessors e (``[R', R]``), and the argmin."""
+    o_from[e] + lambda_u ||u_to - u_from[e]||^2 over the allowed predecessors e (``[R', R]``; +inf where there
+    is none), and the argmin."""
     du = u_to[:, None, :] - u_from[None, :, :]
-    allowed = ok_to[:, None] & (o_from[None, :] < _ABSENT / 2)
+    allowed = ok_to[:, None] & (o_from[None, :] >= 0)
     if "max_step" in prm:
         allowed &= jnp.all(jnp.abs(du) <= prm["max_step"], axis=-1)
-    S = jnp.where(allowed, o_from[None, :] + prm["lambda_u"] * jnp.sum(du * du, axis=-1), _ABSENT)
+    S = jnp.where(allowed, o_from[None, :] + prm["lambda_u"] * jnp.sum(du * du, axis=-1), jnp.inf)
     return jnp.min(S, axis=1), jnp.argmin(S, axis=1)
 
 
@@ -278,14 +326,19 @@ def _dynamics(z, u, k, prm):
     err = g * (prm["M_norm"][k] * jnp.sqrt(xu @ xu) + jnp.sqrt(off_v @ off_v)
                + prm["Tu_norm"][k] * jnp.sqrt(jnp.sum(dU * dU, axis=1))) + prm["off_err"][k]
     W = jnp.maximum(jnp.sqrt(jnp.sum(v * v, axis=1)) - err, 0) ** 2 * (1 - g) + prm["s"][k]
+    # and by the factorisation's own error (``cost_to_go``): sqrt(W) is off by at most
+    # err_s ||[x(k+1); u]|| + g_err
+    x_next = out[:n]
+    off_by = prm["err_s"][k] * jnp.sqrt(x_next @ x_next + jnp.sum(U * U, axis=1)) + prm["g_err"][k]
+    W = jnp.maximum(jnp.sqrt(W) - off_by, 0) ** 2 * (1 - g)
     cost, _ = _switch(*_entries(z, n, m, R), U, ok, prm)
-    switching = jnp.min(cost)
-    o = jnp.where(cost < _ABSENT / 2, cost - switching, _ABSENT)
+    reached = jnp.isfinite(cost)
+    switching = jnp.min(cost)  # +inf where no member is reached: the constraint discards that child
+    o = jnp.where(reached, cost - switching, -1)
     # o + W: one more rounding of each sum, taken off the bound too
-    bound = jnp.min(jnp.where(o < _ABSENT / 2, (o + W) * (1 - g), _ABSENT))
+    bound = jnp.min(jnp.where(reached, (o + W) * (1 - g), jnp.inf))
     e = out[n:n + p]
-    stage = jnp.where(switching < _ABSENT / 2, e @ e + switching, _ABSENT)
-    return jnp.concatenate([out[:n], U.reshape(-1), o, stage[None], bound[None]])
+    return jnp.concatenate([x_next, U.reshape(-1), o, (e @ e + switching)[None], bound[None]])
 
 
 def _stage_cost(z, u, k, prm):
@@ -297,8 +350,10 @@ def _lower_bound(z, steps_left, prm):
 
 
 def _constraint(z, u, k, prm):
-    """Some member of the class can follow the node's (max_step)."""
-    return z[-2] < _ABSENT / 2
+    """Some member of the class can follow the node's (max_step). Decided on the switching costs alone, so a
+    NaN state or reference reaches the searches' own check of non-finite nodes (``nan_encountered``)."""
+    n, m, R, _ = _sizes(z, u, prm)
+    return jnp.any(_entries(z, n, m, R)[1] >= 0)
 
 
 def _members(z0, classes, prm):
@@ -345,7 +400,7 @@ def _first_input(z0, classes, prm):
     allowed = ok[:-1, :, None] & ok[1:, None, :]
     if "max_step" in prm:
         allowed &= jnp.all(jnp.abs(du) <= prm["max_step"], axis=-1)
-    chain = jnp.where(allowed, prm["lambda_u"] * jnp.sum(du * du, axis=-1), _ABSENT)  # [N-1, R, R]
+    chain = jnp.where(allowed, prm["lambda_u"] * jnp.sum(du * du, axis=-1), jnp.inf)  # [N-1, R, R]
     while chain.shape[0] > 1:  # min-plus products of neighbours; an odd one out waits a level
         pairs = chain.shape[0] // 2 * 2
         product = jnp.min(chain[:pairs:2, :, :, None] + chain[1:pairs:2, None, :, :], axis=2)
@@ -362,31 +417,31 @@ def _observer(R: int):
     equal shapes share their compiled loop."""
     if R not in _OBSERVERS:
         def observe(x, u_prev, p=None):
-            """The search state ``[x, u_prev (R times), o = [0, absent...], 0, 0]`` ``[n + R (m + 1) + 2]``
+            """The search state ``[x, u_prev (R times), o = [0, -1, ...], 0, 0]`` ``[n + R (m + 1) + 2]``
             from the plant state ``x`` ``[n]`` and the input applied last ``u_prev`` ``[m]``. The signature
             of ``fj.FIRHC``'s ``observe`` (``p`` unused)."""
             x = jnp.asarray(x)
             u_prev = jnp.asarray(u_prev, x.dtype)
-            o = jnp.full((R,), _ABSENT, x.dtype).at[0].set(0)
+            o = jnp.full((R,), -1, x.dtype).at[0].set(0)
             return jnp.concatenate([x, jnp.tile(u_prev, R), o, jnp.zeros(2, x.dtype)])
 
         _OBSERVERS[R] = observe
     return _OBSERVERS[R]
 
 
-_ABSENT = 1e30  # the switching cost of no member (a finite sentinel: the searches discard non-finite states)
-
-
 def input_classes(B, controls) -> np.ndarray:
     """``[C, R]`` indices into ``controls`` ``[M, m]`` grouped by their effect
-    B u on the plant (equal up to rounding: 64 eps of the largest |B u|),
-    classes in the order of their first input, padded with -1."""
+    B u on the plant, classes in the order of their first input, padded with -1.
+
+    Effects are equal up to rounding: per state component, 64 eps of the
+    largest sum of |B_ij u_j| over the inputs, the scale of that component's
+    own rounding (so the grouping does not depend on the units of B)."""
     effect = controls @ B.T  # [M, n]
-    tol = 64 * np.finfo(float).eps * max(1.0, float(np.max(np.abs(effect), initial=0.0)))
+    tol = 64 * np.finfo(float).eps * np.max(np.abs(controls) @ np.abs(B).T, axis=0, initial=0.0)  # [n]
     classes = []
     for i in range(len(controls)):
         for c in classes:
-            if np.max(np.abs(effect[i] - effect[c[0]]), initial=0.0) <= tol:
+            if np.all(np.abs(effect[i] - effect[c[0]]) <= tol):
                 c.append(i)
                 break
         else:
@@ -398,7 +453,7 @@ def input_classes(B, controls) -> np.ndarray:
 
 
 @jax.jit
-def _params(factors, y_ref, d):
+def _params(maps, y_ref, d):
     dtype = y_ref.dtype
     lead = y_ref.shape[:-2]
     data = jnp.concatenate([y_ref.reshape(lead + (-1,)), d.reshape(lead + (-1,))], axis=-1)  # [..., N(p + n)]
@@ -408,17 +463,26 @@ def _params(factors, y_ref, d):
         return (jnp.einsum("kid,...d->...ki", M, data),
                 gamma * jnp.einsum("kid,...d->...ki", jnp.abs(M), jnp.abs(data)))
 
-    off, off_err = apply(factors["M_data"])
-    e, e_err = apply(factors["Ms"])
-    n_w = factors["model"]["M"].shape[2]  # n + m rows of W's residual, the last of off
-    model = {k: jnp.broadcast_to(v, lead + v.shape) for k, v in factors["model"].items()}
-    return {**model, "off": off, "off_err": jnp.sqrt(jnp.sum(off_err[..., -n_w:] ** 2, axis=-1)),
-            "s": _norm2_below(e, e_err), "y_ref": y_ref, "d": d}
+    off, off_err = apply(maps["M_data"])
+    e, e_err = apply(maps["Ms"])
+    n_w = off.shape[-1] - d.shape[-1] - y_ref.shape[-1]  # n + m rows of W's residual, the last of off
+    data_norm = jnp.sqrt(jnp.sum(data * data, axis=-1))
+    return {"off": off, "off_err": jnp.sqrt(jnp.sum(off_err[..., -n_w:] ** 2, axis=-1)),
+            "s": _norm2_below(e, e_err), "g_err": maps["err_d"] * (data_norm * (1 + gamma))[..., None],
+            "y_ref": y_ref, "d": d}
 
 
 # ---------------------------------------------------------------------------
 # The static factorisation (NumPy, float64).
 # ---------------------------------------------------------------------------
+
+def factor_memory(n: int, m: int, p: int, N: int) -> int:
+    """Bytes that ``LinearTracking`` holds for its factorisation at its peak, about: the data-only factor
+    ``Ms`` ``[N, N(p + m), N(p + n)]`` (float64) four times over (per step, stacked, shifted, on the device),
+    the decomposition of the longest stacked problem and the child maps. It grows as N^3."""
+    rows, data = N * (p + m), N * (p + n)
+    return 8 * (4 * N * rows * data + 2 * rows * rows + 2 * N * (2 * n + p + m) * data)
+
 
 def cost_to_go(A, B, C, sqrt_q, lambda_u, N):
     """Factors of the unconstrained cost-to-go of the last N - k steps, k = 0 .. N-1.
@@ -428,19 +492,26 @@ def cost_to_go(A, B, C, sqrt_q, lambda_u, N):
     vec(d)]: W_k = ||T[k] s + Mw[k] data||^2 + ||Ms[k] data||^2.
 
     Returns ``T`` ``[N, n+m, n+m]``, ``Mw`` ``[N, n+m, N(p+n)]``, ``Ms``
-    ``[N, N(p+m), N(p+n)]`` (rows padded with zeros). W_k = ||P (G_s s + G_d data)||^2
-    where F U - (G_s s + G_d data) is the stacked residual of the steps left
-    and P projects onto the complement of F's range (from its SVD); a QR
-    factorisation of P G_s splits it into the square part T and the rest.
+    ``[N, N(p+m), N(p+n)]`` (rows padded with zeros), ``err_s``, ``err_d``
+    ``[N]``. W_k = ||P (G_s s + G_d data)||^2 where F U - (G_s s + G_d data) is
+    the stacked residual of the steps left and P projects onto the complement
+    of F's range (from its SVD); a QR factorisation of P G_s splits it into
+    the square part T and the rest. The computed P is off by at most delta
+    (Wedin: the SVD's backward error over the smallest singular value kept),
+    so sqrt(W_k) is off by at most ``err_s[k] ||s|| + err_d[k] ||data||``
+    (delta ||G_s||_F, delta ||G_d||_F): the search takes that off to keep W a lower
+    bound at any conditioning of Q (delta >= 1 leaves no bound).
     """
     n, m = B.shape
     p = sqrt_q.shape[0]
+    eps = np.finfo(float).eps
     powers = [np.eye(n)]
     for _ in range(N):
         powers.append(A @ powers[-1])
     q_c = sqrt_q @ C
     nd, ns = N * (p + n), n + m
     T, Mw, rests = np.zeros((N, ns, ns)), np.zeros((N, ns, nd)), []
+    err_s, err_d = np.zeros(N), np.zeros(N)
     for k in range(N):
         S = N - k
         F = np.zeros((S * (p + m), S * m))
@@ -459,18 +530,38 @@ def cost_to_go(A, B, C, sqrt_q, lambda_u, N):
             else:
                 Gs[r, n:] = np.sqrt(lambda_u) * np.eye(m)
         U, sv, _ = np.linalg.svd(F)
-        # Directions of (nearly) zero gain count as reachable: W only gets smaller, so it stays a lower bound.
-        rank = int(np.sum(sv > np.finfo(float).eps * max(F.shape) * sv[0])) if sv.size and sv[0] > 0 else 0
+        rank = _rank(F)
         perp = U[:, rank:].T  # [R - rank, R]
         Ue, Te = np.linalg.qr(perp @ Gs, mode="complete")
         rows = min(ns, Te.shape[0])
         T[k, :rows] = Te[:rows]
         Mw[k, :rows] = Ue[:, :rows].T @ perp @ Gd
         rests.append(Ue[:, rows:].T @ perp @ Gd)
+        # delta >= 1 already leaves no bound (||P g|| <= ||g||): capped there, so that it stays finite
+        ratio = sv[0] / sv[rank - 1] if rank and sv[rank - 1] > 0 else (np.inf if rank else 0.0)
+        delta = min(8 * eps * (max(F.shape) + ns) * (1 + ratio), 2.0)
+        err_s[k], err_d[k] = delta * np.linalg.norm(Gs), delta * np.linalg.norm(Gd)  # Frobenius >= spectral
     Ms = np.zeros((N, N * (p + m), nd))  # rows for every rank: a new model of the same sizes has the same shapes
     for k, rest in enumerate(rests):
         Ms[k, :rest.shape[0]] = rest
-    return T, Mw, Ms
+    return T, Mw, Ms, err_s, err_d
+
+
+def _rank(F) -> int:
+    """The number of directions of F's range that inputs reach, decided on F with its rows and columns scaled
+    to unit norm (zero ones dropped): the same rank in exact arithmetic, whatever the weights Q and lambda_u
+    and the inputs' units do to the scale of F's rows and columns. (A tolerance relative to F's own largest
+    singular value would count a light output's directions under a heavy one, Q = diag(1e30, 1), as out of
+    reach, and W would exceed the cost-to-go.) The rest, at the rounding level of the scaled F, are
+    unreachable: the usual numerical rank."""
+    rows = np.linalg.norm(F, axis=1)
+    G = F[rows > 0] / rows[rows > 0, None]
+    cols = np.linalg.norm(G, axis=0)
+    G = G[:, cols > 0] / cols[cols > 0]
+    if G.size == 0:
+        return 0
+    sv = np.linalg.svd(G, compute_uv=False)
+    return int(np.sum(sv > np.finfo(float).eps * max(G.shape) * sv[0]))
 
 
 def child_map(A, B, C, sqrt_q, lambda_u, N):
@@ -482,13 +573,14 @@ def child_map(A, B, C, sqrt_q, lambda_u, N):
     ``||Ms[k] data||^2`` is W_{k+1}(x(k+1), u(k)) (``cost_to_go``; 0 at k = N-1).
 
     Returns ``M`` ``[N, n + p + n + m, n + m]``, ``M_data``
-    ``[N, n + p + n + m, N(p + n)]``, ``Ms`` ``[N, N(p + m), N(p + n)]`` and
+    ``[N, n + p + n + m, N(p + n)]``, ``Ms`` ``[N, N(p + m), N(p + n)]``,
     ``Tu`` ``[N, n + m, m]``, the columns of u(k) in T_{k+1} (0 at k = N-1):
     how W's residual moves with the child's input, for the other members
-    of its class."""
+    of its class, and ``err_s``, ``err_d`` ``[N]``: those of W_{k+1}
+    (``cost_to_go``; 0 at k = N-1)."""
     n, m = B.shape
     p = sqrt_q.shape[0]
-    T, Mw, Ms = cost_to_go(A, B, C, sqrt_q, lambda_u, N)
+    T, Mw, Ms, err_s, err_d = cost_to_go(A, B, C, sqrt_q, lambda_u, N)
     nd, q_c = N * (p + n), sqrt_q @ C
     M, M_data = np.zeros((N, 2 * n + p + m, n + m)), np.zeros((N, 2 * n + p + m, nd))
     for k in range(N):
@@ -505,7 +597,7 @@ def child_map(A, B, C, sqrt_q, lambda_u, N):
             M_data[k, n + p:] = Tx @ d_k + Mw[k + 1]
     Ms_next = np.concatenate([Ms[1:], np.zeros_like(Ms[:1])])
     Tu = np.concatenate([T[1:, :, n:], np.zeros((1, n + m, m))])
-    return M, M_data, Ms_next, Tu
+    return M, M_data, Ms_next, Tu, np.append(err_s[1:], 0.0), np.append(err_d[1:], 0.0)
 
 
 def _gamma(dtype, terms: int):
@@ -533,8 +625,11 @@ def _matrix(name, a) -> np.ndarray:
         raise TypeError(f"{name} must be concrete values, not a traced array: the model is factorised once, "
                         "in NumPy, when LinearTracking is built")
     try:
-        arr = np.asarray(a, dtype=float)
-    except (TypeError, ValueError) as e:
+        given = np.asarray(a)
+        if given.dtype.kind == "c":
+            raise TypeError(f"{name} must be real, got complex dtype {given.dtype}")
+        arr = given.astype(float)
+    except ValueError as e:
         raise TypeError(f"{name} must be a real 2-D array: {e}") from None
     if arr.ndim != 2 or 0 in arr.shape:
         raise ValueError(f"{name} must be a non-empty 2-D array, got shape {arr.shape}")

@@ -38,7 +38,8 @@ three per-step callables take ``k`` after their usual arguments:
   chosen inside the node): the input to apply for the optimal ``sequence``
   ``[N]`` from ``x0``. Default: ``controls[sequence[0]]``.
 * ``lower_bound(x, steps_left[, p]) -> scalar``: optional admissible bound on
-  the cost still to come from ``x`` after ``steps_left`` (traced int32, >= 1)
+  the cost still to come from ``x`` after ``steps_left`` (traced int32; N - 1
+  down to 0: it is evaluated at the leaves too, where its value is unused)
   more inputs: their stage costs plus the terminal cost, ``+inf`` where the
   terminal set or the constraints cannot be met in that many steps. With it
   every search prunes a node when ``cost + bound`` is not below the incumbent.
@@ -306,17 +307,42 @@ def quadratic_cost(lam, x_s, beta=0.0, u_e=None) -> Callable:
     ``params`` alike.
     """
     Q, R = weight("lam", lam), weight("beta", beta)
+    targets = {}
     for name, v in (("x_s", x_s), ("u_e", u_e)):
-        if v is not None and not np.all(np.isfinite(np.asarray(v, dtype=float))):
+        if v is None:
+            continue
+        arr = np.asarray(v)
+        if arr.dtype.kind not in "biuf":
+            raise TypeError(f"quadratic_cost target {name} must be a real vector, got dtype {arr.dtype}")
+        if not np.all(np.isfinite(arr)):
             raise ValueError(f"quadratic_cost target {name} must be finite, got {v!r}")
+        targets[name] = arr.astype(float)
+    if Q.ndim and "x_s" in targets and targets["x_s"].ndim and targets["x_s"].shape != Q.shape[:1]:
+        raise ValueError(f"quadratic_cost: x_s has shape {targets['x_s'].shape} but lam has shape {Q.shape}: "
+                         "both must have the state's length n")
 
     def stage_cost(x_next, u, *_):
         dtype = x_next.dtype
+        du = u.astype(dtype)
+        for name, v, against, what in (("x_s", x_s, x_next, "the state x_next"), ("lam", Q, x_next, "the state x_next"),
+                                       ("u_e", u_e, du, "the input u"), ("beta", R, du, "the input u")):
+            if v is not None:
+                check_target("quadratic_cost", name, v, against, what, weight=name in ("lam", "beta"))
         dx = x_next - jnp.asarray(x_s, dtype=dtype)
-        du = u.astype(dtype) - (0.0 if u_e is None else jnp.asarray(u_e, dtype=dtype))
+        du = du - (0.0 if u_e is None else jnp.asarray(u_e, dtype=dtype))
         return weighted_square(Q, dx) + weighted_square(R, du)
 
     return stage_cost
+
+
+def check_target(fn: str, name: str, value, v, what: str, weight: bool = True) -> None:
+    """A ``ValueError`` naming ``name`` and both shapes where ``value`` (a target, or with ``weight`` a weight:
+    also a matrix ``[len, len]``) does not fit the vector ``v`` it applies to. Checked where ``v``'s length is
+    known, when the callable is traced (``fj.Problem``'s checks, before anything is compiled): broadcast, a
+    target of the wrong length would silently multiply the cost."""
+    shape = tuple(np.shape(value))
+    if shape not in ((), tuple(v.shape)) and not (weight and shape == tuple(v.shape) * 2):
+        raise ValueError(f"{fn}: {name} has shape {shape}, which does not fit {what} of shape {tuple(v.shape)}")
 
 
 def weight(name: str, w) -> np.ndarray:
@@ -325,9 +351,12 @@ def weight(name: str, w) -> np.ndarray:
     ``name``. Returned as a read-only float64 NumPy array (cast to the state's
     dtype where it is used)."""
     try:
-        w_np = np.array(w, dtype=float)
+        complex_ = np.iscomplexobj(w)  # NumPy would drop the imaginary part with only a warning
+        w_np = None if complex_ else np.array(w, dtype=float)
     except (TypeError, ValueError):
         raise TypeError(f"weight {name} must be a real scalar, vector or matrix, got {w!r}") from None
+    if complex_:
+        raise TypeError(f"weight {name} must be real, got a complex value {w!r}")
     if not np.all(np.isfinite(w_np)):
         raise ValueError(f"weight {name} must be finite, got {w!r}")
     if w_np.ndim > 2:
