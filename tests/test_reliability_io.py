@@ -43,3 +43,95 @@ def test_step_holds_the_safe_input_and_the_one_shot_call_raises_on_a_non_finite_
         ctrl(x0)
     u, _ = ctrl(jnp.array([0.2]))  # where first_input_of is finite the decision stands
     assert np.isfinite(float(u[0]))
+
+
+# -- saved runs: ClosedLoop.load checks the declared shapes before reading ------------------------------------
+LOOP = fj.FIRHC(fj.Problem(lambda x, u: jnp.stack([x[0] + 0.1 * x[1], x[1] + 0.1 * u[0]]), CONTROLS,
+                           fj.quadratic_cost(jnp.array([1.0, 0.1]), jnp.zeros(2), 0.01), 3))
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    """The fields of a saved 6-step run (NumPy arrays) and the path of the file."""
+    path = LOOP.simulate(jnp.array([1.0, 0.0]), 6, dt=0.1).save(tmp_path_factory.mktemp("run") / "run.npz")
+    with np.load(path) as data:
+        return {k: data[k] for k in data.files}, path
+
+
+def _npy_header(shape, dtype) -> bytes:
+    out = io.BytesIO()
+    np.lib.format.write_array_header_1_0(out, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
+                                               "fortran_order": False, "shape": shape})
+    return out.getvalue()
+
+
+def test_load_refuses_a_header_declaring_more_data_than_the_file_holds(saved, tmp_path):
+    """A 0.4 MB file whose states declare 400 MB: refused from the header, nothing allocated."""
+    fields, _ = saved
+    path = tmp_path / "crafted.npz"
+    with zipfile.ZipFile(path, "w") as z:
+        for name, a in fields.items():
+            if name == "states":
+                z.writestr("states.npy", _npy_header((50_000_001, 1), np.float64) + bytes(400_000))
+            else:
+                buf = io.BytesIO()
+                np.save(buf, a)
+                z.writestr(f"{name}.npy", buf.getvalue())
+    with pytest.raises(ValueError, match=r"'states.npy' declares shape \(50000001, 1\) of float64 "
+                                         r"\(400,000,008 bytes\) but holds 400,000 bytes"):
+        fj.ClosedLoop.load(path)
+
+
+def test_load_refuses_compressed_data_beyond_the_file_size(saved, tmp_path):
+    """Deflated zeros: 1.6 MB of data in a file of a few kB (a zip bomb in small)."""
+    fields, _ = saved
+    path = tmp_path / "bomb.npz"
+    np.savez_compressed(path, **{**fields, "states": np.zeros((100_001, 2))})
+    with pytest.raises(ValueError, match=r"declare 1,60\d,\d+ bytes of data, more than the file's"):
+        fj.ClosedLoop.load(path)
+
+
+@pytest.mark.parametrize("field, bad", [("states", lambda a: a[:-1]), ("plans", lambda a: a[:, :2].T),
+                                        ("held", lambda a: a.astype(np.float64)), ("times", lambda a: a[:3]),
+                                        ("inputs", lambda a: a[:, 0])])
+def test_load_refuses_fields_of_inconsistent_shapes(saved, tmp_path, field, bad):
+    fields, _ = saved
+    path = tmp_path / "bad.npz"
+    np.savez(path, **{**fields, field: bad(fields[field])})
+    with pytest.raises(ValueError, match=f"not a consistent ClosedLoop: {field} has shape"):
+        fj.ClosedLoop.load(path)
+
+
+def test_load_says_what_a_npy_file_or_another_file_is(saved, tmp_path):
+    fields, path = saved
+    assert fj.ClosedLoop.load(path).states.shape == (7, 2)  # the genuine file loads
+    np.save(tmp_path / "states.npy", fields["states"])
+    with pytest.raises(ValueError, match=r"is a \.npy file \(one array\); ClosedLoop.load reads the \.npz"):
+        fj.ClosedLoop.load(tmp_path / "states.npy")
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(ValueError, match="not an .npz archive"):
+        fj.ClosedLoop.load(tmp_path / "notes.txt")
+    np.savez(tmp_path / "objects.npz", **{**fields, "nodes": np.array([None] * 6, object)})
+    with pytest.raises(ValueError, match="Python objects"):
+        fj.ClosedLoop.load(tmp_path / "objects.npz")
+
+
+def test_plot_names_the_curves_and_labels_the_time_axis_in_seconds(saved):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figures = plt.get_fignums()
+    run = fj.ClosedLoop.load(saved[1])
+    fig = run.plot(state_names=["position [m]", "speed [m/s]"], input_names=["force [N]"])
+    assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == ["position [m]", "speed [m/s]"]
+    assert [t.get_text() for t in fig.axes[1].get_legend().get_texts()] == ["force [N]"]
+    assert fig.axes[3].get_xlabel() == "time [s]" and plt.get_fignums() == figures
+    assert fig.axes[0].lines[0].get_xdata()[-1] == pytest.approx(0.6)  # seconds, not steps
+    assert [t.get_text() for t in run._replace(times=None).plot().axes[0].get_legend().get_texts()] == \
+        ["x[0]", "x[1]"]
+    with pytest.raises(ValueError, match=r"state_names must name the run's 2 columns of states \[T\+1, n\], got 1"):
+        run.plot(state_names=["position [m]"])
+    with pytest.raises(TypeError, match="input_names must be a sequence of 1 strings"):
+        run.plot(input_names="force")
