@@ -135,3 +135,51 @@ def test_plot_names_the_curves_and_labels_the_time_axis_in_seconds(saved):
         run.plot(state_names=["position [m]"])
     with pytest.raises(TypeError, match="input_names must be a sequence of 1 strings"):
         run.plot(input_names="force")
+
+
+# -- messages name what the user wrote ------------------------------------------------------------------------
+def test_a_warm_start_out_of_range_is_reported_in_the_users_indices():
+    """Five inputs of three effects (three classes): the message speaks of the five inputs."""
+    controls = np.array([[0, 0], [1, 0], [0, 1], [1, 1], [2, 0]], float)
+    lt = fj.LinearTracking(np.eye(1), np.array([[1.0, 1.0]]), controls, 3)
+    assert lt.num_classes == 3
+    with pytest.raises(ValueError, match=r"warm_start indices must lie in \[0, 5\) .* got \[7, 7, 7\]"):
+        lt.solve(np.zeros(1), np.zeros(2), np.zeros((3, 1)), warm_start=[7, 7, 7])
+    assert bool(lt.solve(np.zeros(1), np.zeros(2), np.zeros((3, 1)), warm_start=[4, 4, 4]).feasible)
+
+
+def test_a_negative_terminal_cost_is_blamed_on_terminal_cost():
+    prob = fj.Problem(lambda x, u: 0.9 * x + u, CONTROLS, fj.quadratic_cost(1.0, 0.0), 2,
+                      terminal_cost=lambda x: x[0] - 5.0)
+    with pytest.raises(ValueError, match="terminal_cost"):
+        fj.sdfs(prob, jnp.ones(1))
+    found = fj.diagnostics.check_problem(prob, jnp.array([[1.0], [9.0]]))
+    assert [(v.state, v.source) for v in found] == [(0, "terminal_cost")] and found[0].value == -4.0
+    negative_stage = prob.replace(stage_cost=lambda x, u: x[0], terminal_cost=None)
+    assert [(v.state, v.source) for v in fj.diagnostics.check_problem(negative_stage, jnp.array([[-9.0]]))] == \
+        [(0, "stage_cost")]
+
+
+# -- helpers take what they say ---------------------------------------------------------------------------------
+def _bounded(bound):
+    return fj.Problem(lambda x, u, p: x + u, CONTROLS, lambda x, u, p: (x[0] - p["t"][0]) ** 2, 2,
+                      lower_bound=bound)
+
+
+def test_check_lower_bound_takes_per_state_params_as_solve_batch_does():
+    """State i is checked with params[i]: a bound too high for state 1's row only is caught there only."""
+    states = jnp.array([[0.0], [0.5], [-1.0]])
+    rows = {"t": jnp.array([[0.0], [3.0], [-1.0]]), "b": jnp.array([0.0, 50.0, 0.0])}
+    problem = _bounded(lambda x, s, p: p["b"])
+    found = fj.diagnostics.check_lower_bound(problem, states, params=rows)
+    assert sorted({(v.state, v.source) for v in found}) == [(1, "lower_bound")] and len(found) == 2
+    assert fj.diagnostics.check_lower_bound(problem, states, params=rows, per_state=True) == found
+    shared = {"t": jnp.array([3.0]), "b": jnp.asarray(0.0)}  # one pytree for every state, as before
+    assert fj.diagnostics.check_lower_bound(problem, states, params=shared) == []
+    assert fj.diagnostics.check_problem(problem, states, params=rows) == []
+    ambiguous = _bounded(lambda x, s, p: jnp.min(p["b"])).replace(  # sums fit both forms with S = 3
+        stage_cost=lambda x, u, p: (x[0] - jnp.sum(p["t"])) ** 2)
+    with pytest.raises(ValueError, match="pass per_state=True or per_state=False"):
+        fj.diagnostics.check_lower_bound(ambiguous, states, params=rows)
+    with pytest.raises(ValueError, match="neither as one pytree for every state .* nor as one row per state"):
+        fj.diagnostics.check_lower_bound(problem, states, params={"t": jnp.zeros((2, 1)), "b": jnp.zeros(2)})
