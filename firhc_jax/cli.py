@@ -1,7 +1,9 @@
 """Command line: ``python -m firhc_jax <subcommand>``.
 
 Each application module registers its own subcommand through
-``register(subparsers)`` and sets ``func`` on its parser.
+``register(subparsers)`` and sets ``func`` on its parser, and optionally
+``check(args)``, run before ``func``: limits on what the options size
+together, refused with argparse's one-line error (``apps/_limits.py``).
 """
 from __future__ import annotations
 
@@ -38,6 +40,8 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    if getattr(args, "check", None):  # limits on what the options size together, before any work
+        args.check(args)
     return int(args.func(args) or 0)
 
 

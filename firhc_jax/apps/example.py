@@ -8,6 +8,7 @@ sDFS and by exhaustive search; the run prints node counts and times, writes
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import time
 
@@ -16,12 +17,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._args import number, output_dir
+from ._limits import exhaustive_run
 
 DT = 0.05  # s, control period
 # The example checks sDFS against exhaustive search, which visits all 3 + 9 + ... + 3^N nodes at every step:
 # 797,160 at N = 12 (about 0.25 s a step on a 2-core CPU, a minute for the default run); each step of horizon
 # beyond triples it.
 MAX_HORIZON = 12
+MAX_STEPS = 100_000
+EXHAUSTIVE_BUDGET = 1e8  # nodes of one closed loop: about 30 s at 0.3 us a node, and the run makes two
 
 
 def pendulum(x, u):
@@ -51,9 +55,17 @@ def register(subparsers):
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--horizon", type=number(int, 1, MAX_HORIZON), default=8,
                    help=f"prediction horizon N (1-{MAX_HORIZON}, default 8; exhaustive search: 3^N leaves a step)")
-    p.add_argument("--steps", type=number(int, 1), default=80, help="closed-loop steps (default 80)")
+    p.add_argument("--steps", type=number(int, 1, MAX_STEPS), default=80,
+                   help=f"closed-loop steps (default 80, at most {MAX_STEPS:,}; the exhaustive check's nodes, "
+                        f"steps x (3 + ... + 3^N), at most {EXHAUSTIVE_BUDGET:,.0f})")
     p.add_argument("--out", type=output_dir, default="out/example", help="output folder (default out/example)")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, check=functools.partial(_check, p))
+
+
+def _check(parser, args) -> None:
+    """The exhaustive check's closed loop within ``EXHAUSTIVE_BUDGET`` nodes."""
+    exhaustive_run(parser, args.steps, 3, args.horizon, EXHAUSTIVE_BUDGET, "about 30 s at 0.3 us a node, run twice",
+                   "lower --steps or --horizon")
 
 
 def run(args) -> int:
