@@ -458,7 +458,8 @@ class FIRHC:
             held = np.flatnonzero(np.asarray(out.held))
             if held.size:
                 what = "u_safe" if self.u_safe is not None else "the input applied last"
-                warnings.warn(f"closed loop: no feasible input sequence found at {held.size} of {steps} steps "
+                warnings.warn(f"closed loop: no feasible input sequence found (or its first input was not finite) "
+                              f"at {held.size} of {steps} steps "
                               f"(first: step {held[0]}); {what} was held there, flagged in ClosedLoop.held",
                               RuntimeWarning, stacklevel=2)
         return out._replace(times=times)

@@ -37,7 +37,7 @@ PAPER = {
 }
 HORIZONS = {"hopper": (5, 6, 7, 8), "tanks": (3, 4, 5, 6)}
 MAX_REPEATS = 100
-MAX_ES_NODES = 1e9  # nodes, spent once per repeat: about 8 minutes at the tanks' 0.45 us a node
+MAX_ES_NODES = 1e9  # nodes, spent once per repeat: about 8 minutes at the tanks' 0.47 us a node
 POP_WIDTHS = (1, 2, 4, 8, 16)
 BATCHES = (1, 8, 64, 512)
 

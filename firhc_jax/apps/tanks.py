@@ -32,7 +32,7 @@ from ._timing import timed_closed_loop
 
 MAX_HORIZON = 10  # 17^10 sequences: beyond this even sDFS's worst steps become impractical
 MAX_SECONDS = 3600.0  # 1,800 decisions, 18 times the paper's run
-# Exhaustive search costs about 0.45 us a node here (N = 5: 715 ms for 1,508,597 nodes, shared 2-core CPU).
+# Exhaustive search costs about 0.47 us a node here (N = 5: 715 ms for 1,508,597 nodes, shared 2-core CPU).
 EXHAUSTIVE_BUDGET = 5e8
 
 
@@ -181,7 +181,7 @@ def _check(parser, args) -> None:
         parser.error(f"--seconds must be at least one sample ({ts:g} s), got {args.seconds:g}")
     if args.solver == "exhaustive":
         exhaustive_run(parser, steps, model.NUM_MODES, args.horizon, EXHAUSTIVE_BUDGET,
-                       "about 4 minutes at 0.45 us a node", "lower --horizon or --seconds, or use --solver sdfs")
+                       "about 4 minutes at 0.47 us a node", "lower --horizon or --seconds, or use --solver sdfs")
 
 
 def run(args) -> int:
