@@ -330,7 +330,7 @@ class FIRHC:
         """One decision (``step`` without its argument handling)."""
         xm = call(self.observe, p, x, state.u) if self.observe else x
         result, nodes, used = self._solve(xm, p, state.plan if self.warm_start else None)
-        # A non-finite input (a first_input_of returning NaN or inf) is no input: never applied, never held.
+        # A non-finite input (a first_input_of returning NaN or inf) is no input: the safe input replaces it.
         held = ~result.feasible | ~jnp.all(jnp.isfinite(result.first_input))
         u = jnp.where(held, state.u if self.u_safe is None else self.u_safe, result.first_input)
         u_plant = call(self.actuate, p, x, u) if self.actuate else u
