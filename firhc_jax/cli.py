@@ -1,8 +1,10 @@
 """Command line: ``python -m firhc_jax <subcommand>``.
 
 Each application module registers its own subcommand through
-``register(subparsers)`` and sets ``func`` on its parser. Every command keeps
-its compilations in JAX's persistent compilation cache
+``register(subparsers)`` and sets ``func`` on its parser, and optionally
+``check(args)``, run before ``func``: limits on what the options size
+together, refused with argparse's one-line error (``apps/_limits.py``).
+Every command keeps its compilations in JAX's persistent compilation cache
 (``firhc_jax.enable_compilation_cache``), so a second run skips XLA's
 compilation; ``--no-cache`` turns that off for one run.
 """
@@ -70,6 +72,8 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    if getattr(args, "check", None):  # limits on what the options size together, before any work
+        args.check(args)
     if not getattr(args, "no_cache", False):
         _use_compilation_cache()
     return int(args.func(args) or 0)

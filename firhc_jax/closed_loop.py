@@ -10,11 +10,22 @@ they are.
 """
 from __future__ import annotations
 
+import math
 import os
+import zipfile
 from typing import NamedTuple, Optional
 
 import jax
 import numpy as np
+from numpy.lib import format as npy
+
+
+# Each field's layout in a saved run: (length of the leading axis, number of axes, dtype kinds).
+_LAYOUT = {"states": ("T+1", 2, "f"), "inputs": ("T", 2, "f"), "input_indices": ("T", 1, "iu"),
+           "stage_costs": ("T", 1, "f"), "predicted_costs": ("T", 1, "f"), "nodes": ("T", 1, "iu"),
+           "fallback_nodes": ("T", 1, "iu"), "feasible": ("T", 1, "b"), "used_fallback": ("T", 1, "b"),
+           "complete": ("T", 1, "b"), "held": ("T", 1, "b"), "plans": ("T", 2, "iu"), "solve_times": ("T", 1, "f"),
+           "times": ("T+1", 1, "f")}
 
 
 class ClosedLoop(NamedTuple):
@@ -59,39 +70,54 @@ class ClosedLoop(NamedTuple):
 
     @classmethod
     def load(cls, path) -> "ClosedLoop":
-        """A ``ClosedLoop`` of NumPy arrays from a file written by ``save``."""
-        with np.load(os.fspath(path), allow_pickle=False) as data:
-            names = set(data.files)
-            required = [f for f in cls._fields if f not in cls._field_defaults]
-            missing = [f for f in required if f not in names]
-            if missing:
-                raise ValueError(f"{os.fspath(path)} is not a saved ClosedLoop: it lacks {missing}")
-            unknown = sorted(names - set(cls._fields))
-            if unknown:
-                raise ValueError(f"{os.fspath(path)} has arrays a ClosedLoop does not: {unknown}")
+        """A ``ClosedLoop`` of NumPy arrays from a file written by ``save``.
+
+        Every array's declared shape and dtype is read from its ``.npy``
+        header first, without reading data: a file whose fields disagree
+        (``states`` not ``[T+1, n]`` for ``inputs`` ``[T, m']``, ...), whose
+        headers declare more data than the file holds (``save`` writes
+        uncompressed arrays), or that is not an ``.npz`` at all is refused
+        with a ``ValueError`` before anything is allocated. No pickles."""
+        path = os.fspath(path)
+        declared = _declared_arrays(path)
+        names = set(declared)
+        required = [f for f in cls._fields if f not in cls._field_defaults]
+        missing = [f for f in required if f not in names]
+        if missing:
+            raise ValueError(f"{path} is not a saved ClosedLoop: it lacks {missing}")
+        unknown = sorted(names - set(cls._fields))
+        if unknown:
+            raise ValueError(f"{path} has arrays a ClosedLoop does not: {unknown}")
+        _check_layout(path, declared)
+        with np.load(path, allow_pickle=False) as data:
             return cls(**{name: data[name] for name in names})
 
-    def plot(self, title: str = ""):
+    def plot(self, title: str = "", state_names=None, input_names=None):
         """A new matplotlib ``Figure``: states, applied inputs (held steps
-        marked), nodes per decision and solve times, against time when the run
-        has ``times`` (else the step index). Built without pyplot: the
-        backend is never switched; show it with ``fig.savefig`` or display it
-        in a notebook."""
+        marked), nodes per decision and solve times, against time in seconds
+        when the run has ``times`` (``simulate(..., dt=)``), else the step
+        index. ``state_names`` ``[n]`` and ``input_names`` ``[m']`` (e.g.
+        ``"i_a [A]"``, units included) label the curves in legends; default
+        ``x[0]``, ``u[0]``, ... Built without pyplot: the backend is never
+        switched; show it with ``fig.savefig`` or display it in a notebook."""
         from matplotlib.figure import Figure
 
         states, inputs = np.asarray(self.states), np.asarray(self.inputs)
+        state_names = _names("state_names", state_names, states.shape[1], "x", "states [T+1, n]")
+        input_names = _names("input_names", input_names, inputs.shape[1], "u", "inputs [T, m']")
         T = inputs.shape[0]
         t = np.arange(T + 1) if self.times is None else np.asarray(self.times)
-        unit = "step" if self.times is None else "t [s]"
+        unit = "step" if self.times is None else "time [s]"
         fig = Figure(figsize=(8, 8), layout="constrained")
         ax = fig.subplots(4, 1, sharex=True)
-        ax[0].plot(t, states)
+        ax[0].plot(t, states, label=state_names)
         ax[0].set_ylabel("states")
-        ax[1].step(t[:-1], inputs, where="post")
+        ax[0].legend(loc="best")
+        ax[1].step(t[:-1], inputs, where="post", label=input_names)
         held = np.flatnonzero(np.asarray(self.held))
         if held.size:
             ax[1].plot(t[held], inputs[held, 0], "rx", label="held (no input found)")
-            ax[1].legend(loc="best")
+        ax[1].legend(loc="best")
         ax[1].set_ylabel("inputs")
         ax[2].step(t[:-1], np.asarray(self.nodes), where="post", label="constrained search")
         if np.any(np.asarray(self.fallback_nodes)):
@@ -109,3 +135,69 @@ class ClosedLoop(NamedTuple):
         if title:
             fig.suptitle(title)
         return fig
+
+
+def _names(arg: str, names, count: int, symbol: str, what: str) -> list[str]:
+    """``count`` curve labels: the user's, checked, else ``symbol[i]``."""
+    if names is None:
+        return [f"{symbol}[{i}]" for i in range(count)]
+    if isinstance(names, str) or not all(isinstance(n, str) for n in names):
+        raise TypeError(f"{arg} must be a sequence of {count} strings, got {names!r}")
+    names = list(names)
+    if len(names) != count:
+        raise ValueError(f"{arg} must name the run's {count} columns of {what}, got {len(names)}: {names}")
+    return names
+
+
+def _declared_arrays(path: str) -> dict:
+    """``{name: (shape, dtype)}`` of every array of the ``.npz`` at ``path``, from the ``.npy`` headers alone;
+    a ``ValueError`` for anything but an archive of plain arrays whose data fit in the file."""
+    with open(path, "rb") as f:
+        head = f.read(6)
+    if head == b"\x93NUMPY":
+        raise ValueError(f"{path} is a .npy file (one array); ClosedLoop.load reads the .npz archive that "
+                         "ClosedLoop.save writes, one array per field")
+    if not zipfile.is_zipfile(path):
+        raise ValueError(f"{path} is not an .npz archive; ClosedLoop.load reads the .npz that ClosedLoop.save writes")
+    size, out, total = os.path.getsize(path), {}, 0
+    with zipfile.ZipFile(path) as archive:
+        for member in archive.infolist():
+            name = member.filename
+            if not name.endswith(".npy"):
+                raise ValueError(f"{path}: {name!r} is not an array (.npy) of a saved ClosedLoop")
+            with archive.open(member) as f:
+                try:
+                    version = npy.read_magic(f)
+                    readers = {(1, 0): npy.read_array_header_1_0, (2, 0): npy.read_array_header_2_0}
+                    if version not in readers:
+                        raise ValueError(f"unsupported .npy version {version}")
+                    shape, _, dtype = readers[version](f)
+                except ValueError as e:
+                    raise ValueError(f"{path}: {name!r} has no valid .npy header: {e}") from None
+                header = f.tell()
+            if dtype.hasobject:
+                raise ValueError(f"{path}: {name!r} holds Python objects (a pickle), which are never loaded")
+            nbytes = math.prod(shape) * dtype.itemsize
+            if nbytes != member.file_size - header:
+                raise ValueError(f"{path}: {name!r} declares shape {shape} of {dtype} ({nbytes:,} bytes) but holds "
+                                 f"{member.file_size - header:,} bytes of data")
+            total += nbytes
+            out[name[:-4]] = (shape, dtype)
+    if total > size:
+        raise ValueError(f"{path}: its arrays declare {total:,} bytes of data, more than the file's {size:,} bytes "
+                         "(compressed); ClosedLoop.save writes them uncompressed")
+    return out
+
+
+def _check_layout(path: str, declared: dict) -> None:
+    """The fields' declared shapes and dtypes agree with one run of T steps (``inputs`` ``[T, m']``)."""
+    inputs = declared["inputs"][0]
+    T = inputs[0] if len(inputs) else None
+    for name, (shape, dtype) in declared.items():
+        lead, ndim, kinds = _LAYOUT[name]
+        length = None if T is None else T + (lead == "T+1")
+        if len(shape) != ndim or shape[0] != length or dtype.kind not in kinds:
+            want = {"f": "floating", "iu": "integer", "b": "boolean"}[kinds]
+            raise ValueError(f"{path} is not a consistent ClosedLoop: {name} has shape {shape} dtype {dtype}, "
+                             f"expected {ndim} axes with leading axis {lead} = {length} (T from inputs "
+                             f"{inputs}) and a {want} dtype")

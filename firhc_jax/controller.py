@@ -23,7 +23,8 @@ The closed loop separates plant and model (the do-mpc split):
 
 No input found: when every search of a decision comes back empty (no sequence
 with a finite cost meets the constraints, or ``max_nodes`` stopped the search
-before any complete sequence), a controller never hands a NaN to the plant.
+before any complete sequence), or the input found is not finite (a
+``first_input_of`` returning NaN), a controller never hands a NaN to the plant.
 ``step`` and ``simulate`` apply a safe input instead: ``u_safe`` if given,
 else the input applied last (``u0`` at the start), and flag the decision
 (``info.held``, ``ClosedLoop.held``); ``simulate`` warns after a run with
@@ -329,7 +330,8 @@ class FIRHC:
         """One decision (``step`` without its argument handling)."""
         xm = call(self.observe, p, x, state.u) if self.observe else x
         result, nodes, used = self._solve(xm, p, state.plan if self.warm_start else None)
-        held = ~result.feasible
+        # A non-finite input (a first_input_of returning NaN or inf) is no input: the safe input replaces it.
+        held = ~result.feasible | ~jnp.all(jnp.isfinite(result.first_input))
         u = jnp.where(held, state.u if self.u_safe is None else self.u_safe, result.first_input)
         u_plant = call(self.actuate, p, x, u) if self.actuate else u
         idx = result.sequence[0]
@@ -338,7 +340,7 @@ class FIRHC:
         info = StepInfo(result=result, used_fallback=used, complete=result.complete, nodes=nodes,
                         fallback_nodes=jnp.where(used, result.nodes, 0), feasible=result.feasible & ~used,
                         held=held, stage_cost=jnp.where(held, jnp.nan, stage))
-        return u_plant, ControllerState(u=u, plan=result.sequence), info
+        return u_plant, ControllerState(u=u, plan=jnp.where(held, -1, result.sequence)), info
 
     def _checked_step(self, state: ControllerState, x, p):
         """``_decide`` after the abstract checks (run while jit traces: once per argument signature)."""
@@ -381,6 +383,9 @@ class FIRHC:
     def _no_input_message(self, info: StepInfo) -> str:
         """Why a decision found no input, in the problem's own terms."""
         p, r, N = self.problem, info.result, self.problem.horizon
+        if np.asarray(r.feasible):  # held although a sequence was found: its input is not finite
+            return (f"first_input_of returned a non-finite input {np.asarray(r.first_input).tolist()} for the "
+                    f"optimal sequence {np.asarray(r.sequence).tolist()}; a controller never applies it")
         if not np.asarray(info.complete):
             return (f"no input found: the search stopped at max_nodes={self.solver_options.get('max_nodes')} "
                     f"(the whole decision's budget) before it reached a complete input sequence of length {N}; "
@@ -453,7 +458,8 @@ class FIRHC:
             held = np.flatnonzero(np.asarray(out.held))
             if held.size:
                 what = "u_safe" if self.u_safe is not None else "the input applied last"
-                warnings.warn(f"closed loop: no feasible input sequence found at {held.size} of {steps} steps "
+                warnings.warn(f"closed loop: no feasible input sequence found (or its first input was not finite) "
+                              f"at {held.size} of {steps} steps "
                               f"(first: step {held[0]}); {what} was held there, flagged in ClosedLoop.held",
                               RuntimeWarning, stacklevel=2)
         return out._replace(times=times)
@@ -522,8 +528,9 @@ class FIRHC:
 
 
 def _closed_loop(x0, xs, us, info: StepInfo, times) -> ClosedLoop:
+    plans = jnp.where(info.held[:, None], -1, info.result.sequence)  # -1 where held, found or not
     return ClosedLoop(states=jnp.concatenate([jnp.asarray(x0)[None], xs]), inputs=us,
-                      input_indices=info.result.sequence[:, 0], stage_costs=info.stage_cost,
+                      input_indices=plans[:, 0], stage_costs=info.stage_cost,
                       predicted_costs=info.result.cost, nodes=info.nodes, fallback_nodes=info.fallback_nodes,
                       feasible=info.feasible, used_fallback=info.used_fallback, complete=info.complete,
-                      held=info.held, plans=info.result.sequence, solve_times=times)
+                      held=info.held, plans=plans, solve_times=times)

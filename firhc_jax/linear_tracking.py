@@ -242,7 +242,10 @@ class LinearTracking:
             if ws.shape != (self.horizon,) or not jnp.issubdtype(ws.dtype, jnp.integer):
                 raise ValueError(f"warm_start must be [N] = [{self.horizon}] integer indices into controls, "
                                  f"got {ws.dtype} of shape {tuple(ws.shape)}")
-            inside = (ws >= 0) & (ws < len(self._controls))
+            M = len(self._controls)
+            if not is_tracer(ws) and not (bool(jnp.all((ws >= 0) & (ws < M))) or bool(jnp.all(ws == -1))):
+                raise ValueError(f"warm_start indices must lie in [0, {M}) (or be all -1: none), got {ws.tolist()}")
+            inside = (ws >= 0) & (ws < M)
             warm_start = jnp.where(inside, jnp.asarray(self._class_of)[jnp.clip(ws, 0, len(self._controls) - 1)],
                                    jnp.where(ws < 0, ws, self.num_classes))
         z0, params = self.observe(x, u_prev), self._with_model(self.params(y_ref, d), x.dtype)

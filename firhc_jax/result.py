@@ -63,9 +63,10 @@ def raise_on_errors(result: SearchResult) -> SearchResult:
     negative, nan, overflow = (np.asarray(a) for a in (result.negative_cost, result.nan_encountered, result.overflow))
     if np.any(negative):
         raise ValueError(
-            "stage_cost returned a negative value during the search; sDFS is exact only for "
-            "non-negative stage costs (eq. 2). Shift or square the cost so that it is >= 0 "
-            "(fj.check_problem samples states to test this before you trust a problem).")
+            "a negative cost was computed during the search: stage_cost, or terminal_cost (added to the last "
+            "step's stage cost), returned a value < 0; sDFS is exact only for non-negative costs (eq. 2). Shift "
+            "or square the cost so that it is >= 0 (fj.diagnostics.check_problem samples states and names the "
+            "callable that returns a negative cost).")
     if np.any(nan):
         warnings.warn("non-finite (NaN or inf) states or NaN costs were met during the search; those nodes were "
                       "discarded (treated as infeasible). Check dynamics/stage_cost near this state.",

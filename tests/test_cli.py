@@ -6,8 +6,11 @@ import sys
 
 import pytest
 
+import numpy as np
+
 from firhc_jax import cli
-from firhc_jax.apps import bench, example, hopper, inverter, tanks
+from firhc_jax.apps import batch, bench, example, hopper, inverter, tanks
+from firhc_jax.apps import profile as profile_app
 
 # Each command line with the function that starts its work, replaced in the tests below by one that fails: an
 # argument refused after the work started fails the test even where the work would end in an error of its own.
@@ -21,11 +24,18 @@ COMMANDS = {
 }
 
 
+# Commands whose --out is not a folder, checked the same way otherwise.
+OTHER_COMMANDS = {
+    "batch": (["batch", "--states", "X0.npz", "--out", "r.npz"], batch, "_solve"),
+    "profile": (["profile", "no_such_module:case"], profile_app, "load_case"),
+}
+
+
 @pytest.fixture
 def no_work(monkeypatch):
     """``run(command, *args)``: ``cli.main`` of the command with its work replaced by a failure."""
     def run(command, *args):
-        argv, module, work = COMMANDS[command]
+        argv, module, work = {**COMMANDS, **OTHER_COMMANDS}[command]
 
         def started(*a, **k):
             raise AssertionError(f"{command}: the work started before the arguments were checked")
@@ -95,3 +105,159 @@ def test_a_refused_output_folder_ends_the_process_with_one_line_and_no_traceback
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip().splitlines()[-1] == (f"python -m firhc_jax tanks: error: argument --out: "
                                                     f"{str(a_file)!r} exists and is not a folder")
+
+
+# Every numeric option that sizes work or memory has a bound, and options that size work together (an exhaustive
+# search's nodes over a run) are refused together, all before any work and with argparse's one line.
+@pytest.mark.parametrize("command, args, message", [
+    ("inverter", ["--cycles", "1e9"], "argument --cycles: must be a number > 0 and <= 100.0, got '1e9'"),
+    ("inverter", ["--cycles", "0.001"], "--cycles must cover at least two samples, got 0.001"),
+    ("inverter", ["--horizon", "9"], "--horizon must be between 1 and 8 with --levels 2, got 9"),
+    ("inverter", ["--solver", "exhaustive", "--horizon", "8"], "exhaustive search at N = 8 visits 19,173,960 nodes"),
+    ("tanks", ["--seconds", "1e9"], "argument --seconds: must be a number > 0 and <= 3600.0"),
+    ("tanks", ["--seconds", "1"], "--seconds must be at least one sample (2 s), got 1"),
+    ("tanks", ["--solver", "exhaustive", "-N", "6"], "25,646,166 nodes per step, 2,564,616,600 over 100 steps"),
+    ("hopper", ["--solver", "exhaustive", "--horizon", "12"], "use --solver sdfs"),
+    ("hopper", ["--solver", "exhaustive", "--warm"], "--warm needs --solver sdfs"),
+    ("example", ["--steps", "10000000"], "argument --steps: must be an integer between 1 and 100000"),
+    ("example", ["--horizon", "12", "--steps", "200"], "159,432,000 over 200 steps"),
+    ("bench tables", ["--repeats", "1000"], "argument --repeats: must be an integer between 1 and 100"),
+    ("bench throughput", ["--max-es-nodes", "1e12"], "argument --max-es-nodes: must be a number between 0 and"),
+    ("batch", ["--lanes", "1000000"], "argument --lanes: must be an integer between 1 and 4096"),
+    ("batch", ["--pop-width", "1000"], "argument --pop-width: must be an integer between 1 and 64"),
+    ("batch", ["--max-memory", str(2 ** 70)], "argument --max-memory: must be an integer between 1 and"),
+    ("batch", ["--repeats", "1000000"], "argument --repeats: must be an integer between 1 and 1000"),
+    ("batch", ["--launch-local", "1000"], "argument --launch-local: must be an integer between 1 and 64"),
+    ("batch", ["--num-processes", "100000"], "argument --num-processes: must be an integer between 1 and 1024"),
+    ("profile", ["--lanes", "100000"], "argument --lanes: must be an integer between 1 and 4096"),
+    ("profile", ["--repeats", "1000"], "argument --repeats: must be an integer between 1 and 100"),
+    ("profile", ["--max-exhaustive-nodes", "1000000000000"], "argument --max-exhaustive-nodes: must be an integer"),
+])
+def test_options_that_size_work_or_memory_are_bounded_before_any_work(command, args, message, no_work, capsys):
+    refused = _refused(capsys, no_work, command, *args)
+    assert message in refused and refused.count("\n") == 0, refused
+
+
+def test_the_bounds_leave_the_documented_runs_alone(no_work, tmp_path):
+    """The default runs, and the heaviest ones the docs report, pass the checks (and reach the work)."""
+    for command, args in (("inverter", ["--solver", "exhaustive", "--horizon", "5"]),
+                          ("tanks", ["--solver", "exhaustive", "-N", "5"]),
+                          ("hopper", ["--solver", "exhaustive", "--horizon", "8"]), ("example", ["--horizon", "12"]),
+                          ("inverter", []), ("tanks", []), ("hopper", []), ("example", [])):
+        with pytest.raises(AssertionError, match="the work started"):
+            no_work(command, *args, "--out", str(tmp_path / command))
+
+
+def test_table_3_shows_the_papers_mean_as_a_mean():
+    """The paper's 595 at N = 3 is a mean of nodes per step (docs/tanks.md), 2,516 the maximum."""
+    row = {"plant": "tanks", "N": 3, "A": 5219, "B_max": 3145, "B_min": 51, "B_mean": 181.4, "C_dfs_pct": 10.0,
+           "C_levels_pct": 9.0, "sdfs_ms": 0.6, "dfs_ms": 5.0, "levels_ms": 5.1, "us_per_iteration": 3.0,
+           "warm_nodes_mean": 100.0, "warm_ms": 0.5, "best_pop_width": 1, "best_pop_width_ms": 0.6, "es_steps": 100,
+           "steps": 100}
+    text = bench.tables_markdown([row, {**row, "plant": "hopper", "N": 5, "A": 363, "B_max": 300, "B_min": 15}])
+    tanks_table = text.split("### Table 3")[1]
+    assert "| B max/mean ours (paper) | B min |" in tanks_table and "| 3,145/181 (2,516/595) | 51 |" in tanks_table
+    hopper_table = text.split("### Table 2")[1].split("### Table 3")[0]
+    assert "| B max/min ours (paper) | B mean |" in hopper_table and "| 300/15 (363/15) | 181 |" in hopper_table
+
+
+def test_batch_help_says_what_states_the_built_in_plants_take(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["batch", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--plant tanks takes n = 3 (the three levels, m)" in text and "--params" in text
+
+
+# A mistake in the user's module: one line naming the module and the error; --debug: the exception itself.
+MISTAKES = {
+    "syntax": ("def case(:\n    pass\n", SyntaxError, r"SyntaxError: .* line 1"),
+    "at_import": ("x = 1 / 0\ndef case():\n    pass\n", ZeroDivisionError,
+                  r"ZeroDivisionError: division by zero \(at .*_at_import_\w+\.py:1\)"),
+    "in_function": ("def case():\n    raise KeyError('no plant today')\n", KeyError,
+                    r"raised KeyError: 'no plant today' \(at .*_in_function_\w+\.py:2\)"),
+}
+
+
+def _user_module(tmp_path, monkeypatch, kind: str, command: str) -> str:
+    name = f"fj_user_{kind}_{command}"
+    (tmp_path / f"{name}.py").write_text(MISTAKES[kind][0])
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return name
+
+
+@pytest.mark.parametrize("kind", sorted(MISTAKES))
+@pytest.mark.parametrize("command", ["batch", "profile"])
+def test_a_mistake_in_the_users_module_is_one_line_and_the_traceback_needs_debug(kind, command, tmp_path,
+                                                                                   monkeypatch):
+    import firhc_jax.batch
+    from firhc_jax import distributed
+
+    monkeypatch.setattr(firhc_jax.batch, "solve_batch", lambda *a, **k: pytest.fail("solved"))
+    module = _user_module(tmp_path, monkeypatch, kind, command)
+    distributed.save_states(tmp_path / "X0.npz", np.zeros((2, 1)))
+    argv = (["batch", "--problem", f"{module}:case", "--states", str(tmp_path / "X0.npz"), "--out",
+             str(tmp_path / "r.npz")] if command == "batch" else ["profile", f"{module}:case", "--out",
+                                                                  str(tmp_path / "prof")])
+    _, error, pattern = MISTAKES[kind]
+    with pytest.raises(SystemExit) as e:
+        cli.main(argv)
+    message = str(e.value.code)
+    assert message.startswith(f"{command}: ") and module in message and "\n" not in message, message
+    assert __import__("re").search(pattern, message) and message.endswith("--debug shows the traceback"), message
+    import sys
+    sys.modules.pop(module, None)
+    with pytest.raises(error):
+        cli.main([*argv, "--debug"])
+
+
+BATCH_USER = """
+import jax.numpy as jnp
+import firhc_jax as fj
+
+
+def tracking():
+    return fj.Problem(lambda x, u, p: 0.9 * x + u, jnp.array([-1.0, 0.0, 1.0]),
+                      lambda x, u, p: jnp.sum((x - p["ref"]["x"]) ** 2) + p["w"] * u[0] ** 2, 3)
+"""
+
+
+def test_batch_solves_per_row_params_and_times_the_compiled_calls_only(tmp_path, monkeypatch):
+    """``--params`` (an .npz of per-row leaves, 'a/b' nested) reaches solve_batch; meta_seconds and nodes/s come
+    from the calls after the first, compiling one (meta_first_seconds)."""
+    import firhc_jax as fj
+    from firhc_jax import distributed
+
+    (tmp_path / "fj_batch_user.py").write_text(BATCH_USER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    X0 = np.array([[0.0], [1.0], [-2.0], [0.5]])
+    rows = {"ref": {"x": np.array([[1.0], [0.0], [0.0], [-1.0]])}, "w": np.array([0.1, 0.2, 0.0, 1.0])}
+    np.savez(tmp_path / "p.npz", **{"ref/x": rows["ref"]["x"], "w": rows["w"]})
+    distributed.save_states(tmp_path / "X0.npz", X0)
+    argv = ["batch", "--problem", "fj_batch_user:tracking", "--states", str(tmp_path / "X0.npz"), "--params",
+            str(tmp_path / "p.npz"), "--out", str(tmp_path / "r.npz"), "--lanes", "2"]
+    assert cli.main(argv) == 0
+    result, meta = distributed.load_result(tmp_path / "r.npz")
+    import fj_batch_user
+
+    expected = fj.solve_batch(fj_batch_user.tracking(), X0, params=rows, lanes=2)
+    np.testing.assert_array_equal(result.cost, np.asarray(expected.cost))
+    np.testing.assert_array_equal(result.sequence, np.asarray(expected.sequence))
+    assert meta["times"].shape == (1,) and meta["seconds"] == meta["times"][0]
+    assert meta["nodes_per_second"] == pytest.approx(result.nodes.sum() / meta["seconds"])
+    np.savez(tmp_path / "short.npz", **{"ref/x": rows["ref"]["x"][:3], "w": rows["w"][:3]})
+    with pytest.raises(SystemExit, match=r"batch: params leaf \['ref'\]\['x'\] must have leading axis B = 4"):
+        cli.main([*argv[:6], str(tmp_path / "short.npz"), *argv[7:]])
+
+
+def test_example_says_how_much_faster_sdfs_is_and_defaults_to_a_horizon_where_it_shows(tmp_path, capsys):
+    """The worked example prints sDFS's time against exhaustive search's; its default horizon is the one its
+    docstring reports measured (N = 10: sDFS several times faster; at N = 8 and below they can be close)."""
+    import json
+
+    assert cli.build_parser().parse_args(["example"]).horizon == 10 and "N = 10" in example.__doc__
+    assert cli.main(["example", "--horizon", "3", "--steps", "3", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    ratio = summary["exhaustive"]["time_per_step_s"] / summary["sdfs"]["time_per_step_s"]
+    assert summary["exhaustive_over_sdfs_time"] == pytest.approx(ratio)
+    assert f"sDFS: {ratio:.1f}x as fast as exhaustive search" in out and "its lead grows with N" in out

@@ -153,9 +153,10 @@ def test_cli_rejects_bad_input(argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
-def test_cli_rejects_run_shorter_than_two_samples(tmp_path):
-    with pytest.raises(SystemExit, match="at least two samples"):
+def test_cli_rejects_run_shorter_than_two_samples(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:  # argparse's one-line error, before any work
         cli.main(["inverter", "--cycles", "0.001", "--out", str(tmp_path)])
+    assert e.value.code == 2 and "at least two samples" in capsys.readouterr().err
 
 
 def test_bound_is_admissible_and_keeps_the_closed_loop():

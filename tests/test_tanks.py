@@ -214,9 +214,10 @@ def test_cli_rejects_bad_input(argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
-def test_cli_rejects_run_shorter_than_a_sample(tmp_path):
-    with pytest.raises(SystemExit, match="at least one sample"):
+def test_cli_rejects_run_shorter_than_a_sample(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
         cli.main(["tanks", "--seconds", "1", "--out", str(tmp_path)])
+    assert e.value.code == 2 and "at least one sample" in capsys.readouterr().err
 
 
 def test_bound_is_admissible_and_keeps_the_closed_loop(sdfs_n3):

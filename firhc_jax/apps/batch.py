@@ -11,12 +11,16 @@ reads the same file); process 0 writes every ``SearchResult`` field and the
 timings (``meta_*`` keys) to ``--out`` (``firhc_jax.distributed.load_result``).
 The problem is a built-in plant (``--plant``, ``--horizon``) or
 ``--problem MODULE:FUNCTION``, a function without arguments returning a
-``Problem`` (importable on every host).
+``Problem`` (importable on every host). ``--params`` names an ``.npz`` of
+per-row parameters (every array with leading axis B; a key ``a/b`` is the
+leaf ``p["a"]["b"]``), e.g. ``np.savez("p.npz", **lt.params(Y))`` for a
+``fj.LinearTracking``'s ``lt.problem``. The time reported is that of calls
+after the first, which compiles.
 """
 from __future__ import annotations
 
-import importlib
 import inspect
+import os
 import statistics
 import subprocess
 import sys
@@ -24,8 +28,21 @@ import time
 from pathlib import Path
 
 from ._args import number
+from ._user_code import import_user_module, user_code
 
 PLANTS = ("tanks", "synthetic")
+MAX_LANES = 4096  # pool slots per device, each with a stack of sDFS nodes
+MAX_REPEATS = 1000
+MAX_PROCESSES = 1024
+MAX_LOCAL_PROCESSES = 64  # each a Python process with JAX: about 0.3 GB of memory
+
+
+def _physical_memory() -> int:
+    """Bytes of memory of this machine (the most ``--max-memory`` may ask), 2^40 where it cannot be read."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 2 ** 40
 
 
 def register(subparsers) -> None:
@@ -36,28 +53,39 @@ def register(subparsers) -> None:
                     "process 0 writes the results as .npz. Multi-process: --launch-local P on one machine, "
                     "or --coordinator/--num-processes/--process-id (or the JAX_COORDINATOR_ADDRESS, "
                     "JAX_NUM_PROCESSES, JAX_PROCESS_ID environment variables) on each host.")
-    p.add_argument("--states", type=Path, required=True, help=".npz holding X0 [B, n]")
+    p.add_argument("--states", type=Path, required=True,
+                   help=".npz holding X0 [B, n]: --plant tanks takes n = 3 (the three levels, m), --plant synthetic "
+                        "n = 3 (position, velocity, heading); --problem the state of its dynamics")
     p.add_argument("--out", type=Path, required=True,
                    help="result .npz, written by process 0 (checked before any work)")
     what = p.add_mutually_exclusive_group()
-    what.add_argument("--plant", choices=PLANTS, default="tanks", help="built-in plant (default tanks)")
+    what.add_argument("--plant", choices=PLANTS, default="tanks",
+                      help="built-in plant (default tanks): tanks, the three-tank system of 17 modes; synthetic, "
+                           "the 17-input benchmark problem")
     what.add_argument("--problem", metavar="MODULE:FUNCTION", help="a function without arguments returning a Problem")
+    p.add_argument("--params", type=Path, default=None,
+                   help=".npz of per-row parameters, every array with leading axis B (key 'a/b': leaf p['a']['b'])")
     p.add_argument("--horizon", "-N", type=number(int, 1, 10), default=4, help="horizon of --plant (default 4)")
     p.add_argument("--solver", choices=("sdfs", "sdfs-vmap", "exhaustive"), default="sdfs",
                    help="solve_batch's solver (default sdfs, the work pool)")
-    p.add_argument("--lanes", type=number(int, 1), default=None, help="pool slots per device (default min(rows, 64))")
-    p.add_argument("--pop-width", type=number(int, 1), default=1, help="K (default 1)")
-    p.add_argument("--max-memory", type=number(int, 1), default=None, help="bytes per device (default 1 GiB)")
+    p.add_argument("--lanes", type=number(int, 1, MAX_LANES), default=None,
+                   help=f"pool slots per device (default min(rows, 64), at most {MAX_LANES})")
+    p.add_argument("--pop-width", type=number(int, 1, 64), default=1, help="K (default 1, at most 64)")
+    p.add_argument("--max-memory", type=number(int, 1, _physical_memory()), default=None,
+                   help="bytes per device (default 1 GiB, at most this machine's memory)")
     p.add_argument("--float32", action="store_true", help="solve in float32 (default float64)")
-    p.add_argument("--repeats", type=number(int, 0), default=0,
-                   help="after the first (compiling) call, time this many more calls; their median is "
-                        "meta_seconds (default 0: the first call's time)")
+    p.add_argument("--repeats", type=number(int, 1, MAX_REPEATS), default=1,
+                   help="after the first call, which compiles (its time is meta_first_seconds), time this many "
+                        "more; their median is meta_seconds and gives nodes/s (default 1)")
+    p.add_argument("--debug", action="store_true",
+                   help="let an error in --problem's module through with its traceback (default: one line)")
     job = p.add_argument_group("multi-process job (default: the environment, else a single process)")
     job.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0")
-    job.add_argument("--num-processes", type=number(int, 1), help="processes in the job")
-    job.add_argument("--process-id", type=number(int, 0), help="this process's index")
-    job.add_argument("--launch-local", type=number(int, 1), metavar="P", default=None,
-                     help="start P processes of one job on 127.0.0.1 running this command, and wait")
+    job.add_argument("--num-processes", type=number(int, 1, MAX_PROCESSES), help="processes in the job")
+    job.add_argument("--process-id", type=number(int, 0, MAX_PROCESSES - 1), help="this process's index")
+    job.add_argument("--launch-local", type=number(int, 1, MAX_LOCAL_PROCESSES), metavar="P", default=None,
+                     help=f"start P processes of one job on 127.0.0.1 running this command, and wait (at most "
+                          f"{MAX_LOCAL_PROCESSES})")
     job.add_argument("--timeout", type=number(float, 0, low_open=True), default=None,
                      help="with --launch-local: stop the job (every process) after this many seconds "
                           "(default: firhc_jax.distributed.DEFAULT_TIMEOUT, 3600)")
@@ -69,10 +97,10 @@ def _child_argv(args) -> list[str]:
     argv = ["-m", "firhc_jax", "batch", "--states", str(args.states), "--out", str(args.out),
             "--solver", args.solver, "--pop-width", str(args.pop_width), "--repeats", str(args.repeats)]
     argv += ["--problem", args.problem] if args.problem else ["--plant", args.plant, "--horizon", str(args.horizon)]
-    for flag, value in (("--lanes", args.lanes), ("--max-memory", args.max_memory)):
+    for flag, value in (("--lanes", args.lanes), ("--max-memory", args.max_memory), ("--params", args.params)):
         if value is not None:
             argv += [flag, str(value)]
-    return argv + (["--float32"] if args.float32 else [])
+    return argv + [flag for flag, on in (("--float32", args.float32), ("--debug", args.debug)) if on]
 
 
 def check_out(path: Path) -> Path:
@@ -110,19 +138,18 @@ def make_problem(args):
         module, sep, name = spec.partition(":")
         if not sep or not module or not name:
             raise SystemExit(f"batch: --problem must be MODULE:FUNCTION, got {spec!r}")
-        try:
-            factory = getattr(importlib.import_module(module), name)
-        except ImportError as e:
-            raise SystemExit(f"batch: --problem {spec}: cannot import {module!r} ({e})") from None
-        except AttributeError:
-            raise SystemExit(f"batch: --problem {spec}: module {module!r} has no {name!r}") from None
+        mod = import_user_module(module, f"batch: --problem {spec}: cannot import {module!r}:", args.debug)
+        factory = getattr(mod, name, None)
+        if factory is None:
+            raise SystemExit(f"batch: --problem {spec}: module {module!r} has no {name!r}")
         try:
             inspect.signature(factory).bind()
         except TypeError:
             raise SystemExit(f"batch: --problem {spec} must be a function without arguments") from None
         except ValueError:  # no signature to inspect (some builtins): calling it tells
             pass
-        problem = factory()
+        with user_code(f"batch: --problem {spec}() raised", args.debug):
+            problem = factory()
         if not isinstance(problem, Problem):
             raise SystemExit(f"batch: --problem {spec} must return a firhc_jax.Problem, got "
                              f"{type(problem).__name__}")
@@ -134,6 +161,27 @@ def make_problem(args):
     from ..models.synthetic import synthetic_problem
 
     return synthetic_problem(17, args.horizon)
+
+
+def load_params(path: Path) -> dict:
+    """The per-row parameters of ``--params``: ``{key: array}``, a key ``a/b`` nested as ``p["a"]["b"]``."""
+    import numpy as np
+
+    params: dict = {}
+    with np.load(path, allow_pickle=False) as data:
+        if not data.files:
+            raise ValueError(f"--params {path} holds no arrays")
+        for key in data.files:
+            *outer, leaf = key.split("/")
+            node = params
+            for part in outer:
+                node = node.setdefault(part, {})
+                if not isinstance(node, dict):
+                    raise ValueError(f"--params {path}: {key!r} nests under an array")
+            if leaf in node:
+                raise ValueError(f"--params {path}: {key!r} is both an array and a group")
+            node[leaf] = np.asarray(data[key])
+    return params
 
 
 def _job_failure(done) -> str:
@@ -182,6 +230,7 @@ def _solve(args) -> int:
     try:
         distributed.initialize(args.coordinator, args.num_processes, args.process_id)
         X0 = distributed.load_states(args.states)
+        params = None if args.params is None else load_params(args.params)
     except (OSError, ValueError) as e:
         raise SystemExit(f"batch: {e}") from None
 
@@ -202,15 +251,15 @@ def _solve(args) -> int:
         if many:
             multihost_utils.sync_global_devices("firhc_jax batch")  # start the clocks together
         t0 = time.perf_counter()
-        result = jax.block_until_ready(solve_batch(problem, X0, **options))
+        result = jax.block_until_ready(solve_batch(problem, X0, params=params, **options))
         return time.perf_counter() - t0, result
 
     try:
         first, result = timed()
     except (ValueError, TypeError) as e:  # what the solver refuses (e.g. --lanes without the pool, NaN states)
         raise SystemExit(f"batch: {e}") from None
-    times = [timed()[0] for _ in range(args.repeats)]
-    seconds = statistics.median(times) if times else first
+    times = [timed()[0] for _ in range(args.repeats)]  # compiled by the first call: never in these
+    seconds = statistics.median(times)
     if jax.process_index() == 0:
         nodes = int(np.asarray(result.nodes, np.int64).sum())
         try:  # checked before the work, but a disk can fill up or a directory vanish since
@@ -220,8 +269,8 @@ def _solve(args) -> int:
         except OSError as e:
             raise SystemExit(f"batch: cannot write --out {args.out}: {e.strerror or e}") from None
         print(f"batch: {len(X0)} rows on {jax.device_count()} devices ({jax.process_count()} processes): "
-              f"{seconds * 1e3:.1f} ms{' (median)' if times else ''}, first call {first:.2f} s, "
-              f"{nodes / seconds:.3g} nodes/s, {int(np.sum(result.feasible))} feasible -> {args.out}")
+              f"{seconds * 1e3:.1f} ms{' (median)' if len(times) > 1 else ''} compiled, first call (compiling) "
+              f"{first:.2f} s, {nodes / seconds:.3g} nodes/s, {int(np.sum(result.feasible))} feasible -> {args.out}")
     if many:
         multihost_utils.sync_global_devices("firhc_jax batch done")  # process 0 has written --out
     return 0

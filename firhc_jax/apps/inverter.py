@@ -31,10 +31,14 @@ from firhc_jax.models import inverter as model
 from firhc_jax.models.three_level import MAX_HORIZON as THREE_LEVEL_MAX_HORIZON
 
 from ._args import number, output_dir
+from ._limits import exhaustive_run
 from ._status import stage
 from ._timing import timed_closed_loop
 
 MAX_HORIZON = 8  # 8^8 sequences; exhaustive search is already slow there
+MAX_CYCLES = 100.0  # 80,000 decisions
+# Exhaustive search costs about 26 ns a node here (N = 5: 0.98 ms for 37,448 nodes, shared 2-core CPU).
+EXHAUSTIVE_BUDGET = 1e10
 
 
 class InverterRun(NamedTuple):
@@ -214,8 +218,9 @@ def register(subparsers) -> None:
     p.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs",
                    help="search (default sdfs); exhaustive visits 8+...+8^N nodes per step")
     p.add_argument("--out", type=output_dir, default="out/inverter", help="output folder (default out/inverter)")
-    p.add_argument("--cycles", type=number(float, 0, low_open=True), default=2.0,
-                   help="simulated fundamental cycles of 20 ms, rounded down to whole samples (default 2)")
+    p.add_argument("--cycles", type=number(float, 0, low_open=True, high=MAX_CYCLES), default=2.0,
+                   help=f"simulated fundamental cycles of 20 ms, rounded down to whole samples (default 2, at "
+                        f"most {MAX_CYCLES:g})")
     p.add_argument("--lambda-u", type=number(float, 0), default=None,
                    help="switching penalty in A^2 per leg change, charged against the previous input "
                         "(default 1; 0.1 per unit leg step with --levels 3)")
@@ -226,7 +231,21 @@ def register(subparsers) -> None:
     p.add_argument("--model", choices=model.DISCRETISATIONS, default="exact",
                    help="prediction model: exact zero-order hold (default) or forward Euler; the plant is exact")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, check=functools.partial(_check, p))
+
+
+def _check(parser, args) -> None:
+    """The horizon of the chosen inverter, two samples at least, and a two-level run's exhaustive searches
+    within ``EXHAUSTIVE_BUDGET`` nodes."""
+    params = model.InverterParams()  # the three-level inverter samples at the same rate
+    steps = int(args.cycles * params.steps_per_cycle)
+    if steps < 2:
+        parser.error(f"--cycles must cover at least two samples, got {args.cycles:g}")
+    if args.levels == 2 and args.horizon > MAX_HORIZON:
+        parser.error(f"--horizon must be between 1 and {MAX_HORIZON} with --levels 2, got {args.horizon}")
+    if args.levels == 2 and args.solver == "exhaustive":
+        exhaustive_run(parser, steps, len(model.SWITCH_STATES), args.horizon, EXHAUSTIVE_BUDGET,
+                       "about 4 minutes at 26 ns a node", "lower --horizon or --cycles, or use --solver sdfs")
 
 
 def run(args) -> int:
@@ -235,15 +254,10 @@ def run(args) -> int:
         from .inverter_three_level import run as run_three_level
 
         return run_three_level(args)
-    if args.horizon > MAX_HORIZON:
-        raise SystemExit(f"inverter: --horizon must be between 1 and {MAX_HORIZON} with --levels 2, "
-                         f"got {args.horizon}")
     args.lambda_u = 1.0 if args.lambda_u is None else args.lambda_u
     jax.config.update("jax_enable_x64", True)
     params = model.InverterParams()
     steps = int(args.cycles * params.steps_per_cycle)
-    if steps < 2:
-        raise SystemExit(f"inverter: --cycles must cover at least two samples, got {args.cycles:g}")
     args.out.mkdir(parents=True, exist_ok=True)
     result = closed_loop(args.horizon, args.solver, steps, args.lambda_u, params, args.model,
                          progress=not args.no_progress, bound=args.bound)

@@ -12,14 +12,17 @@ writes ``profile.json`` (the rows and the machine) and ``profile.png``
 """
 from __future__ import annotations
 
-import importlib
 import json
-import os
 import platform
-import sys
 from pathlib import Path
 
 from ._args import number, output_dir
+from ._user_code import import_user_module, user_code
+
+
+MAX_LANES = 4096  # slots of one solve_batch: each holds a stack of sDFS nodes
+MAX_REPEATS = 100
+MAX_EXHAUSTIVE_NODES = 1_000_000_000  # once per repeat: minutes at the rates of docs/batch.md
 
 
 def register(subparsers) -> None:
@@ -36,37 +39,34 @@ def register(subparsers) -> None:
                    help="output folder (default out/profile), checked before any work")
     p.add_argument("--pop-widths", type=number(int, 1, 64), nargs="+", metavar="K", default=[1, 2, 4, 8],
                    help="fj.sdfs pop widths (default 1 2 4 8)")
-    p.add_argument("--lanes", type=number(int, 1), nargs="+", metavar="L", default=[16, 64, 256],
-                   help="fj.solve_batch lane counts (default 16 64 256)")
-    p.add_argument("--repeats", type=number(int, 1), default=3, help="timed calls per setting, median (default 3)")
-    p.add_argument("--max-exhaustive-nodes", type=number(int, 1), default=10_000_000,
-                   help="fj.exhaustive runs on evenly spaced states visiting at most this many nodes in all "
-                        "(default 1e7)")
+    p.add_argument("--lanes", type=number(int, 1, MAX_LANES), nargs="+", metavar="L", default=[16, 64, 256],
+                   help=f"fj.solve_batch lane counts (default 16 64 256, each at most {MAX_LANES})")
+    p.add_argument("--repeats", type=number(int, 1, MAX_REPEATS), default=3,
+                   help=f"timed calls per setting, median (default 3, at most {MAX_REPEATS})")
+    p.add_argument("--max-exhaustive-nodes", type=number(int, 1, MAX_EXHAUSTIVE_NODES), default=10_000_000,
+                   help=f"fj.exhaustive runs on evenly spaced states visiting at most this many nodes in all "
+                        f"(default 10000000, at most {MAX_EXHAUSTIVE_NODES})")
     p.add_argument("--float32", action="store_true", help="float32 (default float64)")
+    p.add_argument("--debug", action="store_true",
+                   help="let an error in MODULE through with its traceback (default: one line)")
     p.set_defaults(func=run)
 
 
-def load_case(spec: str):
+def load_case(spec: str, debug: bool = False):
     """``(problem, states, params)`` from ``MODULE:FUNCTION``; ``SystemExit``
-    with a message (no traceback) when it cannot be had."""
+    with a one-line message when it cannot be had (``debug``: the user's
+    module's own exception and traceback)."""
     import firhc_jax as fj
 
     module, sep, name = spec.partition(":")
     if not sep or not module or not name:
         raise SystemExit(f"profile: expected MODULE:FUNCTION (e.g. mymodels:profile_case), got {spec!r}")
-    if os.getcwd() not in sys.path:  # as `python -m` does: modules in the working directory are found
-        sys.path.insert(0, os.getcwd())
-    try:
-        mod = importlib.import_module(module)
-    except ImportError as e:
-        raise SystemExit(f"profile: cannot import module {module!r}: {e}") from None
+    mod = import_user_module(module, f"profile: cannot import module {module!r}:", debug)
     func = getattr(mod, name, None)
     if not callable(func):
         raise SystemExit(f"profile: module {module!r} has no function {name!r}")
-    try:
+    with user_code(f"profile: {spec}() raised", debug):
         case = func()
-    except Exception as e:  # the user's code: its error, in one line
-        raise SystemExit(f"profile: {spec}() raised {type(e).__name__}: {e}") from None
     if not isinstance(case, tuple) or len(case) not in (2, 3) or not isinstance(case[0], fj.Problem):
         got = type(case).__name__ if not isinstance(case, tuple) else f"a tuple of {len(case)}"
         raise SystemExit(f"profile: {spec}() must return (problem, states) or (problem, states, params) with "
@@ -109,7 +109,7 @@ def run(args) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", not args.float32)
-    problem, states, params = load_case(args.case)
+    problem, states, params = load_case(args.case, args.debug)
     args.out.mkdir(parents=True, exist_ok=True)  # writable: checked by output_dir when the arguments were parsed
     from ..profile import profile
     from ..sharding import usable_cores

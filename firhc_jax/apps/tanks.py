@@ -15,6 +15,7 @@ The plant is the prediction model itself (no model error), as in the paper.
 """
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
@@ -26,10 +27,14 @@ import firhc_jax as fj
 from firhc_jax.models import tanks as model
 
 from ._args import number, output_dir
+from ._limits import exhaustive_run
 from ._status import stage
 from ._timing import timed_closed_loop
 
 MAX_HORIZON = 10  # 17^10 sequences: beyond this even sDFS's worst steps become impractical
+MAX_SECONDS = 3600.0  # 1,800 decisions, 18 times the paper's run
+# Exhaustive search costs about 0.47 us a node here (N = 5: 715 ms for 1,508,597 nodes, shared 2-core CPU).
+EXHAUSTIVE_BUDGET = 5e8
 
 
 def simulate(problem: fj.Problem, solver: str = "sdfs", steps: int = 100, levels=model.INITIAL_LEVELS,
@@ -154,8 +159,9 @@ def register(subparsers) -> None:
     p.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs",
                    help="search (default sdfs); exhaustive visits 17+...+17^N nodes per step")
     p.add_argument("--out", type=output_dir, default="out/tanks", help="output folder (default out/tanks)")
-    p.add_argument("--seconds", type=number(float, 0, low_open=True), default=200.0,
-                   help="simulated time in s, rounded down to whole 2 s samples (default 200)")
+    p.add_argument("--seconds", type=number(float, 0, low_open=True, high=MAX_SECONDS), default=200.0,
+                   help=f"simulated time in s, rounded down to whole 2 s samples (default 200, at most "
+                        f"{MAX_SECONDS:g})")
     p.add_argument("--switch-penalty", type=number(float, 0), default=0.0,
                    help="cost per actuator toggle, in mm^2 of level error (default 0)")
     p.add_argument("--terminal-tol", type=number(float, 0, low_open=True), default=None,
@@ -165,7 +171,18 @@ def register(subparsers) -> None:
     p.add_argument("--tolerance", type=number(float, 0, low_open=True), default=0.005,
                    help="settling band half-width in m (default 0.005)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, check=functools.partial(_check, p))
+
+
+def _check(parser, args) -> None:
+    """At least one sample; a run's exhaustive searches within ``EXHAUSTIVE_BUDGET`` nodes."""
+    ts = model.TankParams().ts
+    steps = int(args.seconds // ts)
+    if steps < 1:
+        parser.error(f"--seconds must be at least one sample ({ts:g} s), got {args.seconds:g}")
+    if args.solver == "exhaustive":
+        exhaustive_run(parser, steps, model.NUM_MODES, args.horizon, EXHAUSTIVE_BUDGET,
+                       "about 4 minutes at 0.47 us a node", "lower --horizon or --seconds, or use --solver sdfs")
 
 
 def run(args) -> int:
@@ -173,8 +190,6 @@ def run(args) -> int:
     jax.config.update("jax_enable_x64", True)
     params = model.TankParams()
     steps = int(args.seconds // params.ts)
-    if steps < 1:
-        raise SystemExit(f"tanks: --seconds must be at least one sample ({params.ts:g} s), got {args.seconds:g}")
     args.out.mkdir(parents=True, exist_ok=True)
     problem = model.make_problem(args.horizon, params, switch_penalty=args.switch_penalty,
                                  terminal_tol=args.terminal_tol, bound=args.bound)
