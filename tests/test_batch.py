@@ -266,6 +266,7 @@ def test_error_flags_reach_the_caller():
     assert np.all(r.nan_encountered) and not np.any(r.negative_cost)
 
 
+@pytest.mark.slow
 def test_docs_example_runs():
     """docs/batch.md's example runs as written and its results are exact."""
     text = (Path(__file__).parent.parent / "docs" / "batch.md").read_text()
@@ -356,6 +357,7 @@ def dispatches(monkeypatch) -> list:
     return seen
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(usable_cores() < 2, reason="needs a process that may use at least 2 cores")
 def test_a_default_solve_keeps_every_core_busy(monkeypatch):
     """On one CPU device, a default solve dispatches one part per usable core without waiting between them,

@@ -44,6 +44,7 @@ def _bounded_case(count: int) -> bench.Case:
     return bench._case("toy", problem, np.linspace(1.0, 3.0, count)[:, None])
 
 
+@pytest.mark.slow
 def test_table_row_of_a_bounded_problem_times_full_exhaustive_searches():
     """The bound prunes sDFS only: both exhaustive searches visit all A nodes of every state (table_row asserts
     it, as in ``bench tables --bound``; exhaustive(method="dfs") once let a +inf bound prune)."""

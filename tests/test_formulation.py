@@ -312,6 +312,7 @@ def test_fallback_keeps_constraints_and_terminal_cost():
     assert bool(info.used_fallback) and reference.same_cost(info.result.cost, brute_force(relaxed, x0))
 
 
+@pytest.mark.slow
 def test_the_documented_plants_run():
     """docs/formulation.md's three plants, as written there (each block in its own namespace)."""
     import pathlib

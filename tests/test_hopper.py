@@ -133,6 +133,7 @@ def sdfs_loop():
     return loop, X
 
 
+@pytest.mark.slow
 def test_closed_loop_sdfs_equals_exhaustive_and_hops(sdfs_loop):
     runs = {"sdfs": sdfs_loop, "exhaustive": app.simulate(0.6, 4, "exhaustive", progress=False)[:2]}
     np.testing.assert_array_equal(runs["sdfs"][1], runs["exhaustive"][1])
@@ -161,6 +162,7 @@ BEFORE_PORT = dict(t_air_mean=0.19578668873782212, t2_mean=0.15775, t_hop_mean=N
                    stroke_min=-0.06392767607206921, stroke_max=0.03224553884092181, E_d=9.335522342489929)
 
 
+@pytest.mark.slow
 def test_cli_runs_the_timed_loop_of_the_compiled_one_and_writes_its_results(sdfs_loop, tmp_path, monkeypatch):
     """The CLI's timed closed loop (a Python loop of the compiled step) is the compiled scan's, bit for bit; every
     decision is timed; compile_time_s covers XLA's compilation of the decision, done before the timed loop; the
@@ -209,6 +211,7 @@ def test_cli_rejects_bad_input(argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_bound_is_admissible_and_keeps_the_closed_loop(sdfs_loop):
     """The bound passes the exhaustive check on contact states, an inflated one is caught, and sDFS with it,
     warm-started from two candidates, drives the same closed loop with fewer nodes. The contact bound's

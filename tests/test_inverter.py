@@ -124,6 +124,7 @@ BEFORE_PORT = {"rms_tracking_error": 0.3808262952794588, "current_amplitude": 10
                "predicted_cost_mean": 1.4220101336570423, "steps": 200}
 
 
+@pytest.mark.slow
 def test_cli_writes_the_summary_recorded_before_the_port_and_its_files(tmp_path):
     argv = ["inverter", "--horizon", "2", "--cycles", "0.25", "--out", str(tmp_path), "--no-progress"]
     with compile_events() as seen:
@@ -159,6 +160,7 @@ def test_cli_rejects_run_shorter_than_two_samples(tmp_path, capsys):
     assert e.value.code == 2 and "at least two samples" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_bound_is_admissible_and_keeps_the_closed_loop():
     """The reachable-hexagon bound passes the exhaustive check on closed-loop states away from the reference,
     10x it is caught, and the bounded closed loop is the unbounded one."""

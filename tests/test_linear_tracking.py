@@ -426,6 +426,7 @@ def test_thermal_model_steady_state_and_calm_states():
     assert set(map(tuple, U)) <= set(map(tuple, thermal.HEATERS))
 
 
+@pytest.mark.slow
 def test_readme_long_horizon_snippet_runs():
     """The README's "Long horizons for linear plants" block, after the API tour's imports, as written."""
     import re

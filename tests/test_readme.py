@@ -25,6 +25,7 @@ def after():
     return snapshots
 
 
+@pytest.mark.slow
 def test_every_python_block_runs(after):
     assert len(after) == len(_blocks()) >= 4
 

@@ -120,7 +120,7 @@ def test_switch_penalty_counts_toggled_actuators():
     assert float(problem.stage_cost(x1, u)) == pytest.approx(float(plain) + 8.0)
 
 
-@pytest.mark.parametrize("horizon, steps", [(3, STEPS), (4, 12)])  # 12 steps, 24 s: the transient into the band
+@pytest.mark.parametrize("horizon, steps", [(3, STEPS), pytest.param(4, 12, marks=pytest.mark.slow)])  # 12 steps, 24 s: the transient into the band
 def test_sdfs_and_exhaustive_closed_loops_are_identical(problems, sdfs_n3, horizon, steps):
     sdfs = sdfs_n3[0] if horizon == 3 else app.simulate(problems[horizon], "sdfs", steps)[0]
     runs = {"sdfs": sdfs, "exhaustive": app.simulate(problems[horizon], "exhaustive", steps)[0]}
@@ -151,6 +151,7 @@ BEFORE_PORT = {"final_levels": [0.3018917870083893, 0.2487039973569028, 0.150183
                "modes": [9, 9, 12, 12, 16, 16, 12, 16, 16, 12, 16, 11] + [0] * 18}
 
 
+@pytest.mark.slow
 def test_cli_runs_the_timed_loop_of_the_compiled_one_and_writes_its_results(sdfs_n3, tmp_path, monkeypatch):
     """The CLI's timed closed loop (a Python loop of the compiled step) is the compiled scan's, bit for bit; every
     decision is timed; compile_time_s is the decision's tracing and compilation (at least XLA's compile of it),
@@ -220,6 +221,7 @@ def test_cli_rejects_run_shorter_than_a_sample(tmp_path, capsys):
     assert e.value.code == 2 and "at least one sample" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_bound_is_admissible_and_keeps_the_closed_loop(sdfs_n3):
     """The level-rate bound passes the exhaustive check, 10x it is caught, and the bounded closed loop (with and
     without a terminal box) is the unbounded one."""
