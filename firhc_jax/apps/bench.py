@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._args import number, output_dir
+from ._status import stage
 
 # The paper's figures: Point A, Point B max and min (Table 2) or max and mean (Table 3), Point C (sDFS time /
 # ES time, %).
@@ -160,13 +161,13 @@ def table_row(case: Case, repeats: int, max_es_nodes: float, pop_widths=POP_WIDT
     fns = variants(case, pop_widths)
     every = np.arange(len(case.states))
     some = subset(case, max_es_nodes)
-    full = {name: time_search(fn, case, every, repeats)
+    full = {name: _announced(name, fn, case, every, repeats)
             for name, fn in fns.items() if not name.startswith("exhaustive")}
     tree = case.problem.tree_size()
     sd = full["sdfs"]
     S, s = len(every), len(some)
     if s:
-        part = {name: time_search(fns[name], case, some, repeats)
+        part = {name: _announced(name, fns[name], case, some, repeats)
                 for name in ("sdfs", "exhaustive dfs", "exhaustive levels")}
         assert np.all(part["exhaustive levels"].nodes == tree) and np.all(part["exhaustive dfs"].nodes == tree)
         es = {"C_dfs_pct": 100 * part["sdfs"].seconds / part["exhaustive dfs"].seconds,
@@ -187,6 +188,12 @@ def table_row(case: Case, repeats: int, max_es_nodes: float, pop_widths=POP_WIDT
         "best_pop_width": best_k, "best_pop_width_ms": 1e3 * widths[best_k] / S,
         "compile_s": {name: round(t.compile_s, 3) for name, t in {**full, **part}.items()},
     }
+
+
+def _announced(name: str, fn, case: Case, rows: np.ndarray, repeats: int) -> Timing:
+    """``time_search``, saying on stderr which search it compiles and times."""
+    with stage(f"{case.plant} N = {case.horizon}: {name} (compiling, then {repeats} x {len(rows)} searches)"):
+        return time_search(fn, case, rows, repeats)
 
 
 def tables_markdown(rows: list[dict], bound: bool = False) -> str:
@@ -249,19 +256,22 @@ def machine() -> str:
 def run_tables(args) -> int:
     from ..progress import Progress
 
-    plants = [p for p in ("hopper", "tanks") if p in args.plants]
+    # --quick: Table 3 at its first horizon only (about 6 compilations), unless --plants says otherwise.
+    asked = args.plants or (["tanks"] if args.quick else ["hopper", "tanks"])
+    plants = [p for p in ("hopper", "tanks") if p in asked]
     chosen = {"hopper": args.hopper_horizons, "tanks": args.tanks_horizons}
     todo = [(p, n) for p in plants
             for n in (chosen[p] or (HORIZONS[p][:1] if args.quick else HORIZONS[p]))]
-    widths = tuple(args.pop_widths) if args.pop_widths else (POP_WIDTHS[:2] if args.quick else POP_WIDTHS)
+    widths = tuple(args.pop_widths) if args.pop_widths else (POP_WIDTHS[:1] if args.quick else POP_WIDTHS)
     if widths[0] != 1 or len(set(widths)) != len(widths):
         raise SystemExit(f"bench tables: --pop-widths must start with 1 (the paper's sDFS) and not repeat, "
                          f"got {widths}")
     rows = []
     with Progress(len(todo), "tables") as bar:
         for i, (plant, n) in enumerate(todo):
-            case = (hopper_case(n, 0.5 if args.quick else 2.0, args.bound) if plant == "hopper"
-                    else tanks_case(n, 20.0 if args.quick else 200.0, args.bound))
+            with stage(f"{plant} N = {n}: the closed loop that gives the states searched"):
+                case = (hopper_case(n, 0.5 if args.quick else 2.0, args.bound) if plant == "hopper"
+                        else tanks_case(n, 20.0 if args.quick else 200.0, args.bound))
             rows.append(table_row(case, 1 if args.quick else args.repeats, args.max_es_nodes, widths))
             bar.update(i + 1)
     text = f"Measured on {machine()}, float64, {time.strftime('%Y-%m-%d')}.\n\n" + tables_markdown(rows, args.bound)
@@ -274,17 +284,17 @@ def run_tables(args) -> int:
 # Throughput profile
 # ---------------------------------------------------------------------------
 
-def profile_case(case: Case, repeats: int, batches, max_es_nodes: float) -> list[dict]:
+def profile_case(case: Case, repeats: int, batches, max_es_nodes: float, pop_widths=POP_WIDTHS) -> list[dict]:
     """Nodes/s and us/iteration per search, and batched (vmap) solves/s and nodes/s
     (the batched exhaustive search only for batches within ``max_es_nodes`` nodes)."""
     import firhc_jax as fj
 
-    fns = variants(case)
+    fns = variants(case, pop_widths)
     rows_idx = np.arange(len(case.states))
     out = []
-    names = ["sdfs" if k == 1 else f"sdfs K={k}" for k in POP_WIDTHS] + ["exhaustive dfs", "exhaustive levels"]
+    names = ["sdfs" if k == 1 else f"sdfs K={k}" for k in pop_widths] + ["exhaustive dfs", "exhaustive levels"]
     for name in names:
-        t = time_search(fns[name], case, rows_idx, repeats)
+        t = _announced(name, fns[name], case, rows_idx, repeats)
         out.append({"plant": case.plant, "N": case.horizon, "search": name, "batch": 1,
                     "pop_width": int(name.split("=")[1]) if "K=" in name else (1 if name == "sdfs" else None),
                     "nodes_per_s": t.nodes.sum() / t.seconds, "solves_per_s": len(rows_idx) / t.seconds,
@@ -296,7 +306,8 @@ def profile_case(case: Case, repeats: int, batches, max_es_nodes: float) -> list
             if name != "sdfs" and b * p.tree_size() > max_es_nodes:
                 continue
             X = jnp.asarray(case.states[np.arange(b) % len(case.states)])
-            jax.block_until_ready(batched(X))
+            with stage(f"{case.plant} N = {case.horizon}: jax.vmap of {name} over {b} states (compiling)"):
+                jax.block_until_ready(batched(X))
             times = []
             for _ in range(repeats):
                 t0 = time.perf_counter()
@@ -314,10 +325,10 @@ def horizon_sweep(make: Callable[[int], Case], horizons, repeats: int, max_es_no
     out = []
     for n in horizons:
         case = make(n)
-        fns = variants(case)
+        fns = variants(case, POP_WIDTHS[:1])
         rows = subset(case, max_es_nodes)
         for name in ("sdfs", "exhaustive dfs", "exhaustive levels"):
-            t = time_search(fns[name], case, rows, repeats)
+            t = _announced(name, fns[name], case, rows, repeats)
             out.append({"plant": case.plant, "N": n, "search": name, "ms_per_step": 1e3 * t.seconds / len(rows)})
     return out
 
@@ -365,17 +376,17 @@ def run_throughput(args) -> int:
     if args.quick:
         cases = [lambda: synthetic_case(3, count=4)]
         sweep_plan = [(lambda n: synthetic_case(n, count=2), (2, 3))]
-        batches = (1, 8)
+        batches, widths = (1, 8), POP_WIDTHS[:2]
     else:
         cases = [lambda: hopper_case(6), lambda: tanks_case(4, 40.0), lambda: synthetic_case(5),
                  lambda: synthetic_case(5, work=50)]
         sweep_plan = [(lambda n: hopper_case(n, 0.5), (4, 5, 6, 7, 8)), (lambda n: tanks_case(n, 40.0), (3, 4, 5)),
                       (lambda n: synthetic_case(n), (3, 4, 5))]
-        batches = BATCHES
+        batches, widths = BATCHES, POP_WIDTHS
     profile, sweep = [], []
     with Progress(len(cases) + len(sweep_plan), "throughput") as bar:
         for i, make in enumerate(cases):
-            profile += profile_case(make(), repeats, batches, args.max_es_nodes)
+            profile += profile_case(make(), repeats, batches, args.max_es_nodes, widths)
             bar.update(i + 1)
         for j, (make, horizons) in enumerate(sweep_plan):
             sweep += horizon_sweep(make, horizons, repeats, args.max_es_nodes)
@@ -414,7 +425,7 @@ def register(subparsers) -> None:
     for name, func, help_ in (("tables", run_tables, "Tables 2 (hopper) and 3 (tanks), paper figures beside ours"),
                               ("throughput", run_throughput, "nodes/s by pop_width and batch size; time vs horizon")):
         q = sub.add_parser(name, help=help_, description=help_)
-        q.add_argument("--quick", action="store_true", help="a smoke run in seconds (short runs, few cases)")
+        q.add_argument("--quick", action="store_true", help="a smoke run: short runs, few cases")
         q.add_argument("--out", type=output_dir, default=f"out/bench-{name}", help="output folder")
         q.add_argument("--repeats", type=number(int, 1, MAX_REPEATS), default=3,
                        help=f"timing repeats, median taken (default 3, at most {MAX_REPEATS})")
@@ -422,14 +433,14 @@ def register(subparsers) -> None:
                        help=f"exhaustive searches are timed on evenly spaced steps visiting at most this many "
                             f"nodes in all (default 3e7; 0: none; at most {MAX_ES_NODES:g})")
         if name == "tables":
-            q.add_argument("--plants", nargs="+", choices=("hopper", "tanks"), default=["hopper", "tanks"],
-                           help="which tables: hopper (Table 2), tanks (Table 3); default both")
+            q.add_argument("--plants", nargs="+", choices=("hopper", "tanks"), default=None,
+                           help="which tables: hopper (Table 2), tanks (Table 3); default both (--quick: tanks)")
             q.add_argument("--hopper-horizons", type=number(int, 1, 12), nargs="+", metavar="N",
                            help="hopper horizons (default 5 6 7 8; --quick: the first)")
             q.add_argument("--tanks-horizons", type=number(int, 1, 8), nargs="+", metavar="N",
                            help="tanks horizons (default 3 4 5 6; --quick: the first)")
             q.add_argument("--pop-widths", type=number(int, 1, 64), nargs="+", metavar="K",
-                           help="sDFS pop widths timed, the first must be 1 (default 1 2 4 8 16; --quick: 1 2)")
+                           help="sDFS pop widths timed, the first must be 1 (default 1 2 4 8 16; --quick: 1)")
             q.add_argument("--bound", action="store_true",
                            help="sDFS variants with the applications' lower bounds (docs/bounds.md); the "
                                 "exhaustive searches are unchanged")
