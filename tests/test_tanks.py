@@ -120,7 +120,8 @@ def test_switch_penalty_counts_toggled_actuators():
     assert float(problem.stage_cost(x1, u)) == pytest.approx(float(plain) + 8.0)
 
 
-@pytest.mark.parametrize("horizon, steps", [(3, STEPS), pytest.param(4, 12, marks=pytest.mark.slow)])  # 12 steps, 24 s: the transient into the band
+# N = 4: 12 steps, 24 s, the transient into the band
+@pytest.mark.parametrize("horizon, steps", [(3, STEPS), pytest.param(4, 12, marks=pytest.mark.slow)])
 def test_sdfs_and_exhaustive_closed_loops_are_identical(problems, sdfs_n3, horizon, steps):
     sdfs = sdfs_n3[0] if horizon == 3 else app.simulate(problems[horizon], "sdfs", steps)[0]
     runs = {"sdfs": sdfs, "exhaustive": app.simulate(problems[horizon], "exhaustive", steps)[0]}
