@@ -25,6 +25,20 @@ def test_throughput_quick_writes_tables_csv_and_plots(tmp_path):
     assert {r["N"] for r in sweep} == {2, 3} and all(r["ms_per_step"] > 0 for r in sweep)
     for name in ("throughput.md", "throughput.csv", "throughput.png", "time_vs_horizon.png"):
         assert (out / name).stat().st_size > 0
+    assert "synthetic(work=0) N = 3: sdfs K=2 (compiling, then 1 x 4 searches): done in" in proc.stderr
+
+
+@pytest.mark.slow
+def test_tables_quick_is_table_3_at_one_horizon_with_every_stage_announced(tmp_path):
+    out = tmp_path / "tables"
+    proc = subprocess.run([sys.executable, "-m", "firhc_jax", "bench", "tables", "--quick", "--out", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = json.loads((out / "tables.json").read_text())
+    assert [(r["plant"], r["N"], r["best_pop_width"]) for r in rows] == [("tanks", 3, 1)]
+    for stage in ("tanks N = 3: the closed loop that gives the states searched",
+                  "tanks N = 3: sdfs warm (compiling", "tanks N = 3: exhaustive levels (compiling"):
+        assert stage in proc.stderr, proc.stderr[-2000:]
 
 
 def test_exhaustive_subset_respects_the_node_budget():

@@ -153,7 +153,7 @@ BEFORE_PORT = {"final_levels": [0.3018917870083893, 0.2487039973569028, 0.150183
 
 
 @pytest.mark.slow
-def test_cli_runs_the_timed_loop_of_the_compiled_one_and_writes_its_results(sdfs_n3, tmp_path, monkeypatch):
+def test_cli_runs_the_timed_loop_of_the_compiled_one_and_writes_its_results(sdfs_n3, tmp_path, monkeypatch, capsys):
     """The CLI's timed closed loop (a Python loop of the compiled step) is the compiled scan's, bit for bit; every
     decision is timed; compile_time_s is the decision's tracing and compilation (at least XLA's compile of it),
     done before the timed loop, which compiles no decision; the summary is the one recorded before the port."""
@@ -171,6 +171,9 @@ def test_cli_runs_the_timed_loop_of_the_compiled_one_and_writes_its_results(sdfs
     monkeypatch.setattr(fj.FIRHC, "simulate", recorded)
     with compilations() as seen:
         assert cli.main(["tanks", "--horizon", "3", "--seconds", "60", "--out", str(tmp_path), "--no-progress"]) == 0
+    said = capsys.readouterr().err  # every stage of the run is announced, then timed
+    for stage in ("compiling the decision", "writing summary.json, closed_loop.npz and tanks_N3_sdfs.png"):
+        assert f"{stage} ..." in said and f"{stage}: done in" in said, said
     decision = max((c for c in seen if c not in in_loop), key=lambda c: c[1])  # (name, s) the longest before
     assert decision[0] not in {name for name, _ in in_loop}
     summary = json.loads((tmp_path / "summary.json").read_text())
