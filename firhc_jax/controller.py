@@ -48,7 +48,7 @@ from .checks import as_state, check_params, check_state, params_spec
 from .closed_loop import ClosedLoop
 from .exhaustive import exhaustive
 from .problem import Problem, call, input_dtype, is_tracer, positive_int
-from .progress import Progress, due, tick, tick_python
+from .progress import Progress, due, interval, tick_python
 from .result import SearchResult, raise_on_errors
 from .sdfs import sdfs
 
@@ -444,9 +444,7 @@ class FIRHC:
                                         _spec(x0), pspec, default_plant))
         with Progress(steps, f"FIRHC[{self.solver}]", enabled=progress):
             if compiled:
-                key = ("closed loop", self._key, plant_key, steps, progress)
-                run = cached(key, lambda: jax.jit(lambda s, x, p: self._scan(plant, s, x, p, steps, progress)))
-                out = run(state, x0, params)
+                out = self._compiled_loop(plant, plant_key, state, x0, params, steps, progress)
             else:
                 out = self._python_loop(plant, state, x0, params, steps, progress)
         if not is_tracer(out.held):
@@ -484,20 +482,45 @@ class FIRHC:
                             + ("; the default plant is the model's dynamics: with observe set, pass plant="
                                if default_plant and self.observe is not None else ""))
 
-    def _scan(self, plant, state, x0, params, steps, progress):
-        def body(carry, inp):
+    def _compiled_loop(self, plant, plant_key, state, x0, params, steps, progress):
+        """The closed loop as compiled scans: one of ``steps`` steps, or with ``progress`` the same compiled
+        chunk of ``interval(steps)`` steps dispatched again and again, the carry passed on and the bar moved
+        between chunks (a host callback inside the scan costs more than cheap steps; docs/xla_notes.md).
+        The last chunk's steps past ``steps`` repeat the last parameter row and are dropped."""
+        length = interval(steps) if progress else steps
+        key = ("closed loop", self._key, plant_key, steps, length)
+        run = cached(key, lambda: jax.jit(lambda c, p, start: self._scan(plant, c, p, start, length, steps)))
+        carry, chunks, ends = (state, x0), [], []
+        for start in range(0, steps, length):  # all dispatched at once, so that the device never waits for the bar
+            carry, rec = run(carry, params, np.int32(start))
+            chunks.append(rec)
+            ends.append((min(start + length, steps) - 1, carry[1]))
+        if progress and not is_tracer(carry[1]):
+            for step, x in ends:  # the bar follows the chunks as they finish
+                jax.block_until_ready(x)
+                tick_python(step)
+        if len(chunks) > 1:  # joined on the host: an eager jnp.concatenate costs more than the chunks' dispatch
+            chunks = [jax.tree.map(lambda *a: jnp.asarray(np.concatenate(a)[:steps]), *chunks)]
+        rec = chunks[0]
+        return rec._replace(states=jnp.concatenate([jnp.asarray(x0)[None], rec.states]),
+                            solve_times=jnp.full((steps,), jnp.nan))
+
+    def _scan(self, plant, carry, params, start, length, steps):
+        """Steps ``start`` .. ``start + length - 1`` of the closed loop: ``(carry, ClosedLoop)`` whose
+        ``states`` are the states after each step (only what a ``ClosedLoop`` keeps is stacked: each
+        stacked output costs time per step)."""
+        def body(carry, i):
             # Barriers keep the step and the plant apart, as in a user's loop of the compiled step and a
             # jitted plant: XLA fuses (and rounds) each the same way there and here.
             state, x = jax.lax.optimization_barrier(carry)
-            k, p = inp
+            k = jnp.minimum(start + i, steps - 1)
+            p = None if params is None else jax.tree.map(lambda a: a[k], params)
             u, state, info = self._checked_step(state, x, p)
             x_next = call(plant, p, *jax.lax.optimization_barrier((x, u)))
-            if progress:
-                tick(k, steps)
             return (state, x_next), (x_next, u, info)
 
-        _, rec = jax.lax.scan(body, (state, x0), (jnp.arange(steps), params))
-        return _closed_loop(x0, *rec, jnp.full((steps,), jnp.nan))
+        carry, (xs, us, info) = jax.lax.scan(body, carry, jnp.arange(length, dtype=jnp.int32))
+        return carry, _closed_loop(xs, us, info, None)
 
     def _python_loop(self, plant, state, x0, params, steps, progress):
         x = x0
@@ -517,13 +540,16 @@ class FIRHC:
             records.append((x, u, info))
             if progress and due(k, steps):
                 tick_python(k)
-        stacked = jax.tree.map(lambda *a: jnp.stack(a), *records)
-        return _closed_loop(x0, *stacked, jnp.asarray(times))
+        # Stacked on the host, one device array per field: an eager jnp.stack of T arrays compiles a
+        # T-operand concatenation per field on a run's first call.
+        stacked = jax.tree.map(lambda *a: jnp.asarray(np.stack(a)), *records)
+        loop = _closed_loop(*stacked, jnp.asarray(times))
+        return loop._replace(states=jnp.concatenate([jnp.asarray(x0)[None], loop.states]))
 
 
-def _closed_loop(x0, xs, us, info: StepInfo, times) -> ClosedLoop:
-    return ClosedLoop(states=jnp.concatenate([jnp.asarray(x0)[None], xs]), inputs=us,
-                      input_indices=info.result.sequence[:, 0], stage_costs=info.stage_cost,
+def _closed_loop(xs, us, info: StepInfo, times) -> ClosedLoop:
+    """The ``ClosedLoop`` of stacked steps, ``states`` the states after each step (``x0`` not included)."""
+    return ClosedLoop(states=xs, inputs=us, input_indices=info.result.sequence[:, 0], stage_costs=info.stage_cost,
                       predicted_costs=info.result.cost, nodes=info.nodes, fallback_nodes=info.fallback_nodes,
                       feasible=info.feasible, used_fallback=info.used_fallback, complete=info.complete,
                       held=info.held, plans=info.result.sequence, solve_times=times)
