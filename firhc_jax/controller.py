@@ -537,7 +537,10 @@ class FIRHC:
                 raise TypeError(f"plant(x, u[, p]) must return the next plant state of shape {tuple(x.shape)} "
                                 f"like x0, got {type(x_next).__name__} of shape {np.shape(x_next)} at step {k}")
             x = x_next if _ready(x_next) and x_next.dtype == x.dtype else np.asarray(x_next, x.dtype)
-            records.append((x, u, info))
+            # what a ClosedLoop keeps (each field is read back to the host once)
+            records.append((x, u, info._replace(result=info.result._replace(
+                first_input=None, nodes=None, feasible=None, iterations=None, negative_cost=None,
+                nan_encountered=None, overflow=None, complete=None))))
             if progress and due(k, steps):
                 tick_python(k)
         # Stacked on the host, one device array per field: an eager jnp.stack of T arrays compiles a
