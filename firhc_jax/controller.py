@@ -490,15 +490,15 @@ class FIRHC:
         length = interval(steps) if progress else steps
         key = ("closed loop", self._key, plant_key, steps, length)
         run = cached(key, lambda: jax.jit(lambda c, p, start: self._scan(plant, c, p, start, length, steps)))
-        carry, chunks, ends = (state, x0), [], []
-        for start in range(0, steps, length):  # all dispatched at once, so that the device never waits for the bar
+        carry, chunks, last = (state, x0), [], None
+        for start in range(0, steps, length):
             carry, rec = run(carry, params, np.int32(start))
             chunks.append(rec)
-            ends.append((min(start + length, steps) - 1, carry[1]))
-        if progress and not is_tracer(carry[1]):
-            for step, x in ends:  # the bar follows the chunks as they finish
-                jax.block_until_ready(x)
-                tick_python(step)
+            if last is not None:  # the chunk before this one is done (or nearly): move the bar
+                _report(*last)
+            last = min(start + length, steps) - 1, carry[1]
+        if progress:
+            _report(*last)
         if len(chunks) > 1:  # joined on the host: an eager jnp.concatenate costs more than the chunks' dispatch
             chunks = [jax.tree.map(lambda *a: jnp.asarray(np.concatenate(a)[:steps]), *chunks)]
         rec = chunks[0]
@@ -548,6 +548,13 @@ class FIRHC:
         stacked = jax.tree.map(lambda *a: jnp.asarray(np.stack(a)), *records)
         loop = _closed_loop(*stacked, jnp.asarray(times))
         return loop._replace(states=jnp.concatenate([jnp.asarray(x0)[None], loop.states]))
+
+
+def _report(step: int, x) -> None:
+    """Move the bar to ``step`` once the chunk that computed ``x`` is done."""
+    if not is_tracer(x):
+        jax.block_until_ready(x)
+    tick_python(step)
 
 
 def _closed_loop(xs, us, info: StepInfo, times) -> ClosedLoop:

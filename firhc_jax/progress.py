@@ -19,7 +19,7 @@ import sys
 from tqdm.auto import tqdm
 
 _active: list = []
-TICKS = 100  # most updates a run of any length sends to its bar
+TICKS = 25  # most updates a run of any length sends to its bar (each costs a compiled loop a dispatch)
 
 
 def interval(total: int) -> int:
