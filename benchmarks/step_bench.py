@@ -86,10 +86,13 @@ def step_times(N: int, T: int, rounds: int) -> dict:
             x = plant(x, u, rows[k])
         return times
 
-    def scan():
-        t0 = time.perf_counter()
-        jax.block_until_ready(ctrl.simulate(x0, T, plant, params=params, u0=u0).states)
-        return [(time.perf_counter() - t0) / T]
+    def scan():  # ten runs a round: one run is a few milliseconds
+        times = []
+        for _ in range(10):
+            t0 = time.perf_counter()
+            jax.block_until_ready(ctrl.simulate(x0, T, plant, params=params, u0=u0).states)
+            times.append((time.perf_counter() - t0) / T)
+        return times
 
     def loop():
         return list(np.asarray(ctrl.simulate(x0, T, plant, params=params, u0=u0, compiled=False).solve_times))
@@ -230,7 +233,7 @@ def main():
     if "loop" in args.sections:
         section_loop(args.loop_steps)
     if "progress" in args.sections:
-        section_progress(args.progress_steps, max(args.rounds, 5))
+        section_progress(args.progress_steps, max(3 * args.rounds, 9))
 
 
 if __name__ == "__main__":
