@@ -486,40 +486,46 @@ class FIRHC:
         """The closed loop as compiled scans: one of ``steps`` steps, or with ``progress`` the same compiled
         chunk of ``interval(steps)`` steps dispatched again and again, the carry passed on and the bar moved
         between chunks (a host callback inside the scan costs more than cheap steps; docs/xla_notes.md).
-        The last chunk's steps past ``steps`` repeat the last parameter row and are dropped."""
-        length = interval(steps) if progress else steps
-        key = ("closed loop", self._key, plant_key, steps, length)
-        run = cached(key, lambda: jax.jit(lambda c, p, start: self._scan(plant, c, p, start, length, steps)))
-        carry, chunks, last = (state, x0), [], None
+        The parameters of the last chunk's steps past ``steps`` repeat the last row; those steps are dropped."""
+        if not progress:
+            key = ("closed loop", self._key, plant_key, steps)
+            run = cached(key, lambda: jax.jit(lambda s, x, p: _with_x0(
+                x, self._scan(plant, (s, x), p, 0, steps)[1], jnp.full((steps,), jnp.nan))))
+            return run(state, x0, params)
+        length = interval(steps)
+        chunks = -(-steps // length)
+        if params is not None and chunks * length > steps:
+            pad = chunks * length - steps
+            params = jax.tree.map(lambda a: np.concatenate([a, np.repeat(np.asarray(a)[-1:], pad, 0)]), params)
+        key = ("closed loop chunk", self._key, plant_key, length)
+        run = cached(key, lambda: jax.jit(lambda c, p, start: self._scan(plant, c, p, start, length)))
+        carry, recs, last = (state, x0), [], None
         for start in range(0, steps, length):
             carry, rec = run(carry, params, np.int32(start))
-            chunks.append(rec)
+            recs.append(rec)
             if last is not None:  # the chunk before this one is done (or nearly): move the bar
                 _report(*last)
             last = min(start + length, steps) - 1, carry[1]
-        if progress:
-            _report(*last)
-        if len(chunks) > 1:  # joined on the host: an eager jnp.concatenate costs more than the chunks' dispatch
-            chunks = [jax.tree.map(lambda *a: jnp.asarray(np.concatenate(a)[:steps]), *chunks)]
-        rec = chunks[0]
-        return rec._replace(states=jnp.concatenate([jnp.asarray(x0)[None], rec.states]),
-                            solve_times=jnp.full((steps,), jnp.nan))
+        _report(*last)
+        # joined on the host: an eager jnp.concatenate of many arrays costs more than the chunks' dispatch
+        rec = jax.tree.map(lambda *a: jnp.asarray(np.concatenate(a)[:steps]), *recs)
+        return _with_x0(x0, rec, jnp.full((steps,), jnp.nan))
 
-    def _scan(self, plant, carry, params, start, length, steps):
-        """Steps ``start`` .. ``start + length - 1`` of the closed loop: ``(carry, ClosedLoop)`` whose
-        ``states`` are the states after each step (only what a ``ClosedLoop`` keeps is stacked: each
-        stacked output costs time per step)."""
-        def body(carry, i):
+    def _scan(self, plant, carry, params, start, length):
+        """Steps ``start`` .. ``start + length - 1`` of the closed loop (parameter rows ``start`` ..):
+        ``(carry, ClosedLoop)`` whose ``states`` are the states after each step (only what a ``ClosedLoop``
+        keeps is stacked: each stacked output costs time per step)."""
+        def body(carry, p):
             # Barriers keep the step and the plant apart, as in a user's loop of the compiled step and a
             # jitted plant: XLA fuses (and rounds) each the same way there and here.
             state, x = jax.lax.optimization_barrier(carry)
-            k = jnp.minimum(start + i, steps - 1)
-            p = None if params is None else jax.tree.map(lambda a: a[k], params)
             u, state, info = self._checked_step(state, x, p)
             x_next = call(plant, p, *jax.lax.optimization_barrier((x, u)))
             return (state, x_next), (x_next, u, info)
 
-        carry, (xs, us, info) = jax.lax.scan(body, carry, jnp.arange(length, dtype=jnp.int32))
+        rows = None if params is None else jax.tree.map(lambda a: jax.lax.dynamic_slice_in_dim(a, start, length),
+                                                         params)
+        carry, (xs, us, info) = jax.lax.scan(body, carry, rows, length=length)
         return carry, _closed_loop(xs, us, info, None)
 
     def _python_loop(self, plant, state, x0, params, steps, progress):
@@ -546,8 +552,7 @@ class FIRHC:
         # Stacked on the host, one device array per field: an eager jnp.stack of T arrays compiles a
         # T-operand concatenation per field on a run's first call.
         stacked = jax.tree.map(lambda *a: jnp.asarray(np.stack(a)), *records)
-        loop = _closed_loop(*stacked, jnp.asarray(times))
-        return loop._replace(states=jnp.concatenate([jnp.asarray(x0)[None], loop.states]))
+        return _with_x0(x0, _closed_loop(*stacked, None), jnp.asarray(times))
 
 
 def _report(step: int, x) -> None:
@@ -555,6 +560,11 @@ def _report(step: int, x) -> None:
     if not is_tracer(x):
         jax.block_until_ready(x)
     tick_python(step)
+
+
+def _with_x0(x0, loop: ClosedLoop, times) -> ClosedLoop:
+    """``loop`` with ``x0`` before its states and these ``solve_times``."""
+    return loop._replace(states=jnp.concatenate([jnp.asarray(x0)[None], loop.states]), solve_times=times)
 
 
 def _closed_loop(xs, us, info: StepInfo, times) -> ClosedLoop:
