@@ -35,6 +35,7 @@ time-varying weights. New values of the same shapes never recompile.
 """
 from __future__ import annotations
 
+import functools
 import time
 import warnings
 from typing import Callable, NamedTuple, Optional
@@ -507,9 +508,7 @@ class FIRHC:
                 _report(*last)
             last = min(start + length, steps) - 1, carry[1]
         _report(*last)
-        # joined on the host: an eager jnp.concatenate of many arrays costs more than the chunks' dispatch
-        rec = jax.tree.map(lambda *a: jnp.asarray(np.concatenate(a)[:steps]), *recs)
-        return _with_x0(x0, rec, jnp.full((steps,), jnp.nan))
+        return _join(x0, recs, steps)
 
     def _scan(self, plant, carry, params, start, length):
         """Steps ``start`` .. ``start + length - 1`` of the closed loop (parameter rows ``start`` ..):
@@ -560,6 +559,14 @@ def _report(step: int, x) -> None:
     if not is_tracer(x):
         jax.block_until_ready(x)
     tick_python(step)
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _join(x0, chunks, steps: int) -> ClosedLoop:
+    """The run of ``steps`` steps from the ``ClosedLoop`` of each chunk (one compiled call: eager
+    concatenations of many arrays cost more than the chunks' own dispatch)."""
+    loop = jax.tree.map(lambda *a: jnp.concatenate(a)[:steps], *chunks)
+    return _with_x0(x0, loop, jnp.full((steps,), jnp.nan))
 
 
 def _with_x0(x0, loop: ClosedLoop, times) -> ClosedLoop:
