@@ -529,7 +529,8 @@ class FIRHC:
 
     def _python_loop(self, plant, state, x0, params, steps, progress):
         x = x0
-        rows = [None if params is None else jax.tree_util.tree_map(lambda a, k=k: a[k], params) for k in range(steps)]
+        host = None if params is None else jax.tree.map(np.asarray, params)  # rows as views: no dispatch each
+        rows = [None if host is None else jax.tree.map(lambda a, k=k: a[k, ...], host) for k in range(steps)]
         self.step(state, x, rows[0])  # compiles the step for these shapes, so that solve_times never count it
         decide = self._step_fn
         records, times = [], []
