@@ -127,7 +127,7 @@ def closed_loop(horizon: int, steps: int, lambda_u: float = 0.1):
     peer = SphereDecoder(A, B, lt.C, lt.Q, (-1.0, 0.0, 1.0), horizon, lambda_u, lt.max_step)
     refs = inverter.horizon_references(three_level.PARAMS, steps, horizon)
     x, u = inverter.reference(three_level.PARAMS, 0.0), np.zeros(3)
-    jax.block_until_ready(lt.solve(x, u, refs[0]))  # compile
+    jax.block_until_ready(lt.solve(x, u, refs[0], warm_start=np.full(horizon, -1, np.int32)))  # compile
     seq, plan = np.full(horizon, -1, np.int32), None
     ours, theirs = [], []
     for k in range(steps):
