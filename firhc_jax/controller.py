@@ -415,11 +415,15 @@ class FIRHC:
             the first decision finds none); default zeros.
           dt: the sampling period in seconds: the run gets ``times`` ``[T+1]``
             (``k * dt``) and plots against time.
-          progress: a progress bar (at most ``progress.TICKS`` updates).
+          progress: a progress bar (at most ``progress.TICKS`` updates; a
+            compiled run is then one compiled chunk of steps dispatched
+            again and again, with the same results to the last bit).
           compiled: ``True``: one ``lax.scan`` (everything traceable);
             ``False``: a Python loop over the compiled ``step``, for a plant
             that cannot be traced, and with each decision timed in
             ``solve_times`` (compiled before the loop, so never counted).
+            The plant is called as it is: jit it, or each of its
+            operations is one eager dispatch a step.
 
         Steps where no input was found hold the safe input (``held``); a
         ``RuntimeWarning`` follows such a run.
