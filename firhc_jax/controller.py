@@ -501,7 +501,7 @@ class FIRHC:
         chunks = -(-steps // length)
         if params is not None and chunks * length > steps:
             pad = chunks * length - steps
-            params = jax.tree.map(lambda a: np.concatenate([a, np.repeat(np.asarray(a)[-1:], pad, 0)]), params)
+            params = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, 0)]), params)
         key = ("closed loop chunk", self._key, plant_key, length)
         run = cached(key, lambda: jax.jit(lambda c, p, start: self._scan(plant, c, p, start, length)))
         carry, recs, last = (state, x0), [], None
