@@ -512,7 +512,8 @@ class FIRHC:
                 _report(*last)
             last = min(start + length, steps) - 1, carry[1]
         _report(*last)
-        return _join(x0, recs, steps)
+        join = cached(("closed loop join", steps, length), lambda: jax.jit(functools.partial(_join, steps=steps)))
+        return join(x0, recs)
 
     def _scan(self, plant, carry, params, start, length):
         """Steps ``start`` .. ``start + length - 1`` of the closed loop (parameter rows ``start`` ..):
@@ -566,7 +567,6 @@ def _report(step: int, x) -> None:
     tick_python(step)
 
 
-@functools.partial(jax.jit, static_argnums=2)
 def _join(x0, chunks, steps: int) -> ClosedLoop:
     """The run of ``steps`` steps from the ``ClosedLoop`` of each chunk (one compiled call: eager
     concatenations of many arrays cost more than the chunks' own dispatch)."""
