@@ -168,6 +168,8 @@ def compile_seconds():
 
 def section_loop(T: int):
     print(f"\n## `simulate(..., compiled=False)`: first call against second, inverter N = 3, {T} steps\n")
+    fj.clear_cache()  # the first call compiles, as in a fresh process (the step section compiled this decision)
+    jax.clear_caches()
     ctrl, plant, eager_plant, x0, u0, params, _ = inverter_case(3, T)
     walls, compiles = [], []
     for _ in range(2):
