@@ -36,6 +36,7 @@ time-varying weights. New values of the same shapes never recompile.
 """
 from __future__ import annotations
 
+import functools
 import time
 import warnings
 from typing import Callable, NamedTuple, Optional
@@ -49,7 +50,7 @@ from .checks import as_state, check_params, check_state, params_spec
 from .closed_loop import ClosedLoop
 from .exhaustive import exhaustive
 from .problem import Problem, call, input_dtype, is_tracer, positive_int
-from .progress import Progress, due, tick, tick_python
+from .progress import Progress, due, interval, tick_python
 from .result import SearchResult, raise_on_errors
 from .sdfs import sdfs
 
@@ -419,11 +420,15 @@ class FIRHC:
             the first decision finds none); default zeros.
           dt: the sampling period in seconds: the run gets ``times`` ``[T+1]``
             (``k * dt``) and plots against time.
-          progress: a progress bar (at most ``progress.TICKS`` updates).
+          progress: a progress bar (at most ``progress.TICKS`` updates; a
+            compiled run is then one compiled chunk of steps dispatched
+            again and again, with the same results to the last bit).
           compiled: ``True``: one ``lax.scan`` (everything traceable);
             ``False``: a Python loop over the compiled ``step``, for a plant
             that cannot be traced, and with each decision timed in
             ``solve_times`` (compiled before the loop, so never counted).
+            The plant is called as it is: jit it, or each of its
+            operations is one eager dispatch a step.
 
         Steps where no input was found hold the safe input (``held``); a
         ``RuntimeWarning`` follows such a run.
@@ -449,9 +454,7 @@ class FIRHC:
                                         _spec(x0), pspec, default_plant))
         with Progress(steps, f"FIRHC[{self.solver}]", enabled=progress):
             if compiled:
-                key = ("closed loop", self._key, plant_key, steps, progress)
-                run = cached(key, lambda: jax.jit(lambda s, x, p: self._scan(plant, s, x, p, steps, progress)))
-                out = run(state, x0, params)
+                out = self._compiled_loop(plant, plant_key, state, x0, params, steps, progress)
             else:
                 out = self._python_loop(plant, state, x0, params, steps, progress)
         if not is_tracer(out.held):
@@ -490,24 +493,55 @@ class FIRHC:
                             + ("; the default plant is the model's dynamics: with observe set, pass plant="
                                if default_plant and self.observe is not None else ""))
 
-    def _scan(self, plant, state, x0, params, steps, progress):
-        def body(carry, inp):
+    def _compiled_loop(self, plant, plant_key, state, x0, params, steps, progress):
+        """The closed loop as compiled scans: one of ``steps`` steps, or with ``progress`` the same compiled
+        chunk of ``interval(steps)`` steps dispatched again and again, the carry passed on and the bar moved
+        between chunks (a host callback inside the scan costs more than cheap steps; docs/xla_notes.md).
+        The parameters of the last chunk's steps past ``steps`` repeat the last row; those steps are dropped."""
+        if not progress:
+            key = ("closed loop", self._key, plant_key, steps)
+            run = cached(key, lambda: jax.jit(lambda s, x, p: _with_x0(
+                x, self._scan(plant, (s, x), p, 0, steps)[1], jnp.full((steps,), jnp.nan))))
+            return run(state, x0, params)
+        length = interval(steps)
+        chunks = -(-steps // length)
+        if params is not None and chunks * length > steps:
+            pad = chunks * length - steps
+            params = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, 0)]), params)
+        key = ("closed loop chunk", self._key, plant_key, length)
+        run = cached(key, lambda: jax.jit(lambda c, p, start: self._scan(plant, c, p, start, length)))
+        carry, recs, last = (state, x0), [], None
+        for start in range(0, steps, length):
+            carry, rec = run(carry, params, np.int32(start))
+            recs.append(rec)
+            if last is not None:  # the chunk before this one is done (or nearly): move the bar
+                _report(*last)
+            last = min(start + length, steps) - 1, carry[1]
+        _report(*last)
+        join = cached(("closed loop join", steps, length), lambda: jax.jit(functools.partial(_join, steps=steps)))
+        return join(x0, recs)
+
+    def _scan(self, plant, carry, params, start, length):
+        """Steps ``start`` .. ``start + length - 1`` of the closed loop (parameter rows ``start`` ..):
+        ``(carry, ClosedLoop)`` whose ``states`` are the states after each step (only what a ``ClosedLoop``
+        keeps is stacked: each stacked output costs time per step)."""
+        def body(carry, p):
             # Barriers keep the step and the plant apart, as in a user's loop of the compiled step and a
             # jitted plant: XLA fuses (and rounds) each the same way there and here.
             state, x = jax.lax.optimization_barrier(carry)
-            k, p = inp
             u, state, info = self._checked_step(state, x, p)
             x_next = call(plant, p, *jax.lax.optimization_barrier((x, u)))
-            if progress:
-                tick(k, steps)
             return (state, x_next), (x_next, u, info)
 
-        _, rec = jax.lax.scan(body, (state, x0), (jnp.arange(steps), params))
-        return _closed_loop(x0, *rec, jnp.full((steps,), jnp.nan))
+        rows = None if params is None else jax.tree.map(lambda a: jax.lax.dynamic_slice_in_dim(a, start, length),
+                                                         params)
+        carry, (xs, us, info) = jax.lax.scan(body, carry, rows, length=length)
+        return carry, _closed_loop(xs, us, info, None)
 
     def _python_loop(self, plant, state, x0, params, steps, progress):
         x = x0
-        rows = [None if params is None else jax.tree_util.tree_map(lambda a, k=k: a[k], params) for k in range(steps)]
+        host = None if params is None else jax.tree.map(np.asarray, params)  # rows as views: no dispatch each
+        rows = [None if host is None else jax.tree.map(lambda a, k=k: a[k, ...], host) for k in range(steps)]
         self.step(state, x, rows[0])  # compiles the step for these shapes, so that solve_times never count it
         decide = self._step_fn
         records, times = [], []
@@ -520,17 +554,41 @@ class FIRHC:
                 raise TypeError(f"plant(x, u[, p]) must return the next plant state of shape {tuple(x.shape)} "
                                 f"like x0, got {type(x_next).__name__} of shape {np.shape(x_next)} at step {k}")
             x = x_next if _ready(x_next) and x_next.dtype == x.dtype else np.asarray(x_next, x.dtype)
-            records.append((x, u, info))
+            # what a ClosedLoop keeps (each field is read back to the host once)
+            records.append((x, u, info._replace(result=info.result._replace(
+                first_input=None, nodes=None, feasible=None, iterations=None, negative_cost=None,
+                nan_encountered=None, overflow=None, complete=None))))
             if progress and due(k, steps):
                 tick_python(k)
-        stacked = jax.tree.map(lambda *a: jnp.stack(a), *records)
-        return _closed_loop(x0, *stacked, jnp.asarray(times))
+        # Stacked on the host, one device array per field: an eager jnp.stack of T arrays compiles a
+        # T-operand concatenation per field on a run's first call.
+        stacked = jax.tree.map(lambda *a: jnp.asarray(np.stack(a)), *records)
+        return _with_x0(x0, _closed_loop(*stacked, None), jnp.asarray(times))
 
 
-def _closed_loop(x0, xs, us, info: StepInfo, times) -> ClosedLoop:
+def _report(step: int, x) -> None:
+    """Move the bar to ``step`` once the chunk that computed ``x`` is done."""
+    if not is_tracer(x):
+        jax.block_until_ready(x)
+    tick_python(step)
+
+
+def _join(x0, chunks, steps: int) -> ClosedLoop:
+    """The run of ``steps`` steps from the ``ClosedLoop`` of each chunk (one compiled call: eager
+    concatenations of many arrays cost more than the chunks' own dispatch)."""
+    loop = jax.tree.map(lambda *a: jnp.concatenate(a)[:steps], *chunks)
+    return _with_x0(x0, loop, jnp.full((steps,), jnp.nan))
+
+
+def _with_x0(x0, loop: ClosedLoop, times) -> ClosedLoop:
+    """``loop`` with ``x0`` before its states and these ``solve_times``."""
+    return loop._replace(states=jnp.concatenate([jnp.asarray(x0)[None], loop.states]), solve_times=times)
+
+
+def _closed_loop(xs, us, info: StepInfo, times) -> ClosedLoop:
+    """The ``ClosedLoop`` of stacked steps, ``states`` the states after each step (``x0`` not included)."""
     plans = jnp.where(info.held[:, None], -1, info.result.sequence)  # -1 where held, found or not
-    return ClosedLoop(states=jnp.concatenate([jnp.asarray(x0)[None], xs]), inputs=us,
-                      input_indices=plans[:, 0], stage_costs=info.stage_cost,
+    return ClosedLoop(states=xs, inputs=us, input_indices=plans[:, 0], stage_costs=info.stage_cost,
                       predicted_costs=info.result.cost, nodes=info.nodes, fallback_nodes=info.fallback_nodes,
                       feasible=info.feasible, used_fallback=info.used_fallback, complete=info.complete,
                       held=info.held, plans=plans, solve_times=times)

@@ -68,8 +68,9 @@ import jax.numpy as jnp
 
 from .checks import as_state
 from .problem import Problem, _check_controls, is_tracer, positive_int, weight
-from .result import SearchResult
-from .sdfs import DEFAULT_MAX_MEMORY, sdfs
+from .cache import compiled
+from .result import SearchResult, raise_on_errors
+from .sdfs import DEFAULT_MAX_MEMORY, node_budget, sdfs
 
 
 class LinearTracking:
@@ -237,23 +238,36 @@ class LinearTracking:
         u_prev = _vector("u_prev", u_prev, (self.m,), x.dtype)
         y_ref = _vector("y_ref", y_ref, (self.horizon, self.p), x.dtype)
         d = None if d is None else _vector("d", d, (self.horizon, self.n), x.dtype)
-        if warm_start is not None:  # indices into controls -> their classes (all -1 stays none)
-            ws = jnp.asarray(warm_start)
+        if warm_start is not None:
+            ws = warm_start if is_tracer(warm_start) else np.asarray(warm_start)
             if ws.shape != (self.horizon,) or not jnp.issubdtype(ws.dtype, jnp.integer):
                 raise ValueError(f"warm_start must be [N] = [{self.horizon}] integer indices into controls, "
                                  f"got {ws.dtype} of shape {tuple(ws.shape)}")
             M = len(self._controls)
             if not is_tracer(ws) and not (bool(jnp.all((ws >= 0) & (ws < M))) or bool(jnp.all(ws == -1))):
                 raise ValueError(f"warm_start indices must lie in [0, {M}) (or be all -1: none), got {ws.tolist()}")
-            inside = (ws >= 0) & (ws < M)
-            warm_start = jnp.where(inside, jnp.asarray(self._class_of)[jnp.clip(ws, 0, len(self._controls) - 1)],
-                                   jnp.where(ws < 0, ws, self.num_classes))
-        z0, params = self.observe(x, u_prev), self._with_model(self.params(y_ref, d), x.dtype)
-        result = sdfs(self._search_problem, z0, params=params, warm_start=warm_start, max_nodes=max_nodes)
-        sequence = _sequence(z0, result.sequence, params)
-        # the first of these inputs (first_input_of may break a tie between members the other way)
-        first = jnp.asarray(self._controls, result.first_input.dtype)[jnp.maximum(sequence[0], 0)]
-        return result._replace(sequence=sequence, first_input=jnp.where(result.feasible, first, jnp.nan))
+            warm_start = ws.astype(np.int32)
+        # One compiled call (observe, params, search, members), shared by trackers of equal shapes: the model
+        # travels as an argument, so a new A, B, Q or lambda_u of the same shapes reuses it.
+        run = compiled(_solve, self._search_problem, observe=self.observe)
+        return raise_on_errors(run(self._factors(x.dtype), self._controls, self._class_of, x, u_prev, y_ref, d,
+                                   warm_start, node_budget(max_nodes)))
+
+
+def _solve(problem, factors, controls, class_of, x, u_prev, y_ref, d, warm_start, budget, *, observe):
+    """``LinearTracking.solve`` after its checks, traced (``problem``: the one whose params carry the model)."""
+    if warm_start is not None:  # indices into controls -> their classes (all -1 stays none)
+        M = class_of.shape[0]
+        inside = (warm_start >= 0) & (warm_start < M)
+        warm_start = jnp.where(inside, class_of[jnp.clip(warm_start, 0, M - 1)],
+                               jnp.where(warm_start < 0, warm_start, problem.num_controls))
+    d = jnp.zeros(y_ref.shape[:-1] + x.shape, x.dtype) if d is None else d
+    z0, params = observe(x, u_prev), {**factors["model"], **_params(factors["maps"], y_ref, d)}
+    result = sdfs(problem, z0, params=params, warm_start=warm_start, max_nodes=budget)
+    sequence = _sequence(z0, result.sequence, params)
+    # the first of these inputs (first_input_of may break a tie between members the other way)
+    first = controls.astype(result.first_input.dtype)[jnp.maximum(sequence[0], 0)]
+    return result._replace(sequence=sequence, first_input=jnp.where(result.feasible, first, jnp.nan))
 
 
 # ---------------------------------------------------------------------------
@@ -661,4 +675,4 @@ def _vector(name, a, shape, dtype):
         a = arr
     if tuple(a.shape) != shape:
         raise ValueError(f"{name} must have shape {list(shape)}, got {tuple(a.shape)}")
-    return jnp.asarray(a, dtype)
+    return a.astype(dtype) if is_tracer(a) else np.asarray(a, dtype)  # a jitted call takes NumPy as it is

@@ -1,12 +1,12 @@
 """Progress bars for long runs (closed loops, sweeps), drawn by tqdm.
 
-``with Progress(total, "label") as bar: bar.update(k)`` from Python loops.
-Inside a compiled loop call ``tick(step, total)`` (only when progress is on):
-it reports through ``jax.debug.callback`` to the innermost active bar, so a
-cached compiled function reports to whichever bar is open when it runs (no
-retracing). A host callback costs about 20 times a small decision
-(benchmarks/RESULTS.md, issue 24), so a run reports at most ``TICKS`` times:
-every ``interval(total)`` steps and at its last step (``due``).
+``with Progress(total, "label") as bar: bar.update(k)`` from Python loops;
+``tick_python(step)`` reports to the innermost active bar. A run reports at
+most ``TICKS`` times: every ``interval(total)`` steps and at its last step
+(``due``). A compiled closed loop never calls back from inside its scan (a
+host callback in the loop's program costs more than cheap steps,
+docs/xla_notes.md): it runs as chunks of ``interval(total)`` steps, one
+compiled chunk dispatched again from Python, and reports between chunks.
 
 The bar reads "compiling" until the first step is done and its clock starts
 then, so rates and ETAs exclude compilation. tqdm picks the notebook or
@@ -16,11 +16,10 @@ from __future__ import annotations
 
 import sys
 
-import jax
 from tqdm.auto import tqdm
 
 _active: list = []
-TICKS = 100  # most updates a run of any length sends to its bar
+TICKS = 25  # most updates a run of any length sends to its bar (each costs a compiled loop a dispatch)
 
 
 def interval(total: int) -> int:
@@ -29,8 +28,7 @@ def interval(total: int) -> int:
 
 
 def due(step, total: int):
-    """Whether step ``step`` (0-based) reports: every ``interval(total)`` steps and the last one.
-    Works on Python ints and on traced steps."""
+    """Whether step ``step`` (0-based) reports: every ``interval(total)`` steps and the last one."""
     done = step + 1
     return (done % interval(total) == 0) | (done == total)
 
@@ -74,11 +72,3 @@ def tick_python(step) -> None:
     if _active:
         _active[-1].update(int(step) + 1)
 
-
-def tick(step, total: int) -> None:
-    """Inside a jitted loop body of ``total`` steps: report that step ``step``
-    (0-based, traced) is done, when it is ``due`` (a host callback only then)."""
-    if interval(total) == 1:
-        jax.debug.callback(tick_python, step)
-    else:
-        jax.lax.cond(due(step, total), lambda k: jax.debug.callback(tick_python, k), lambda k: None, step)

@@ -6,7 +6,9 @@
 * ``pytest --float32``: only the tests marked ``float32``, with x64 left off (the library's default float32
   path), optimizations off as above.
 * ``pytest --full``: every test, ``slow`` ones too (subprocesses, soaks, multi-process runs, sweeps, the
-  applications' summaries), compiled as users compile (optimizations on).
+  applications' summaries), compiled as users compile (optimizations on). The tests marked ``optimized``
+  (two compiled programs equal bit for bit, which rests on XLA's optimizations making them the same code) run
+  only here.
 
 ``-m EXPR`` picks its own tests, as usual. The suite keeps XLA's compilations in JAX's persistent compilation
 cache (``fj.enable_compilation_cache``), in ``$FIRHC_JAX_TEST_CACHE`` or else ``.jax_cache/`` at the
@@ -42,7 +44,8 @@ def pytest_collection_modifyitems(config, items):
     if config.getoption("--float32"):
         keep = [item for item in items if item.get_closest_marker("float32")]
     elif not (config.getoption("--full") or config.getoption("markexpr")):
-        keep = [item for item in items if not item.get_closest_marker("slow")]
+        keep = [item for item in items
+                if not (item.get_closest_marker("slow") or item.get_closest_marker("optimized"))]
     else:
         return
     config.hook.pytest_deselected(items=[item for item in items if item not in keep])

@@ -91,6 +91,8 @@ def test_no_accepted_cache_size_makes_a_call_evict_its_own_entries():
             "FIRHC": lambda: fj.FIRHC(P, fallback="unconstrained")(x),
             **{f"simulate {s} {c}": lambda s=s, c=c: fj.FIRHC(P, solver=s, fallback="unconstrained").simulate(
                 x, 3, compiled=c) for s in ("sdfs", "exhaustive") for c in (True, False)},
+            "simulate exhaustive progress": lambda: fj.FIRHC(P, solver="exhaustive", fallback="unconstrained").simulate(
+                x, 3, progress=True),
         }
         refused, again = [], {}
         for size in (1, 2, 3, fj.cache.MIN_SIZE):
@@ -108,4 +110,4 @@ def test_no_accepted_cache_size_makes_a_call_evict_its_own_entries():
         print(json.dumps({"refused": refused, "again": again, "min": fj.cache.MIN_SIZE}))
     """)
     assert r["refused"] == [1, 2, 3], r
-    assert all(v == [0, 0] for v in r["again"].values()) and len(r["again"]) == 8, r
+    assert all(v == [0, 0] for v in r["again"].values()) and len(r["again"]) == 9, r

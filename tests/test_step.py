@@ -80,6 +80,7 @@ def test_a_python_loop_of_step_is_simulate_bit_for_bit(ctrl):
     assert used.any() and not used.all() and runs[0].inputs.shape == (T, 2) and not np.asarray(runs[0].held).any()
 
 
+@pytest.mark.optimized
 def test_step_under_jit_vmap_and_scan(ctrl):
     params = per_step_params()
     X = jnp.array([[0.8, 0.0], [-0.4, 0.3], [0.1, -0.2]])
