@@ -85,14 +85,14 @@ def brute_force_check(states: np.ndarray, horizon: int = 4, budget: int = 300):
 
 
 def other_setting(name: str, max_nodes, steps: int):
-    """A closed loop of the three-tank system (N = 5, bound, terminal box 20 mm, fallback) or the hopper
+    """A closed loop of the three-tank system (N = 5, bound, no terminal box) or the hopper
     (N = 10, bound, fallback); cost: the model's stage cost of every state reached with the input applied."""
     opts = {} if max_nodes is None else {"max_nodes": max_nodes}
     t0 = time.perf_counter()
     if name == "tanks":
         from firhc_jax.models import tanks
-        problem = tanks.make_problem(5, bound=True, terminal_tol=0.02)
-        ctrl = fj.FIRHC(problem, fallback="unconstrained", **opts)
+        problem = tanks.make_problem(5, bound=True)
+        ctrl = fj.FIRHC(problem, **opts)
         run = ctrl.simulate(jnp.asarray(tanks.initial_state()), steps, compiled=False)
         costs = jax.vmap(problem.stage_cost)(run.states[1:], run.inputs)
     else:

@@ -228,7 +228,9 @@ def seed(problem: Problem, x0, params, start: Incumbent, budget, *, pop_width: i
     terminal set out of reach, is discarded) is solved by sDFS, and its
     sequence extended to N by ``_rollout`` seeds the search when cheaper than
     the incumbent. The seeds take at most half the budget (each level stops
-    where the next node could leave no room for its extension): deepening
+    where the next node could leave no room for its extension), and none run
+    where that half holds less than two extensions (``2 N M`` nodes) and one
+    expansion (below that, the search's own first dive is as good): deepening
     stops after ``D = N - 1`` or at the first level stopped (its best so far
     is still extended). docs/budgets.md states what this guarantees."""
     N, M, K = problem.horizon, problem.num_controls, pop_width
@@ -261,9 +263,9 @@ def seed(problem: Problem, x0, params, start: Incumbent, budget, *, pop_width: i
         best = jax.lax.cond(fits, lambda: _rollout(problem, x0, params, found.path, D, best), lambda: best)
         return D + 1, best, done
 
-    def more(c):
+    def more(c):  # no seeds where half the budget does not hold two extensions and an expansion
         D, best, done = c
-        return done & (D < N) & (best.stats.nodes <= share - N * M - L)
+        return done & (D < N) & (best.stats.nodes <= share - N * M - L) & (share >= 2 * N * M + L)
 
     _, best, _ = jax.lax.while_loop(more, body, (jnp.ones((), jnp.int32), start, jnp.ones((), bool)))
     return best
