@@ -23,6 +23,7 @@ from param_problems import as_jax, as_seen
 from reference import same_cost, tolerance
 
 SHAPES = ((2, 1, 3, 5), (1, 1, 4, 4))  # (n, m, M, N)
+LONG = (2, 1, 3, 7)  # where a budget holds a few levels but not the tree
 
 
 def _u(u, p, xp):
@@ -91,8 +92,15 @@ def sequence_cost(p, x0, seq, N):
 
 
 def optimum(p, x0, shape):
+    """The exhaustive optimum (every sequence at once)."""
     n, m, M, N = shape
-    return min(sequence_cost(p, x0, s, N) for s in itertools.product(range(M), repeat=N))
+    seqs = np.array(list(itertools.product(range(M), repeat=N)))
+    x, c = np.broadcast_to(np.asarray(x0, float), (len(seqs), n)), np.zeros(len(seqs))
+    for k in range(N):
+        u = p["U"][seqs[:, k]]
+        x = dynamics(x, u, p, xp=np)
+        c = c + stage_cost(x, u, p, xp=np)
+    return float(np.min(np.where(terminal(x, p, xp=np), c + terminal_cost(x, p, xp=np), np.inf)))
 
 
 def seeds_bound(p, x0, shape, N0):
@@ -166,7 +174,7 @@ def test_a_budgeted_search_is_honest_and_exact_when_it_can_be(case, budget):
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(cases(), st.integers(40, 700))
+@given(cases(shapes=(LONG,)), st.integers(60, 900))
 def test_a_budgeted_decision_is_never_dearer_than_the_exact_shorter_one_extended(case, budget):
     """The guarantee: at a budget that holds levels 1..N0, never dearer over the horizon than the exact
     horizon-N0 decision extended by the greedy rollout."""
@@ -181,6 +189,7 @@ def test_a_budgeted_decision_is_never_dearer_than_the_exact_shorter_one_extended
 
 # ---------------------------------------------------------------- budgets never passed
 @pytest.mark.float32
+@pytest.mark.filterwarnings("ignore:closed loop. no feasible input:RuntimeWarning")  # small budgets hold inputs
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(cases(shapes=SHAPES[:1]), st.integers(1, 400), st.integers(0, 2**32 - 1), st.sampled_from([1, 3]))
 def test_budgets_are_never_passed_warm_start_pool_and_fallback(case, budget, seed, lanes):
