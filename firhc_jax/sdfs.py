@@ -27,7 +27,9 @@ stacks are refused up front). ``iterations`` counts loop iterations, one
 batched call of ``dynamics`` each (``SearchResult.iterations`` for the other
 solvers). ``max_nodes`` stops the loop before an iteration could take the
 node count above it; the result then holds the incumbent found so far and
-``complete=False``.
+``complete=False``. A budgeted search first seeds its incumbent by iterative
+deepening over the horizon (``seed``, docs/budgets.md), within half the
+budget.
 """
 from __future__ import annotations
 
@@ -345,9 +347,12 @@ def sdfs(problem: Problem, x0, *, params=None, pop_width: int = 1, warm_start=No
         nodes. All ``-1`` means none (no nodes counted); so does a
         ``max_nodes`` below N (its nodes would not fit in the budget).
       max_nodes: optional node budget (real-time use): ``nodes <= max_nodes``
-        always (a warm start's N nodes included). The search stops before an
-        iteration could take the count above it and returns its incumbent
-        with ``complete=False`` (infeasible if it has none yet). A traced
+        always (a warm start's N nodes included). Up to half of it first
+        seeds the incumbent (the exact problems of horizon 1, 2, ... each
+        extended to N by a greedy rollout; docs/budgets.md states what that
+        guarantees). The search stops before an iteration could take the
+        count above it and returns its incumbent with ``complete=False``
+        (infeasible if it has none yet; ``True``: proven optimal). A traced
         value: changing it does not recompile.
       max_memory: bytes the stack may take (``stack_memory``); larger problems
         are refused before anything is allocated.
