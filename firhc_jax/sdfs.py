@@ -153,6 +153,8 @@ def _dfs(problem: Problem, x0, params, start: Incumbent, limit, *, pop_width: in
     ``leaves(children, depth) -> children`` serve the seeds' shorter problems
     (``seed``); the main search leaves them None."""
     N, M, K = problem.horizon, problem.num_controls, pop_width
+    # Rows 0 .. N - 1 hold the batches of depth 0 (the root) to N - 1; row N
+    # takes each leaf batch, all discarded, so every iteration pushes.
     stack = stacks.init(N + 1, K, M, N, x0, start.cost.dtype)
 
     def incumbent(best_cost):
