@@ -127,6 +127,8 @@ def main():
     ap.add_argument("--quick", action="store_true", help="12 hours, no exact N = 8, budgets at N = 8 and 12 only")
     ap.add_argument("--skip-others", action="store_true", help="pumping station only")
     ap.add_argument("--only-others", action="store_true", help="the three-tank system and the hopper only")
+    ap.add_argument("--other-fraction", type=float, default=0.1,
+                    help="their budget, as a fraction of their mean exact nodes")
     ap.add_argument("--only", default=None, help="comma-separated indices (0-4) of the pumping rows to run")
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
@@ -155,7 +157,7 @@ def main():
         return
     for name, steps_other in (("tanks", 40 if args.quick else 100), ("hopper", 200 if args.quick else 400)):
         exact = other_setting(name, None, steps_other)
-        budget = max(1, int(exact["nodes_mean"] / 10))
+        budget = max(1, int(exact["nodes_mean"] * args.other_fraction))
         cut = other_setting(name, budget, steps_other)
         print(f"\n{name}: stage-cost sum over the closed loop")
         print("| setting | closed-loop cost | ms per decision, median / max | nodes mean / max | complete | held |")
