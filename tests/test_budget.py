@@ -232,3 +232,23 @@ def test_a_pool_row_matches_fj_sdfs_under_a_budget():
             r = fj.sdfs(problem(shape), X[i], params=prm, max_nodes=budget)
             assert float(b.cost[i]) == float(r.cost) and int(b.nodes[i]) == int(r.nodes), (budget, i)
             assert np.array_equal(np.asarray(b.sequence[i]), np.asarray(r.sequence))
+
+
+# ---------------------------------------------------------------- the benchmark's pumping station
+@pytest.mark.parametrize("bound", ["demand", "target"])
+def test_the_pumping_station_is_exact_and_its_bounds_admissible(bound):
+    """sDFS equals exhaustive search at N = 3 from levels near and at the limits, budgeted never cheaper, and
+    both lower bounds pass ``check_lower_bound``."""
+    from firhc_jax.models import pumping as pm
+
+    N = 3
+    problem_ = pm.make_problem(N, bound)
+    params = pm.horizon_params(*pm.forecast(20), 12, N)
+    states = np.array([[2.2, 2.0], [0.6, 4.4], [4.4, 0.55], [1.0, 1.0]])
+    for t, x in zip((0, 5, 9, 11), states, strict=True):
+        p = jax.tree_util.tree_map(lambda a, t=t: a[t], params)
+        ref = fj.exhaustive(problem_, x, params=p)
+        assert same_cost(float(fj.sdfs(problem_, x, params=p).cost), float(ref.cost)), (t, x)
+        cut = fj.sdfs(problem_, x, params=p, max_nodes=100)
+        assert float(cut.cost) >= float(ref.cost) or same_cost(float(cut.cost), float(ref.cost))
+        assert not fj.diagnostics.check_lower_bound(problem_, x[None], p)
