@@ -123,20 +123,21 @@ def _plan(problem: Problem, solver: str, n: int, itemsize: int, B: int, devices:
 # The compiled batch.
 # ---------------------------------------------------------------------------
 
-def _per_row(problem: Problem, solver: str, pop_width: int, chunk_nodes: int, budget) -> Callable:
+def _per_row(problem: Problem, solver: str, pop_width: int, chunk_nodes: int, budget, budgeted: bool) -> Callable:
     if solver == "exhaustive":
         from .exhaustive import exhaustive
         return lambda a: exhaustive(problem, a[0], params=a[1], chunk_nodes=chunk_nodes)
-    return lambda a: sdfs_search(problem, a[0], a[1], None, budget, pop_width=pop_width, prune=True)
+    return lambda a: sdfs_search(problem, a[0], a[1], None, budget, pop_width=pop_width, prune=True,
+                                 budgeted=budgeted)
 
 
 def _device_solve(problem: Problem, X, params, budget, solver: str, pop_width: int, chunk_nodes: int,
-                  rows_per_chunk: int, lanes: int) -> SearchResult:
+                  rows_per_chunk: int, lanes: int, budgeted: bool) -> SearchResult:
     """One device's rows ``[B, n]`` (and their ``params``), in chunks of
     ``rows_per_chunk`` rows: a pool search per chunk (``"sdfs"``) or a vmapped
     per-row search."""
     if solver != "sdfs":
-        return jax.lax.map(_per_row(problem, solver, pop_width, chunk_nodes, budget), (X, params),
+        return jax.lax.map(_per_row(problem, solver, pop_width, chunk_nodes, budget, budgeted), (X, params),
                            batch_size=rows_per_chunk)
     B, R = X.shape[0], rows_per_chunk
     chunks = -(-B // R)
@@ -146,13 +147,13 @@ def _device_solve(problem: Problem, X, params, budget, solver: str, pop_width: i
         return a.reshape((chunks, R) + a.shape[1:])
 
     out = jax.lax.map(lambda a: pool_search(problem, a[1], a[2], jnp.minimum(R, B - a[0] * R), budget, lanes,
-                                             pop_width),
+                                             pop_width, budgeted),
                       (jnp.arange(chunks, dtype=jnp.int32), split(X), jax.tree_util.tree_map(split, params)))
     return jax.tree_util.tree_map(lambda a: a.reshape((chunks * R,) + a.shape[2:])[:B], out)
 
 
 def _solve(problem: Problem, X, params, budget, *, mesh: Mesh, solver: str, pop_width: int, chunk_nodes: int,
-           rows_per_chunk: int, lanes: int) -> SearchResult:
+           rows_per_chunk: int, lanes: int, budgeted: bool) -> SearchResult:
     """``[B, n]`` -> batched ``SearchResult``. The rows (and params) are padded
     to a multiple of the device count (repeating the last row) and split over
     ``mesh``; each device solves its share independently (no communication
@@ -166,7 +167,8 @@ def _solve(problem: Problem, X, params, budget, *, mesh: Mesh, solver: str, pop_
     # check_vma=False: the searches start their loop carries from constants
     # (not device-varying), which the varying-axes check would refuse.
     shard = jax.shard_map(
-        lambda Xs, ps, b: _device_solve(problem, Xs, ps, b, solver, pop_width, chunk_nodes, rows_per_chunk, lanes),
+        lambda Xs, ps, b: _device_solve(problem, Xs, ps, b, solver, pop_width, chunk_nodes, rows_per_chunk, lanes,
+                                        budgeted),
         mesh=mesh, in_specs=(PartitionSpec(AXIS), PartitionSpec(AXIS), PartitionSpec()),
         out_specs=PartitionSpec(AXIS), check_vma=False)
     out = shard(padded(X), jax.tree_util.tree_map(padded, params), budget)
@@ -202,10 +204,10 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
       max_nodes: optional node budget per row (sDFS solvers): a row stops
         expanding before an expansion could take its count above it (as
         ``fj.sdfs``; a budget below ``pop_width * M`` expands nothing) and
-        keeps its incumbent, with ``complete=False``. In the pool, slots that
-        share a stolen row check the budget each iteration, so such a row may
-        pass it by at most ``(lanes - 1) * pop_width * M`` nodes; with
-        ``lanes=1`` it never passes it.
+        keeps its incumbent, with ``complete=False``; in the pool, slots that
+        share a stolen row stop where all of them together could pass it.
+        Never passed. Each row first gets ``fj.sdfs``'s budgeted seeds
+        (docs/budgets.md).
       max_memory: bytes the batch may use at once on each device (estimate,
         see ``row_memory``, ``pool_memory``), shared equally by the parts
         running at once; larger batches are solved in chunks of rows, and
@@ -270,7 +272,7 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         X = global_rows(X, mesh)
         params = jax.tree_util.tree_map(lambda a: global_rows(a, mesh), params)
     run = compiled(_solve, problem, mesh=mesh, solver=solver, pop_width=pop_width, chunk_nodes=chunk_nodes,
-                   rows_per_chunk=plan.rows_per_chunk, lanes=plan.lanes)
+                   rows_per_chunk=plan.rows_per_chunk, lanes=plan.lanes, budgeted=max_nodes is not None)
     if plan.parts > 1:
         out = run_parts(run, X, params, budget, plan.parts)
     else:

@@ -31,7 +31,7 @@ class Children(NamedTuple):
     terminal_ok: jax.Array  # [B, M] bool terminal(x_child) (True if unconstrained)
 
 
-def _one_child(problem: Problem, x, u, k, p):
+def one_child(problem: Problem, x, u, k, p):
     """``(x_next, stage cost, constraint met)`` of input ``u`` at step ``k``."""
     x_next = problem.next_state(x, u, k, p)
     return x_next, problem.cost_of_step(x_next, u, k, p), problem.allowed(x_next, u, k, p)
@@ -61,7 +61,7 @@ def expand(problem: Problem, x, cost, params, *, steps_left, check_terminal: boo
     p_axis = 0 if params_batched else None
     steps = jnp.broadcast_to(jnp.asarray(steps_left, jnp.int32), (B,))
     k = jnp.clip(N - 1 - steps, 0, N - 1)  # [B] (idle pool slots ask for depth 0: clipped, their work is dropped)
-    per_input = jax.vmap(_one_child, in_axes=(None, None, 0, None, None))
+    per_input = jax.vmap(one_child, in_axes=(None, None, 0, None, None))
     xs, stage, allowed = jax.vmap(per_input, in_axes=(None, 0, None, 0, p_axis))(
         problem, x, jnp.asarray(problem.controls), k, params)
     stage = stage.astype(cost.dtype) + _terminal_cost(problem, xs, steps == 0, p_axis, params)
@@ -159,7 +159,7 @@ def rollout_cost(problem: Problem, x0, sequence, cost_dtype, params=None):
         x, c, flags, met = carry
         k, idx = inp
         u = jnp.asarray(problem.controls)[jnp.clip(idx, 0, M - 1)]
-        x_next, s, allowed = _one_child(problem, x, u, k, params)
+        x_next, s, allowed = one_child(problem, x, u, k, params)
         s = s.astype(cost_dtype)
         if problem.terminal_cost is not None:
             s = s + jnp.where(k == N - 1, call(problem.terminal_cost, params, x_next), 0).astype(cost_dtype)

@@ -38,7 +38,7 @@ from .checks import cost_dtype
 from .nodes import SearchStats, expand, no_stats
 from .problem import Problem
 from .result import SearchResult, finish
-from .sdfs import settle_children, stack_memory
+from .sdfs import Incumbent, seed, settle_children, stack_memory
 from .stack import Popped, Stack
 
 
@@ -98,27 +98,37 @@ def incumbent(rows: Rows, row):
     return rows.cost.at[row].get(mode="fill", fill_value=jnp.inf)
 
 
-def plan(pool: Pool, rows: Rows, head, n_valid, limit) -> tuple[Pool, Rows, jax.Array, Plan]:
+def plan(pool: Pool, rows: Rows, head, n_valid, budget, L: int) -> tuple[Pool, Rows, jax.Array, Plan]:
     """Each slot's next nodes: the K next nodes of its deepest live batch. A
     slot with none takes the next row's root (``head``: the first row not yet
     started) or, once every row has started, steals the next node of the
     shallowest live batch below another slot's deepest one (exact: the row's
-    incumbent is shared). A row whose node count passed ``limit`` is not
-    expanded further. Returns the pool with re-assigned slots emptied."""
+    incumbent is shared). Every slot expanding a row computes up to ``L``
+    children: a row stops where its slots could take its node count above
+    ``budget``, and is stolen from only while every slot could join it.
+    Returns the pool with re-assigned slots emptied."""
     S, D = pool.row.shape[0], pool.stack.low.shape[1]
     B = rows.cost.shape[0]
     depths = jnp.arange(D, dtype=jnp.int32)
     live = pool.stack.low < incumbent(rows, pool.row)[:, None]  # [S, D]
-    spent = rows.stats.nodes.at[pool.row].get(mode="fill", fill_value=0) > limit  # [S] the row's budget is out
-    rows = rows._replace(cut=rows.cut.at[jnp.where(spent & jnp.any(live, axis=1), pool.row, B)].add(1, mode="drop"))
+    busy = jnp.any(live, axis=1)
+    sharing = jnp.zeros((B + 1,), jnp.int32).at[jnp.where(busy, pool.row, B)].add(1)  # busy slots per row
+    nodes = rows.stats.nodes.at[pool.row].get(mode="fill", fill_value=0)  # [S] of each slot's row
+    spent = nodes > budget - sharing[pool.row] * L  # [S] the row's budget is out
+    rows = rows._replace(cut=rows.cut.at[jnp.where(spent & busy, pool.row, B)].add(1, mode="drop"))
     live = live & ~spent[:, None]
     top = jnp.max(jnp.where(live, depths, -1), axis=1)  # [S] deepest live batch
     free = top < 0
-    stealable = live & (depths < top[:, None])
+    roomy = nodes <= budget - (sharing[pool.row] + S) * L  # [S] room for every slot on the row
+    stealable = live & roomy[:, None] & (depths < top[:, None])
     can = jnp.any(stealable, axis=1)
     ranks = jnp.cumsum(jnp.stack([free, can]), axis=1, dtype=jnp.int32) - 1  # one scan for both
     free_rank, can_rank = ranks[0], ranks[1]
     root = jnp.where(free & (head + free_rank < n_valid), head + free_rank, -1)
+    # A row whose seeds (a budgeted search) left too little of its budget never starts.
+    late = (root >= 0) & (rows.stats.nodes.at[root].get(mode="fill", fill_value=0) > budget - L)
+    rows = rows._replace(cut=rows.cut.at[jnp.where(late, root, B)].add(1, mode="drop"))
+    root = jnp.where(late, -1, root)
     # Free slots left without a row are thieves; the i-th thief robs the i-th slot that can be robbed.
     t_rank = free_rank - (n_valid - head)
     steals = free & (t_rank >= 0) & (t_rank < jnp.sum(can, dtype=jnp.int32))
@@ -198,11 +208,14 @@ def expand_and_store(problem: Problem, pool: Pool, rows: Rows, work: Work, param
     return pool._replace(stack=stack), rows._replace(cost=new_cost, path=path, stats=stats)
 
 
-def pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_width: int) -> SearchResult:
+def pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_width: int,
+                budgeted: bool = False) -> SearchResult:
     """Exact sDFS of rows ``X[:n_valid]`` of ``[B, n]`` (with ``params[b]``
     for row b) on a pool of ``lanes`` slots. A row whose node count exceeds
     ``budget - K M`` is not expanded further (no row starts when that is
-    negative). Returns a batched result."""
+    negative). ``budgeted``: each row first gets ``fj.sdfs``'s seeds
+    (``firhc_jax.sdfs.seed``, vmapped over the rows), within its budget.
+    Returns a batched result."""
     N, M, K, S = problem.horizon, problem.num_controls, pop_width, lanes
     B = X.shape[0]
     dtype = cost_dtype(problem, X[0], params, batched_params=True)
@@ -217,9 +230,13 @@ def pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_wi
     rows = Rows(cost=jnp.full((B,), jnp.inf, dtype), path=jnp.full((B, N), -1, jnp.int32),
                 stats=jax.vmap(lambda _: no_stats())(zeros), cut=zeros + short)
     n_valid = jnp.where(short, 0, n_valid)
+    if budgeted:
+        start = Incumbent(rows.cost[0], rows.path[0], no_stats())
+        seeds = jax.vmap(lambda x, p: seed(problem, x, p, start, budget, pop_width=K))(X, params)
+        rows = rows._replace(cost=seeds.cost, path=seeds.path, stats=seeds.stats)
 
     def next_work(pool, rows, head):
-        pool, rows, head, todo = plan(pool, rows, head, n_valid, limit)
+        pool, rows, head, todo = plan(pool, rows, head, n_valid, budget, K * M)
         pool, work = take(pool, todo, X, K)
         return pool, rows, head, work
 

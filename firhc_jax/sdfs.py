@@ -27,7 +27,9 @@ stacks are refused up front). ``iterations`` counts loop iterations, one
 batched call of ``dynamics`` each (``SearchResult.iterations`` for the other
 solvers). ``max_nodes`` stops the loop before an iteration could take the
 node count above it; the result then holds the incumbent found so far and
-``complete=False``.
+``complete=False``. A budgeted search first seeds its incumbent by iterative
+deepening over the horizon (``seed``, docs/budgets.md), within half the
+budget.
 """
 from __future__ import annotations
 
@@ -40,8 +42,8 @@ import numpy as np
 from .cache import compiled
 from .checks import check_params, check_state, cost_dtype
 from . import stack as stacks
-from .nodes import SearchStats, best_leaf, expand, no_stats, rollout_cost, tally
-from .problem import Problem, is_tracer, positive_int, refuse_differentiation
+from .nodes import SearchStats, one_child, best_leaf, expand, first_min, no_stats, rollout_cost, tally
+from .problem import Problem, call, is_tracer, positive_int, refuse_differentiation
 from .result import SearchResult, finish, raise_on_errors
 from .stack import Popped, Stack
 
@@ -106,7 +108,7 @@ class Settled(NamedTuple):
 
 
 def settle_children(problem: Problem, popped: Popped, row, children, best_cost, stats: SearchStats, *,
-                    prune: bool = True) -> Settled:
+                    prune: bool = True, leaf_depth=None) -> Settled:
     """Best leaf and the batch to push: the rest of every sDFS iteration after
     ``expand``, here and in each slot of the batch pool (``firhc_jax.pool``,
     vmapped over the slots).
@@ -115,8 +117,10 @@ def settle_children(problem: Problem, popped: Popped, row, children, best_cost, 
     from depth ``row``; only the nodes whose key is below the incumbent
     ``best_cost`` count (all of them with ``prune=False``). The cheapest usable
     feasible leaf improves the incumbent when strictly cheaper; the other
-    children are the batch to push at depth ``row + 1``."""
+    children are the batch to push at depth ``row + 1``. Leaves lie at depth
+    ``leaf_depth`` (default N; the seeds' shorter problems pass their own)."""
     N, M = problem.horizon, problem.num_controls
+    leaf_depth = N if leaf_depth is None else leaf_depth
     K, n = popped.x.shape
     L = K * M
     bound = best_cost if prune else jnp.inf  # without pruning, only taken nodes leave the stack
@@ -124,35 +128,37 @@ def settle_children(problem: Problem, popped: Popped, row, children, best_cost, 
     depth = row + 1  # of the children
     ok = (alive[:, None] & ~children.bad).reshape(L)
     cost, key = children.cost.reshape(L), children.key.reshape(L)
-    leaf_cost, i, improve = best_leaf(cost, children.terminal_ok.reshape(L), ok, depth == N, best_cost)
+    leaf_cost, i, improve = best_leaf(cost, children.terminal_ok.reshape(L), ok, depth == leaf_depth, best_cost)
     if prune:
         bound = jnp.where(improve, leaf_cost, bound)
-    keep = ok & (depth < N) & (key < bound)
+    keep = ok & (depth < leaf_depth) & (key < bound)
     return Settled(x=children.x.reshape(L, n), cost=cost, key=jnp.where(keep, key, jnp.inf), leaf_cost=leaf_cost,
                    leaf_path=stacks.child_path(popped.path, row, M, i), improve=improve,
                    stats=tally(stats, children, alive))
 
 
-def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int, prune: bool) -> SearchResult:
+class Incumbent(NamedTuple):
+    """The best complete sequence so far and the counters behind it."""
+
+    cost: jax.Array  # [] +inf: none yet
+    path: jax.Array  # [N] int32
+    stats: SearchStats
+
+
+def _dfs(problem: Problem, x0, params, start: Incumbent, limit, *, pop_width: int, prune: bool = True,
+         leaf_depth=None, leaves=None) -> tuple[Incumbent, jax.Array]:
+    """The sorted DFS from the root ``x0`` with a first incumbent ``start``,
+    while the node count stays at most ``limit`` before an iteration. Returns
+    the incumbent and whether the search ran to the end. ``leaf_depth`` and
+    ``leaves(children, depth) -> children`` serve the seeds' shorter problems
+    (``seed``); the main search leaves them None."""
     N, M, K = problem.horizon, problem.num_controls, pop_width
-    L = K * M
-    dtype = cost_dtype(problem, x0, params)
-    inf = jnp.array(jnp.inf, dtype)
     # Rows 0 .. N - 1 hold the batches of depth 0 (the root) to N - 1; row N
     # takes each leaf batch, all discarded, so every iteration pushes.
-    stack = stacks.init(N + 1, K, M, N, x0, dtype)
-    best_cost, best_path, stats = inf, jnp.full((N,), -1, jnp.int32), no_stats()
-    if warm_start is not None:
-        cost, flags = rollout_cost(problem, x0, warm_start, dtype, params)
-        # An all -1 warm start is no warm start; one whose N nodes do not fit in the budget is not evaluated.
-        used = jnp.all((warm_start >= 0) & (warm_start < M)) & (N <= budget)
-        best_cost = jnp.where(used, cost, inf)
-        stats = no_stats(jnp.where(used, N, 0), jnp.where(used, flags, 0))
-        best_path = jnp.where(best_cost < inf, warm_start, best_path)
-    limit = budget - L  # an iteration computes at most L children
+    stack = stacks.init(N + 1, K, M, N, x0, start.cost.dtype)
 
     def incumbent(best_cost):
-        return best_cost if prune else inf  # without pruning, only taken nodes leave the stack
+        return best_cost if prune else jnp.inf  # without pruning, only taken nodes leave the stack
 
     def next_nodes(stack, best_cost):
         row = stacks.top(stack, incumbent(best_cost))
@@ -162,15 +168,132 @@ def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int,
     def body(c: _Carry) -> _Carry:
         ch = expand(problem, c.popped.x, c.popped.cost, params, steps_left=N - c.row - 1,
                     check_terminal=problem.terminal is not None)
-        step = settle_children(problem, c.popped, c.row, ch, c.best_cost, c.stats, prune=prune)
+        if leaves is not None:
+            ch = leaves(ch, c.row + 1)
+        step = settle_children(problem, c.popped, c.row, ch, c.best_cost, c.stats, prune=prune,
+                               leaf_depth=leaf_depth)
         best_cost = jnp.where(step.improve, step.leaf_cost, c.best_cost)
         best_path = jnp.where(step.improve, step.leaf_path, c.best_path)
         stack = stacks.push(c.stack, c.row + 1, step.x.astype(x0.dtype), step.cost, step.key, c.popped.path)
         return _Carry(*next_nodes(stack, best_cost), best_cost, best_path, step.stats)
 
-    carry = _Carry(*next_nodes(stack, best_cost), best_cost, best_path, stats)
+    carry = _Carry(*next_nodes(stack, start.cost), start.cost, start.path, start.stats)
     out = jax.lax.while_loop(lambda c: (c.row >= 0) & (c.stats.nodes <= limit), body, carry)
-    return finish(problem, out.best_cost, out.best_path, out.stats, out.row < 0, x0, params)
+    return Incumbent(out.best_cost, out.best_path, out.stats), out.row < 0
+
+
+def _rollout(problem: Problem, x0, params, prefix, length, start: Incumbent) -> Incumbent:
+    """``prefix[:length]`` extended to the horizon by the greedy rule: at each
+    later step the child with the smallest cost plus ``lower_bound`` plus
+    ``terminal_cost`` (the value of the state reached, where the problem has
+    one; the last step's cost holds it already) among those the constraints
+    allow and the bound does not rule out (at the last step: that meet the
+    terminal test). The prefix is replayed one node a step; every later step
+    expands one node (M children). Costs accumulate as in every search.
+    Returns the cheaper of ``start`` and the extension (+inf if it
+    dead-ends)."""
+    N = problem.horizon
+    controls = jnp.asarray(problem.controls)
+
+    def replay(carry, k):
+        x, cost, ok, path, stats = carry
+        x, s, _ = one_child(problem, x, controls[prefix[k]], k, params)
+        return x, cost + s.astype(cost.dtype), ok, path.at[k].set(prefix[k]), stats._replace(nodes=stats.nodes + 1)
+
+    def greedy(carry, k):
+        x, cost, ok, path, stats = carry
+        ch = expand(problem, x[None], cost[None], params, steps_left=N - 1 - k,
+                    check_terminal=problem.terminal is not None)
+        usable = ~ch.bad[0] & ((k < N - 1) | ch.terminal_ok[0])
+        key = jnp.where(usable, ch.key[0], jnp.inf)
+        score = key
+        if problem.terminal_cost is not None:  # the leaves' (k = N - 1) already holds it
+            score = key + jnp.where(k < N - 1, jax.vmap(lambda xi: call(problem.terminal_cost, params, xi))(ch.x[0]),
+                                    0).astype(key.dtype)
+        i = first_min(score)[1]
+        return (ch.x[0, i], ch.cost[0, i], ok & jnp.isfinite(key[i]), path.at[k].set(i),
+                tally(stats, ch, jnp.ones((1,), bool)))
+
+    def step(carry, k):
+        return jax.lax.cond(k < length, replay, greedy, carry, k), None
+
+    init = (x0, jnp.zeros((), start.cost.dtype), jnp.ones((), bool), jnp.full((N,), -1, jnp.int32), start.stats)
+    (_, cost, ok, path, stats), _ = jax.lax.scan(step, init, jnp.arange(N, dtype=jnp.int32))
+    cost = jnp.where(ok, cost, jnp.inf)
+    better = cost < start.cost
+    return Incumbent(jnp.where(better, cost, start.cost), jnp.where(better, path, start.path), stats)
+
+
+def seed(problem: Problem, x0, params, start: Incumbent, budget, *, pop_width: int) -> Incumbent:
+    """First incumbents for a budgeted search, by iterative deepening: for
+    ``D = 1, 2, ...`` the exact problem of horizon D (stage costs of steps
+    ``0 .. D-1`` plus the terminal cost at ``x(D)``, no terminal test; the
+    constraints hold, and a node from which the ``lower_bound`` is +inf, the
+    terminal set out of reach, is discarded) is solved by sDFS, and its
+    sequence extended to N by ``_rollout`` seeds the search when cheaper than
+    the incumbent. The seeds take at most half the budget (each level stops
+    where the next node could leave no room for its extension), and none run
+    where that half holds less than two extensions (``2 N M`` nodes) and one
+    expansion (below that, the search's own first dive is as good): deepening
+    stops after ``D = N - 1`` or at the first level stopped (its best so far
+    is still extended). docs/budgets.md states what this guarantees."""
+    N, M, K = problem.horizon, problem.num_controls, pop_width
+    L = K * M
+    level = problem.replace(terminal=None, terminal_cost=None, lower_bound=None)
+    share = jnp.asarray(budget) // 2  # the seeds take at most half the budget; the full problem the rest
+    none = jnp.full((N,), -1, jnp.int32)
+    inf = jnp.array(jnp.inf, start.cost.dtype)
+
+    def leaves(depth_of_leaves):
+        def fn(ch, depth):
+            at = jnp.broadcast_to(depth == depth_of_leaves, ch.cost.shape)
+            extra = jnp.zeros_like(ch.cost)
+            if problem.terminal_cost is not None:
+                extra = jax.vmap(jax.vmap(lambda xi: call(problem.terminal_cost, params, xi)))(ch.x)
+            bad = ch.bad
+            if problem.lower_bound is not None:  # ruled out: no completion meets the terminal set
+                rest = jax.vmap(jax.vmap(lambda xi: call(problem.lower_bound, params, xi, N - depth)))(ch.x)
+                bad = bad | (rest == jnp.inf)
+            extra = jnp.where(at, extra.astype(ch.cost.dtype), 0)
+            return ch._replace(cost=ch.cost + extra, key=ch.key + extra, bad=bad)
+        return fn
+
+    def body(c):
+        D, best, _ = c
+        found, done = _dfs(level, x0, params, Incumbent(inf, none, best.stats), share - N * M - L, pop_width=K,
+                           leaf_depth=D, leaves=leaves(D))  # leaves room for its extension
+        fits = (found.cost < inf) & (found.stats.nodes + N * M <= budget)
+        best = best._replace(stats=found.stats)
+        best = jax.lax.cond(fits, lambda: _rollout(problem, x0, params, found.path, D, best), lambda: best)
+        return D + 1, best, done
+
+    def more(c):  # no seeds where half the budget does not hold two extensions and an expansion
+        D, best, done = c
+        return done & (D < N) & (best.stats.nodes <= share - N * M - L) & (share >= 2 * N * M + L)
+
+    _, best, _ = jax.lax.while_loop(more, body, (jnp.ones((), jnp.int32), start, jnp.ones((), bool)))
+    return best
+
+
+def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int, prune: bool,
+            budgeted: bool = False) -> SearchResult:
+    N, M, K = problem.horizon, problem.num_controls, pop_width
+    L = K * M
+    dtype = cost_dtype(problem, x0, params)
+    inf = jnp.array(jnp.inf, dtype)
+    start = Incumbent(inf, jnp.full((N,), -1, jnp.int32), no_stats())
+    if warm_start is not None:
+        cost, flags = rollout_cost(problem, x0, warm_start, dtype, params)
+        # An all -1 warm start is no warm start; one whose N nodes do not fit in the budget is not evaluated.
+        used = jnp.all((warm_start >= 0) & (warm_start < M)) & (N <= budget)
+        cost = jnp.where(used, cost, inf)
+        start = Incumbent(cost, jnp.where(cost < inf, warm_start, start.path),
+                          no_stats(jnp.where(used, N, 0), jnp.where(used, flags, 0)))
+    if budgeted:
+        start = seed(problem, x0, params, start, budget, pop_width=K)
+    # An iteration computes at most L children.
+    out, done = _dfs(problem, x0, params, start, budget - L, pop_width=K, prune=prune)
+    return finish(problem, out.cost, out.path, out.stats, done, x0, params)
 
 
 def _check_warm_start(problem: Problem, warm_start):
@@ -203,7 +326,7 @@ def _run(problem: Problem, x0, params, warm_start, max_nodes, pop_width, prune, 
     check_memory(stack_memory(problem, x0.shape[0], max(x0.dtype.itemsize, 4), pop_width), max_memory,
                  f"the sDFS stack of N={problem.horizon}, M={problem.num_controls}, pop_width={pop_width}")
     ws = _check_warm_start(problem, warm_start)
-    search = compiled(_search, problem, pop_width=pop_width, prune=prune)
+    search = compiled(_search, problem, pop_width=pop_width, prune=prune, budgeted=max_nodes is not None)
     return raise_on_errors(search(x0, params, ws, node_budget(max_nodes)))
 
 
@@ -226,9 +349,12 @@ def sdfs(problem: Problem, x0, *, params=None, pop_width: int = 1, warm_start=No
         nodes. All ``-1`` means none (no nodes counted); so does a
         ``max_nodes`` below N (its nodes would not fit in the budget).
       max_nodes: optional node budget (real-time use): ``nodes <= max_nodes``
-        always (a warm start's N nodes included). The search stops before an
-        iteration could take the count above it and returns its incumbent
-        with ``complete=False`` (infeasible if it has none yet). A traced
+        always (a warm start's N nodes included). Up to half of it first
+        seeds the incumbent (the exact problems of horizon 1, 2, ... each
+        extended to N by a greedy rollout; docs/budgets.md states what that
+        guarantees). The search stops before an iteration could take the
+        count above it and returns its incumbent with ``complete=False``
+        (infeasible if it has none yet; ``True``: proven optimal). A traced
         value: changing it does not recompile.
       max_memory: bytes the stack may take (``stack_memory``); larger problems
         are refused before anything is allocated.
