@@ -17,8 +17,9 @@ from reference import same_cost
 
 SETTINGS = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
-# Fixed shapes, so that one compiled search serves every example: (n, m, p, N, levels per input). The model is
-# in the params: a new random problem of the same shapes does not recompile.
+# Fixed shapes, so that one compiled search serves every example: (n, m, p, N, levels per input). lt.solve
+# passes the model as an argument: a new random problem of the same shapes does not recompile it (lt.problem
+# holds its model as constants, so each tracker's problem compiles its own search).
 # mimo has more inputs than outputs: with lambda_u = 0 its stacked F is rank deficient.
 # long: a horizon long enough that part of the cost-to-go is out of every input's reach (W's data-only term).
 # common: B 1 = 0, so inputs that differ by a step on every component have the same effect (the inverter's
@@ -107,12 +108,21 @@ def test_solve_is_the_brute_force_minimum_of_J(case):
     result = lt.solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=NONE)
     check(case, result, "solve")
     assert result.cost.dtype == jnp.zeros(()).dtype and bool(result.complete)
-    # lt.problem searches classes; the input it applies starts an optimal sequence (first_input_of)
+
+
+@pytest.mark.float32
+@settings(SETTINGS, max_examples=4)  # lt.problem holds its model as constants: each example compiles its search
+@given(cases)
+def test_the_problem_searches_the_classes_and_applies_an_optimal_first_input(case):
+    """lt.problem searches classes to J's minimum; the input it applies starts an optimal sequence
+    (first_input_of)."""
+    lt = case.tracker()
     classes = fj.sdfs(lt.problem, lt.observe(case.x, case.u_prev), params=lt.params(case.y_ref, case.d),
                       warm_start=NONE)
-    assert same_cost(float(classes.cost), float(result.cost))
+    best = case.brute_force()
+    assert same_cost(float(classes.cost), best) and bool(classes.feasible) == np.isfinite(best)
     if bool(classes.feasible):
-        assert same_cost(best_starting_with(case, classes.first_input), float(result.cost))
+        assert same_cost(best_starting_with(case, classes.first_input), best)
 
 
 def _plain_dynamics(z, u, k, p):
