@@ -191,7 +191,7 @@ def test_a_budgeted_decision_is_never_dearer_than_the_exact_shorter_one_extended
 # ---------------------------------------------------------------- budgets never passed
 @pytest.mark.float32
 @pytest.mark.filterwarnings("ignore:closed loop. no feasible input:RuntimeWarning")  # small budgets hold inputs
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(cases(shapes=SHAPES[:1]), st.integers(1, 400), st.integers(0, 2**32 - 1), st.sampled_from([1, 3]))
 def test_budgets_are_never_passed_warm_start_pool_and_fallback(case, budget, seed, lanes):
     shape, params, x0 = case

@@ -9,6 +9,9 @@ import pytest
 
 from reference import same_cost
 
+# One fixture runs every block of the README (about 30 s of compiling): the documents' examples are long checks.
+pytestmark = pytest.mark.slow
+
 
 def _blocks():
     text = (Path(__file__).parent.parent / "README.md").read_text()
@@ -25,7 +28,6 @@ def after():
     return snapshots
 
 
-@pytest.mark.slow
 def test_every_python_block_runs(after):
     assert len(after) == len(_blocks()) >= 4
 
