@@ -31,7 +31,7 @@ def strong(a):
     and dtypes. A strongly typed JAX array stays as it is; anything else
     becomes a NumPy array of JAX's canonical dtype, which a jitted search
     takes as it is (making a device array here would cost a dispatch per
-    call; benchmarks/RESULTS.md, issue 9 section)."""
+    call; measured in benchmarks/RESULTS.md)."""
     if isinstance(a, jax.Array) and not a.weak_type:
         return a
     a = np.asarray(a)

@@ -30,7 +30,7 @@ from ._status import stage
 from ._timing import timed_closed_loop
 from .inverter import InverterRun, distortion, plot
 
-LAMBDA_U = 0.1  # A^2 per unit leg step (issue 21)
+LAMBDA_U = 0.1  # A^2 per unit leg step (docs/inverter.md)
 
 
 def closed_loop(horizon: int, steps: int, lambda_u: float = LAMBDA_U, progress: bool = False) -> InverterRun:

@@ -49,8 +49,8 @@ class InverterParams:
 
     The values are the benchmark of Rodriguez et al., "Predictive current
     control of a voltage source inverter", IEEE Trans. Ind. Electron. 54(1),
-    2007, as quoted in issue 9 (the paper itself was not available here to
-    check them; its load also has a back-EMF, which this RL load leaves out).
+    2007, as quoted in the project's requirements (the paper itself was not available
+    here to check them; its load also has a back-EMF, which this RL load leaves out).
     """
 
     vdc: float = 520.0  # V, dc-link voltage

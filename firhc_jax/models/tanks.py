@@ -49,7 +49,7 @@ class TankParams:
     """Physical parameters (SI units).
 
     Values are the commonly quoted data of the Amira DTS200 laboratory
-    three-tank system (issue 4 lists them; ref. [10] of the paper, which has
+    three-tank system (the project's requirements list them; ref. [10] of the paper, which has
     the original rig's values, is not available). Where the DTS200 has no
     counterpart (pump speeds, which pipe drains) the choice is ours and noted.
     """

@@ -13,7 +13,7 @@ with v held the exact solution is i(k+1) = a i(k) + B u(k), a = exp(-R Ts / L).
 The controller tracks a sinusoidal current reference i_ref along the
 horizon, charges lambda_u ||u(k) - u(k-1)||^2 and forbids a leg to jump from
 -1 to +1 in one sample (max_step = 1, so the squared and absolute switching
-penalties coincide). The circuit is issue 21's: R = 2 ohm, L = 2 mH,
+penalties coincide). The circuit is the benchmark's: R = 2 ohm, L = 2 mH,
 Vdc = 400 V, Ts = 25 us, 20 A at 50 Hz (``PARAMS``).
 """
 from __future__ import annotations
