@@ -11,12 +11,18 @@ import firhc_jax as fj
 from firhc_jax.apps import bench
 
 
+def _bench_quick(what: str, out) -> subprocess.CompletedProcess:
+    """``python -m firhc_jax bench WHAT --quick --out OUT`` in a fresh process, checked to succeed."""
+    proc = subprocess.run([sys.executable, "-m", "firhc_jax", "bench", what, "--quick", "--out", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc
+
+
 @pytest.mark.slow
 def test_throughput_quick_writes_tables_csv_and_plots(tmp_path):
     out = tmp_path / "bench"
-    proc = subprocess.run([sys.executable, "-m", "firhc_jax", "bench", "throughput", "--quick", "--out", str(out)],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc = _bench_quick("throughput", out)
     rows = json.loads((out / "throughput.json").read_text())
     searches = {r["search"] for r in rows}
     assert {"sdfs", "sdfs K=2", "exhaustive dfs", "exhaustive levels", "vmap sdfs"} <= searches
@@ -31,9 +37,7 @@ def test_throughput_quick_writes_tables_csv_and_plots(tmp_path):
 @pytest.mark.slow
 def test_tables_quick_is_table_3_at_one_horizon_with_every_stage_announced(tmp_path):
     out = tmp_path / "tables"
-    proc = subprocess.run([sys.executable, "-m", "firhc_jax", "bench", "tables", "--quick", "--out", str(out)],
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc = _bench_quick("tables", out)
     rows = json.loads((out / "tables.json").read_text())
     assert [(r["plant"], r["N"], r["best_pop_width"]) for r in rows] == [("tanks", 3, 1)]
     for stage in ("tanks N = 3: the closed loop that gives the states searched",
