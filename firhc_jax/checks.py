@@ -111,6 +111,29 @@ def as_state(x0, name: str = "x0"):
     return x0
 
 
+def as_batch(X0, name: str = "X0"):
+    """``X0`` ``[B, n]`` as a strongly typed floating array of finite states, or a clear error."""
+    if isinstance(X0, jax.core.Tracer):
+        X = X0
+    else:
+        try:
+            X = jnp.asarray(strong(X0))
+        except (TypeError, ValueError) as e:
+            raise TypeError(f"{name} must be a numeric array [B, n]: {e}") from None
+    if X.ndim != 2:
+        raise ValueError(f"{name} must be a 2-D batch of states [B, n], got shape {tuple(X.shape)}; "
+                         "for one state use fj.sdfs")
+    if X.shape[0] == 0:
+        raise ValueError(f"{name} is an empty batch (B = 0)")
+    if not jnp.issubdtype(X.dtype, jnp.floating):
+        raise TypeError(f"{name} must have a floating dtype, got {X.dtype}")
+    if not isinstance(X, jax.core.Tracer):
+        bad = np.flatnonzero(~np.all(np.isfinite(np.asarray(X)), axis=1))
+        if bad.size:
+            raise ValueError(f"{name} contains NaN or inf in rows {bad[:10].tolist()}{' ...' if bad.size > 10 else ''}")
+    return X
+
+
 def check_state(problem: Problem, x0, params=None, batched_params: bool = False) -> jax.Array:
     """Validate ``x0`` (and the callables against it and ``params``) and return
     it as an array. Raises ``ValueError``/``TypeError`` naming the mismatch:
