@@ -148,17 +148,24 @@ def check_state(problem: Problem, x0, params=None, batched_params: bool = False)
     return x0
 
 
-def _call_shape(problem, fn, name, signature, with_params, pspec, *args):
+def shape_of(fn, pspec, *args, blame: str, hint: str = ""):
+    """``jax.eval_shape`` of ``fn(*args[, p])``; a failure is raised again as a ``TypeError`` (a type or
+    attribute error) or ``ValueError`` (any other) that starts with ``blame`` and ends with ``hint``."""
     try:
-        return jax.eval_shape(lambda p, *a: call(fn, p, *a), pspec if with_params else None, *args)
+        return jax.eval_shape(lambda p, *a: call(fn, p, *a), pspec, *args)
     except (TypeError, ValueError, KeyError, IndexError, AttributeError) as e:  # name the callable, keep the cause
-        shapes = ", ".join(f"{tuple(a.shape)} {a.dtype}" for a in args)
-        hint = f" (this problem calls {callable_forms(problem, with_params)}"
-        hint += ("" if with_params else "; pass params=... to give the callables a p argument")
-        hint += ("; set step_index=False if they take no step index k)" if problem.step_index else
-                 "; set Problem(..., step_index=True) if they take the step index k)")
-        cls = TypeError if isinstance(e, TypeError) else ValueError
-        raise cls(f"{name}{signature} failed on inputs of shape/dtype ({shapes}): {e}{hint}") from e
+        cls = TypeError if isinstance(e, (TypeError, AttributeError)) else ValueError
+        raise cls(f"{blame}: {type(e).__name__}: {e}{hint}") from e
+
+
+def _call_shape(problem, fn, name, signature, with_params, pspec, *args):
+    shapes = ", ".join(f"{tuple(a.shape)} {a.dtype}" for a in args)
+    hint = f" (this problem calls {callable_forms(problem, with_params)}"
+    hint += ("" if with_params else "; pass params=... to give the callables a p argument")
+    hint += ("; set step_index=False if they take no step index k)" if problem.step_index else
+             "; set Problem(..., step_index=True) if they take the step index k)")
+    return shape_of(fn, pspec if with_params else None, *args,
+                    blame=f"{name}{signature} failed on inputs of shape/dtype ({shapes})", hint=hint)
 
 
 def _check_callables(problem: Problem, x: jax.ShapeDtypeStruct, pspec, with_params: bool):

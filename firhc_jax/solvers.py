@@ -68,8 +68,8 @@ def _sdfs(problem, x, params, warm_start, max_nodes, *, budgeted, pop_width, **_
 
 
 def _pool_batch(problem, X, params, warm_start, max_nodes, n_valid, *, budgeted, pop_width, lanes, steal=True, **_):
-    return pool_search(problem, X, params, n_valid, max_nodes, lanes, pop_width, budgeted, warm_start=warm_start,
-                       steal=steal)
+    return pool_search(problem, X, params, n_valid, max_nodes, lanes_for(lanes, X.shape[0]), pop_width, budgeted,
+                       warm_start=warm_start, steal=steal)
 
 
 def _pool_one(problem, x, params, warm_start, max_nodes, *, budgeted, pop_width, lanes, **_):
@@ -82,7 +82,9 @@ def _pool_one(problem, x, params, warm_start, max_nodes, *, budgeted, pop_width,
 
 
 def _exhaustive(problem, x, params, warm_start, max_nodes, *, method, chunk_nodes, pop_width, **_):
-    if method == "dfs":  # the sDFS machinery with pruning off (and the bound unused: the reference)
+    if method == "dfs" or exhaustive_module._levels_executable(problem, x, params, chunk_nodes) is None:
+        # the sDFS machinery with pruning off (and the bound unused: the reference); also where XLA:CPU
+        # cannot compile the level search (docs/xla_notes.md)
         return sdfs_search(problem.replace(lower_bound=None), x, params, None, INT32_MAX, pop_width=pop_width,
                            prune=False)
     return exhaustive_module._exhaustive(problem, x, params, chunk_nodes=chunk_nodes)
