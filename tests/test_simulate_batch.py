@@ -168,3 +168,26 @@ def test_float32_loops_equal_their_single_loops():
     assert run.states.dtype == jnp.float32
     for b in range(5):
         np.testing.assert_array_equal(np.asarray(run.states[b]), np.asarray(c.simulate(X0[b], 6).states))
+
+
+def test_linear_tracking_loops_apply_first_input_of_as_single_loops():
+    """A LinearTracking problem (classes of inputs, first_input_of picking the member) batched over loops
+    with per-loop references and disturbances."""
+    from test_linear_tracking import Case
+
+    case = Case("common", True, 5)
+    lt = case.tracker()
+    B, steps = 3, 4
+    rng = np.random.default_rng(2)
+    params = lt.params(rng.normal(size=(B, steps) + case.y_ref.shape), 0.3 * rng.normal(size=(B, steps) + case.d.shape))
+    ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
+
+    def lin_plant(x, u, p):
+        return jnp.asarray(case.A) @ x + jnp.asarray(case.B) @ u + p["d"][0]
+
+    X0 = case.x + 0.5 * rng.normal(size=(B,) + case.x.shape)
+    run = ctrl.simulate_batch(X0, steps, lin_plant, params=params, u0=case.controls[0])
+    for b in range(B):
+        one = ctrl.simulate(X0[b], steps, lin_plant, params=row(params, b), u0=case.controls[0])
+        np.testing.assert_array_equal(np.asarray(run.inputs[b]), np.asarray(one.inputs))
+        np.testing.assert_allclose(np.asarray(run.predicted_costs[b]), np.asarray(one.predicted_costs), rtol=1e-12)
