@@ -130,3 +130,10 @@ def plot(run: InverterRun, path: Path, params: model.InverterParams, title: str 
         ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+
+
+def figure(run: InverterRun, out, name: str, params: model.InverterParams, title: str) -> list[Path]:
+    """``plot`` into ``out / name``; the list of the one path written, as ``App.plot`` returns it."""
+    path = Path(out) / name
+    plot(run, path, params, title)
+    return [path]

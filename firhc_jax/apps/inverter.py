@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import functools
 import math
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -31,7 +30,7 @@ from firhc_jax.models.three_level import MAX_HORIZON as THREE_LEVEL_MAX_HORIZON
 
 from . import inverter_three_level
 from ._args import number
-from ._inverter import InverterRun, distortion, plot, spectrum, waveform_metrics  # noqa: F401  importable here
+from ._inverter import InverterRun, distortion, figure, plot, spectrum, waveform_metrics  # noqa: F401  importable here
 from ._limits import exhaustive_run
 from ._run import App
 from ._timing import timed_closed_loop
@@ -169,12 +168,10 @@ class Inverter(App):
                          args.levels)
 
     def plot(self, args, run: InverterRun, summary: dict) -> list:
-        figure = Path(args.out) / f"inverter_N{args.horizon}_{args.solver}.png"
-        plot(run, figure, model.InverterParams(),
-             title=f"Inverter FIRHC, N = {args.horizon}, {args.solver}, $\\lambda_u$ = {_lambda_u(args):g} A$^2$: "
-                   f"rms error {summary['rms_tracking_error']:.3f} A, "
-                   f"{summary['switching_frequency_hz'] / 1e3:.2f} kHz per leg")
-        return [figure]
+        return figure(run, args.out, f"inverter_N{args.horizon}_{args.solver}.png", model.InverterParams(),
+                      f"Inverter FIRHC, N = {args.horizon}, {args.solver}, $\\lambda_u$ = {_lambda_u(args):g} A$^2$: "
+                      f"rms error {summary['rms_tracking_error']:.3f} A, "
+                      f"{summary['switching_frequency_hz'] / 1e3:.2f} kHz per leg")
 
     def report(self, args, summary: dict) -> str:
         return (f"inverter N={args.horizon} {args.solver} lambda_u={_lambda_u(args):g}: rms tracking error "

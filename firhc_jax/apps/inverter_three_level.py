@@ -17,7 +17,6 @@ timed, and writes into ``--out``:
 from __future__ import annotations
 
 import functools
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -27,7 +26,7 @@ import firhc_jax as fj
 from firhc_jax.models import inverter as two_level
 from firhc_jax.models import three_level
 
-from ._inverter import InverterRun, plot, waveform_metrics
+from ._inverter import InverterRun, figure, waveform_metrics
 from ._run import App
 from ._timing import timed_closed_loop
 
@@ -109,13 +108,6 @@ class ThreeLevel(App):
     def summarize(self, args, run: InverterRun) -> dict:
         return summarize(run, args.horizon, _lambda_u(args))
 
-    def plot(self, args, run: InverterRun, summary: dict) -> list:
-        figure = Path(args.out) / f"inverter3_N{args.horizon}.png"
-        plot(run, figure, three_level.PARAMS,
-             title=f"Three-level inverter, LinearTracking, N = {args.horizon}, $\\lambda_u$ = {_lambda_u(args):g} "
-                   f"A$^2$: {summary['switching_frequency_hz'] / 1e3:.2f} kHz per leg")
-        return [figure]
-
     def report(self, args, summary: dict) -> str:
         return (f"inverter --levels 3 N={args.horizon} lambda_u={_lambda_u(args):g}: THD {summary['thd'] * 100:.2f} %, "
                 f"switching {summary['switching_frequency_hz']:.0f} Hz per leg, rms error "
@@ -123,5 +115,9 @@ class ThreeLevel(App):
                 f"{summary['nodes_max']:,} max, {summary['solve_time_median_s'] * 1e3:.3f} ms median / "
                 f"{summary['solve_time_max_s'] * 1e3:.2f} ms max")
 
+    def plot(self, args, run: InverterRun, summary: dict) -> list:
+        return figure(run, args.out, f"inverter3_N{args.horizon}.png", three_level.PARAMS,
+                      f"Three-level inverter, LinearTracking, N = {args.horizon}, $\\lambda_u$ = {_lambda_u(args):g} "
+                      f"A$^2$: {summary['switching_frequency_hz'] / 1e3:.2f} kHz per leg")
 
 APP = ThreeLevel()

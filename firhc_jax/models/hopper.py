@@ -466,7 +466,7 @@ def desired_energy(T_hop: float, T_air: float, params: HopperParams) -> Gait:
 
 
 # ---------------------------------------------------------------------------
-# FIRHC on valve b (Sec. IV.1): problem, bound, controller, sampled plant
+# FIRHC on valve b (Sec. IV.1): problem, bound, the closed loop's pieces, sampled plant
 # ---------------------------------------------------------------------------
 
 T_HOP, T_AIR = 0.4, 0.2  # s, gait specification (paper)
@@ -478,7 +478,7 @@ VALVE_B = (-0.01, 0.0, 0.01)  # u: exhaust, closed, supply (the paper's scaling)
 ENERGY_TOL = 0.02  # J, terminal constraint |E(k+N) - E_d| <= tol
 A_DEADBAND = 0.01  # relative: side a charges below (1 - 1%) of the reference pressure
 SUBSTEPS = int(round(CONTROL_PERIOD / PLANT_DT))  # plant steps per control period
-IN_FLIGHT = 2.0  # model state's airborne flag for a decision taken in flight (see ``problem``)
+IN_FLIGHT = 2.0  # model state's airborne flag for a decision taken in flight (see ``make_problem``)
 OPEN_COST = BETA * min(u * u for u in VALVE_B if u != 0)  # cost of one period with valve b open (0.001)
 PASSIVE_DRIFT = 1e-6  # J, allowance per closed period for the RK4 drift of the conserved E - E_d (seen: <= 1e-10)
 A_IDLE_MARGIN = 1e-6  # relative margin on side a's threshold for "its law never fires below this node"

@@ -34,14 +34,13 @@ MAX_HORIZON = 30  # the command line's limit; N = 15 already takes about a secon
 
 @dataclasses.dataclass(frozen=True)
 class ThreeLevelParams(InverterParams):
-    """The two-level inverter's fields with the benchmark's values (SI units)."""
+    """The two-level inverter's fields with the benchmark's circuit and reference (SI units; the same sampling
+    time and frequency)."""
 
     vdc: float = 400.0  # V, dc-link voltage
     r: float = 2.0  # ohm, load resistance per phase
     l: float = 2e-3  # noqa: E741  H, load inductance per phase
-    ts: float = 25e-6  # s, sampling time T_s (40 kHz)
     amplitude: float = 20.0  # A, peak of the sinusoidal phase current reference
-    frequency: float = 50.0  # Hz, reference frequency
 
 
 PARAMS = ThreeLevelParams()
