@@ -24,6 +24,7 @@ import numpy as np
 
 import firhc_jax as fj
 from firhc_jax.models import tanks as model
+from firhc_jax.solvers import SOLVERS, options_help
 
 from ._args import number
 from ._limits import exhaustive_run
@@ -164,8 +165,8 @@ class Tanks(App):
     def add_arguments(self, p) -> None:
         p.add_argument("--horizon", "-N", type=number(int, 1, MAX_HORIZON), default=4,
                        help="prediction horizon N (default 4; paper: 3-6)")
-        p.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs",
-                       help="search (default sdfs); exhaustive visits 17+...+17^N nodes per step")
+        p.add_argument("--solver", choices=tuple(SOLVERS), default="sdfs",
+                       help=f"search (default sdfs): {options_help()}; exhaustive visits 17+...+17^N nodes per step")
         p.add_argument("--seconds", type=number(float, 0, low_open=True, high=MAX_SECONDS), default=200.0,
                        help=f"simulated time in s, rounded down to whole 2 s samples (default 200, at most "
                             f"{MAX_SECONDS:g})")
