@@ -278,6 +278,33 @@ def test_one_compiled_loop_decides_for_every_tracker_of_equal_shapes(seed):
         assert same_cost(float(run_b.predicted_costs[k]), float(own.predicted_costs[k])), k
 
 
+@settings(SETTINGS, max_examples=3)
+@given(st.integers(0, 2**32 - 1))
+def test_rows_of_different_trackers_in_one_batch(seed):
+    """fj.solve_batch on lt.shared_problem with each row's params from another tracker (its own Q and
+    lambda_u, stacked): row b is the brute-force minimum of tracker b's J."""
+    case = Case("mimo", True, seed)
+    rng = np.random.default_rng(seed)
+    weights, trackers, rows = [], [], []
+    for _ in range(3):
+        root = rng.normal(size=(2, 2))
+        case.Q, case.lambda_u = root.T @ root, float(rng.uniform(0, 2))
+        weights.append((case.Q, case.lambda_u))
+        trackers.append(case.tracker())
+        rows.append((rng.normal(size=case.x.shape), case.controls[rng.integers(27)], rng.normal(size=case.y_ref.shape)))
+    X, U, Y = (np.stack(a) for a in zip(*rows, strict=True))
+    params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *(t.params(y, with_model=True)
+                                                              for t, y in zip(trackers, Y, strict=True)))
+    out = fj.solve_batch(trackers[0].shared_problem, jax.vmap(trackers[0].observe)(X, U), params=params)
+    for b in range(3):
+        (case.Q, case.lambda_u), case.x, case.u_prev, case.y_ref = weights[b], X[b], U[b], Y[b]
+        case.d = np.zeros_like(case.d)
+        best = case.brute_force()
+        assert same_cost(float(out.cost[b]), best) and bool(out.feasible[b]) == np.isfinite(best), b
+        if np.isfinite(best):
+            assert same_cost(best_starting_with(case, out.first_input[b]), best), b
+
+
 def test_float32_search_stays_float32_and_exact_to_its_precision():
     case = Case("mimo", False, 11)
     lt = case.tracker()
