@@ -89,8 +89,8 @@ from .sdfs import DEFAULT_MAX_MEMORY, node_budget, sdfs
 # ---------------------------------------------------------------------------
 
 class Node(NamedTuple):
-    """A node of the search: the class of inputs of equal effect that the step into it applied, the plant
-    state it reached and what is left of the class's members.
+    """A node of the search: the plant state that a class of inputs of equal effect reached, the class's
+    members with the cheapest switching that ends on each, the step's stage cost and the bound.
 
     ``o[e]`` is the cheapest switching of the steps so far that ends on member e, less that of the cheapest
     member (whose cost ``stage`` carries), so o >= 0; -1 marks a member that no allowed switching reaches (a
