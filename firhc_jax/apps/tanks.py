@@ -158,8 +158,7 @@ class TanksRun(NamedTuple):
 class Tanks(App):
     name = "tanks"
     help = "three-tank system, 17 valve/pump modes (paper Sec. IV.2)"
-    description = ("FIRHC closed loop of the three-tank system: from {0.2, 0.18, 0.1} m to "
-                   "{0.3, 0.25, 0.15} m; writes summary.json and a figure.")
+    description = "FIRHC closed loop of the three-tank system from levels {0.2, 0.18, 0.1} m to {0.3, 0.25, 0.15} m."
 
     def add_arguments(self, p) -> None:
         solver_argument(p, "exhaustive visits 17+...+17^N nodes per step")
