@@ -31,12 +31,12 @@ from jax.sharding import Mesh, PartitionSpec
 
 from . import solvers
 from .cache import compiled
-from .checks import as_batch, check_params, check_state
 from .exhaustive import DEFAULT_CHUNK_NODES
-from .problem import Problem, is_tracer, positive_int, refuse_differentiation
+from .checks import search_inputs
+from .problem import Problem, is_tracer, positive_int
 from .result import SearchResult, raise_on_errors
 from .sdfs import DEFAULT_MAX_MEMORY, node_budget
-from .sharding import AXIS, _mesh, default_parts, global_rows, replicated, run_parts
+from .sharding import AXIS, mesh_of, default_parts, global_rows, replicated, run_parts
 
 
 # ---------------------------------------------------------------------------
@@ -180,8 +180,8 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
     Returns a ``SearchResult`` with leading axis B on every field. Un-jitted, a
     negative stage cost in any row raises ``ValueError`` (as ``fj.sdfs``).
     """
-    if not isinstance(problem, Problem):
-        raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
+    X, params = search_inputs(problem, X0, params, batched=True)
+    B, n = X.shape
     table = solvers.get(solver)
     if max_nodes is not None and not table.budgets:
         raise ValueError(f"max_nodes applies to the sDFS solvers; solver={solver!r} always visits the whole tree")
@@ -195,12 +195,7 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
     options.pop("max_memory"), options.pop("max_nodes", None)
     max_memory = positive_int("max_memory", max_memory)
     budget = node_budget(max_nodes)
-    refuse_differentiation(X0, params)
-    X = as_batch(X0)
-    B, n = X.shape
-    params = check_params(params, leading=B)
-    check_state(problem, X[0], params, batched_params=True)
-    mesh = _mesh(devices)
+    mesh = mesh_of(devices)
     traced = any(is_tracer(a) for a in (X, budget, *jax.tree_util.tree_leaves(params)))  # inside a jit
     multi = mesh.is_multi_process and not isinstance(X, jax.core.Tracer)
     if cores is None:

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .cache import cached
-from .problem import Problem, call, is_tracer
+from .problem import Problem, call, is_tracer, refuse_differentiation
 
 def callable_forms(problem: Problem, with_params: bool) -> str:
     """How this problem calls its callables, for error messages."""
@@ -153,6 +153,22 @@ def as_batch(X0, name: str = "X0"):
         if bad.size:
             raise ValueError(f"{name} contains NaN or inf in rows {bad[:10].tolist()}{' ...' if bad.size > 10 else ''}")
     return X
+
+
+def search_inputs(problem: Problem, states, params, batched: bool = False, name: str = "X0"):
+    """The checks every public search starts with, in one order: the problem, no differentiation, the
+    parameters, then the state ``x0`` ``[n]`` (or, ``batched``, the states ``[B, n]`` called ``name``, params
+    with leading axis B) against the callables. Returns ``(states, params)`` as the search takes them."""
+    if not isinstance(problem, Problem):
+        raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
+    refuse_differentiation(states, params)
+    if not batched:
+        params = check_params(params)
+        return check_state(problem, states, params), params
+    X = as_batch(states, name)
+    params = check_params(params, leading=X.shape[0])
+    check_state(problem, X[0], params, batched_params=True)
+    return X, params
 
 
 def check_state(problem: Problem, x0, params=None, batched_params: bool = False) -> jax.Array:

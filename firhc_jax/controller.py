@@ -57,7 +57,7 @@ from .loop import batch_major, ready, run_compiled, run_python, user_plant, warn
 from .problem import Problem, is_tracer, positive_int
 from .progress import Progress
 from .result import SearchResult, raise_on_errors
-from .sharding import _mesh, default_parts, join_rows, split_rows
+from .sharding import mesh_of, default_parts, join_rows, split_rows
 
 class InfeasibleError(RuntimeError):
     """A one-shot decision (``FIRHC.__call__``) found no input to apply."""
@@ -324,7 +324,7 @@ class FIRHC:
         plant, plant_key, default = self._plant(plant)
         check_closed_loop(self.options, plant_key, plant, state.u[0], X0[0], params, default, drop=2)
         traced = any(map(is_tracer, jax.tree_util.tree_leaves((X0, params, u0))))
-        parts = 1 if traced else min(B, default_parts(_mesh(None)))
+        parts = 1 if traced else min(B, default_parts(mesh_of(None)))
         runs = [(ControllerState(*s), x, None if p is None else jax.tree.map(lambda a: np.swapaxes(a, 0, 1), p))
                 for s, x, p in split_rows((tuple(state), X0, params), parts)] if parts > 1 else \
             [(state, X0, None if params is None else jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), params))]

@@ -25,9 +25,9 @@ import jax
 import jax.numpy as jnp
 
 from .cache import cached, compiled
-from .checks import check_params, check_state, cost_dtype
+from .checks import cost_dtype, search_inputs
 from .nodes import best_leaf, expand, no_stats, tally
-from .problem import Problem, positive_int, refuse_differentiation
+from .problem import Problem, positive_int
 from .result import SearchResult, finish, raise_on_errors
 from .sdfs import INT32_MAX, exhaustive_dfs
 
@@ -145,11 +145,7 @@ def exhaustive(problem: Problem, x0, *, params=None, method: str = "levels",
         return exhaustive_dfs(problem, x0, params=params, pop_width=pop_width)
     if method != "levels":
         raise ValueError(f"method must be 'levels' or 'dfs', got {method!r}")
-    if not isinstance(problem, Problem):
-        raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
-    refuse_differentiation(x0, params)
-    params = check_params(params)
-    x0 = check_state(problem, x0, params)
+    x0, params = search_inputs(problem, x0, params)
     if pop_width != 1:
         raise ValueError("pop_width applies to method='dfs'; method='levels' expands whole levels")
     chunk_nodes = positive_int("chunk_nodes", chunk_nodes)  # a plain int: part of the cache key

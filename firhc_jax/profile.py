@@ -23,8 +23,8 @@ from tqdm.auto import tqdm
 
 from .batch import solve_batch
 from .cache import cached
-from .checks import as_batch, check_params, check_state
 from . import solvers
+from .checks import search_inputs
 from .problem import Problem, positive_int
 from .sdfs import INT32_MAX
 
@@ -110,12 +110,8 @@ def profile(problem: Problem, states, params=None, *, pop_widths=POP_WIDTHS, lan
     ``SearchResult``) and ``fastest``: True on exactly one row, the setting
     with the most solves per second.
     """
-    if not isinstance(problem, Problem):
-        raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
-    X = as_batch(states, "states")
+    X, params = search_inputs(problem, states, params, batched=True, name="states")
     S = X.shape[0]
-    params = check_params(params, leading=S)
-    check_state(problem, X[0], params, batched_params=True)
     pop_widths, lanes = _counts("pop_widths", pop_widths), _counts("lanes", lanes)
     repeats = positive_int("repeats", repeats)
     max_exhaustive_nodes = positive_int("max_exhaustive_nodes", max_exhaustive_nodes)

@@ -40,10 +40,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .cache import compiled
-from .checks import as_sequence, check_params, check_state, cost_dtype
+from .checks import as_sequence, cost_dtype, search_inputs
 from . import stack as stacks
 from .nodes import SearchStats, one_child, best_leaf, expand, first_min, no_stats, rollout_cost, tally
-from .problem import Problem, call, is_tracer, positive_int, refuse_differentiation
+from .problem import Problem, call, is_tracer, positive_int
 from .result import SearchResult, finish, raise_on_errors
 from .stack import Popped, Stack
 
@@ -305,15 +305,11 @@ def search(problem: Problem, x0, params, warm_start, max_nodes, *, pop_width: in
 
 
 def _run(problem: Problem, x0, params, warm_start, max_nodes, pop_width, prune, max_memory) -> SearchResult:
-    if not isinstance(problem, Problem):
-        raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
+    x0, params = search_inputs(problem, x0, params)
     pop_width = positive_int("pop_width", pop_width)
-    refuse_differentiation(x0, params)
     if not prune and problem.tree_size() > INT32_MAX:
         raise ValueError(f"exhaustive search of M={problem.num_controls}, N={problem.horizon} has "
                          f"{problem.tree_size():,} nodes, more than the int32 node counter holds")
-    params = check_params(params)
-    x0 = check_state(problem, x0, params)
     check_memory(stack_memory(problem, x0.shape[0], max(x0.dtype.itemsize, 4), pop_width), max_memory,
                  f"the sDFS stack of N={problem.horizon}, M={problem.num_controls}, pop_width={pop_width}")
     ws = as_sequence(warm_start, problem.horizon, problem.num_controls)

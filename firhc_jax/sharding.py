@@ -35,7 +35,7 @@ from jaxlib import xla_client
 AXIS = "rows"
 
 
-def _mesh(devices) -> Mesh:
+def mesh_of(devices) -> Mesh:
     """1-D mesh over ``devices`` (default: every device of the job,
     ``jax.devices()``: the local devices in a single process). Meshes over the
     same devices compare equal, so the compiled batch is reused."""

@@ -14,7 +14,7 @@ import pytest
 import _distributed_worker as worker
 import firhc_jax as fj
 from firhc_jax import distributed
-from firhc_jax.batch import _mesh
+from firhc_jax.sharding import mesh_of
 from firhc_jax.cli import main as cli_main
 from firhc_jax.models.synthetic import benchmark_state
 
@@ -230,8 +230,8 @@ def test_launcher_kills_the_job_when_a_process_fails(tmp_path):
 
 
 def test_default_devices_are_every_device_of_the_job():
-    assert list(_mesh(None).devices.flat) == jax.devices()
-    assert list(_mesh(tuple(jax.devices())).devices.flat) == jax.devices()
+    assert list(mesh_of(None).devices.flat) == jax.devices()
+    assert list(mesh_of(tuple(jax.devices())).devices.flat) == jax.devices()
 
 
 @pytest.mark.parametrize("devices, error, match", [
