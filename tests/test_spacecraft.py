@@ -63,3 +63,18 @@ def test_step_params_broadcast_loops_over_steps():
     np.testing.assert_array_equal(p["fuel"][:, 3], np.arange(4.0))
     with pytest.raises(ValueError, match="inertia must be"):
         sc.step_params(np.ones((4, 2)), np.arange(4.0), 5)
+
+
+def test_closed_loop_with_per_step_params_fuel_weight_steers_firing():
+    """``simulate`` with params of leading axis ``steps``: free fuel fires the thrusters and brings the
+    attitude closer; a fuel weight above any pointing gain never fires, and the attitude drifts freely."""
+    ctrl, plant, steps = fj.FIRHC(PROBLEM), sc.make_plant(), 6
+    x0, inertia = sc.random_loops(1, np.random.default_rng(3), max_angle=15.0, max_rate=0.2)
+    free = ctrl.simulate(x0[0], steps, plant, params=sc.step_params(inertia[0], 0.0, steps))
+    dear = ctrl.simulate(x0[0], steps, plant, params=sc.step_params(inertia[0], 1e6, steps))
+    assert np.abs(np.asarray(free.inputs)).sum() > 0 and not np.asarray(dear.inputs).any()
+    assert sc.pointing_error(np.asarray(free.states[-1])) < sc.pointing_error(np.asarray(dear.states[-1]))
+    coast, step = x0[0], jax.jit(plant)
+    for _ in range(steps):
+        coast = step(coast, jnp.zeros(3), {"inertia": inertia[0], "fuel": 0.0})
+    np.testing.assert_allclose(np.asarray(dear.states[-1]), np.asarray(coast), rtol=1e-12)
