@@ -30,56 +30,19 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
+from . import solvers
 from .cache import compiled
-from .checks import check_params, check_state, strong
+from .checks import as_batch, check_params, check_state
 from .exhaustive import DEFAULT_CHUNK_NODES
-from .exhaustive import memory as exhaustive_memory
-from .pool import pool_memory, pool_row_memory, pool_search
 from .problem import Problem, is_tracer, positive_int, refuse_differentiation
 from .result import SearchResult, raise_on_errors
-from .sdfs import _search as sdfs_search
-from .sdfs import DEFAULT_MAX_MEMORY, node_budget, stack_memory
+from .sdfs import DEFAULT_MAX_MEMORY, node_budget
 from .sharding import AXIS, _mesh, default_parts, global_rows, replicated, run_parts
 
-SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
-DEFAULT_LANES = 64
-
 
 # ---------------------------------------------------------------------------
-# Validation and memory plan.
+# The memory plan.
 # ---------------------------------------------------------------------------
-
-def _check_batch(X0):
-    if isinstance(X0, jax.core.Tracer):
-        X = X0
-    else:
-        try:
-            X = jnp.asarray(strong(X0))
-        except (TypeError, ValueError) as e:
-            raise TypeError(f"X0 must be a numeric array [B, n]: {e}") from None
-    if X.ndim != 2:
-        raise ValueError(f"X0 must be a 2-D batch of states [B, n], got shape {tuple(X.shape)}; "
-                         "for one state use fj.sdfs")
-    if X.shape[0] == 0:
-        raise ValueError("X0 is an empty batch (B = 0)")
-    if not jnp.issubdtype(X.dtype, jnp.floating):
-        raise TypeError(f"X0 must have a floating dtype, got {X.dtype}")
-    if not isinstance(X, jax.core.Tracer):
-        bad = np.flatnonzero(~np.all(np.isfinite(np.asarray(X)), axis=1))
-        if bad.size:
-            raise ValueError(f"X0 contains NaN or inf in rows {bad[:10].tolist()}{' ...' if bad.size > 10 else ''}")
-    return X
-
-
-def row_memory(problem: Problem, n: int, itemsize: int, solver: str, pop_width: int = 1,
-               chunk_nodes: int = DEFAULT_CHUNK_NODES) -> int:
-    """Estimated peak bytes one row needs under the vmapped solvers: the sDFS
-    stack (``fj.sdfs``'s ``stack_memory``) or the exhaustive search's level
-    chunks (``fj.exhaustive``'s ``memory``)."""
-    if solver == "sdfs-vmap":
-        return stack_memory(problem, n, itemsize, pop_width)
-    return exhaustive_memory(problem, n, itemsize, chunk_nodes)
-
 
 def _rows_per_chunk(need: int, batch: int, max_memory: int, what: str) -> int:
     if need > max_memory:
@@ -90,70 +53,57 @@ def _rows_per_chunk(need: int, batch: int, max_memory: int, what: str) -> int:
 
 class _Plan(NamedTuple):
     parts: int  # shares of the rows run at once (firhc_jax.sharding.run_parts)
-    lanes: int | None  # pool slots per device and part (None: no pool)
     rows_per_chunk: int  # rows a device solves at once within a part
+    options: dict  # the solver's options, ``lanes`` resolved for these rows
 
 
-def _plan(problem: Problem, solver: str, n: int, itemsize: int, B: int, devices: int, parts: int, lanes,
-          pop_width: int, chunk_nodes: int, param_bytes: int, max_memory: int) -> _Plan:
+def _plan(problem: Problem, solver: str, options: dict, n: int, itemsize: int, B: int, devices: int, parts: int,
+          param_bytes: int, max_memory: int) -> _Plan:
     """How to run ``B`` rows within ``max_memory`` bytes per device: each of
     the ``parts`` running at once gets an equal share of it; fewer parts when
-    one part's pool (or one row) would not fit its share."""
+    one part's fixed memory (a pool) or one row would not fit its share."""
+    batch_memory = solvers.get(solver).batch_memory
     while True:
         share, part_rows = max_memory // parts, -(-B // parts)
         per_device = -(-part_rows // devices)
-        if solver == "sdfs":
-            slots = min(DEFAULT_LANES, per_device) if lanes is None else lanes
-            fixed = pool_memory(problem, n, itemsize, slots, pop_width, param_bytes)
-            need = fixed + pool_row_memory(problem, n, itemsize, param_bytes)
-        else:
-            slots, fixed = None, 0
-            need = row_memory(problem, n, itemsize, solver, pop_width, chunk_nodes) + param_bytes
-        if need <= share or parts == 1:
+        fixed, per_row = batch_memory(problem, n, itemsize, per_device, param_bytes, **options)
+        if fixed + per_row <= share or parts == 1:
             break
         parts -= 1
+    if "lanes" in options:
+        options = {**options, "lanes": solvers.lanes_for(options["lanes"], per_device)}
     if fixed >= share:
-        raise ValueError(f"the pool of {slots} lanes needs about {fixed:,} bytes, more than "
+        raise ValueError(f"the pool of {options['lanes']} lanes needs about {fixed:,} bytes, more than "
                          f"max_memory={max_memory:,}; lower lanes or pop_width, or raise max_memory")
     what = "one row" if solver == "sdfs" else f"one row of solver={solver!r}"
-    return _Plan(parts, slots, _rows_per_chunk(need - fixed, per_device, share - fixed, what))
+    return _Plan(parts, _rows_per_chunk(per_row, per_device, share - fixed, what), options)
 
 
 # ---------------------------------------------------------------------------
 # The compiled batch.
 # ---------------------------------------------------------------------------
 
-def _per_row(problem: Problem, solver: str, pop_width: int, chunk_nodes: int, budget, budgeted: bool) -> Callable:
-    if solver == "exhaustive":
-        from .exhaustive import exhaustive
-        return lambda a: exhaustive(problem, a[0], params=a[1], chunk_nodes=chunk_nodes)
-    return lambda a: sdfs_search(problem, a[0], a[1], None, budget, pop_width=pop_width, prune=True,
-                                 budgeted=budgeted)
-
-
-def _device_solve(problem: Problem, X, params, budget, solver: str, pop_width: int, chunk_nodes: int,
-                  rows_per_chunk: int, lanes: int, budgeted: bool) -> SearchResult:
+def _device_solve(problem: Problem, X, params, max_nodes, solver: str, rows_per_chunk: int, budgeted: bool,
+                  options: tuple) -> SearchResult:
     """One device's rows ``[B, n]`` (and their ``params``), in chunks of
-    ``rows_per_chunk`` rows: a pool search per chunk (``"sdfs"``) or a vmapped
-    per-row search."""
-    if solver != "sdfs":
-        return jax.lax.map(_per_row(problem, solver, pop_width, chunk_nodes, budget, budgeted), (X, params),
-                           batch_size=rows_per_chunk)
+    ``rows_per_chunk`` rows, each chunk one call of the solver's ``batch``."""
     B, R = X.shape[0], rows_per_chunk
     chunks = -(-B // R)
+    batch = solvers.get(solver).batch
+    budgets = jnp.broadcast_to(max_nodes, (R,))
 
     def split(a):  # [B, ...] -> [chunks, R, ...], padded by repeating the last row
         a = jnp.concatenate([a, jnp.broadcast_to(a[-1], (chunks * R - B,) + a.shape[1:])])
         return a.reshape((chunks, R) + a.shape[1:])
 
-    out = jax.lax.map(lambda a: pool_search(problem, a[1], a[2], jnp.minimum(R, B - a[0] * R), budget, lanes,
-                                             pop_width, budgeted),
+    out = jax.lax.map(lambda a: batch(problem, a[1], a[2], None, budgets, jnp.minimum(R, B - a[0] * R),
+                                      budgeted=budgeted, **dict(options)),
                       (jnp.arange(chunks, dtype=jnp.int32), split(X), jax.tree_util.tree_map(split, params)))
     return jax.tree_util.tree_map(lambda a: a.reshape((chunks * R,) + a.shape[2:])[:B], out)
 
 
-def _solve(problem: Problem, X, params, budget, *, mesh: Mesh, solver: str, pop_width: int, chunk_nodes: int,
-           rows_per_chunk: int, lanes: int, budgeted: bool) -> SearchResult:
+def _solve(problem: Problem, X, params, max_nodes, *, mesh: Mesh, solver: str, rows_per_chunk: int,
+           budgeted: bool, options: tuple) -> SearchResult:
     """``[B, n]`` -> batched ``SearchResult``. The rows (and params) are padded
     to a multiple of the device count (repeating the last row) and split over
     ``mesh``; each device solves its share independently (no communication
@@ -167,11 +117,10 @@ def _solve(problem: Problem, X, params, budget, *, mesh: Mesh, solver: str, pop_
     # check_vma=False: the searches start their loop carries from constants
     # (not device-varying), which the varying-axes check would refuse.
     shard = jax.shard_map(
-        lambda Xs, ps, b: _device_solve(problem, Xs, ps, b, solver, pop_width, chunk_nodes, rows_per_chunk, lanes,
-                                        budgeted),
+        lambda Xs, ps, b: _device_solve(problem, Xs, ps, b, solver, rows_per_chunk, budgeted, options),
         mesh=mesh, in_specs=(PartitionSpec(AXIS), PartitionSpec(AXIS), PartitionSpec()),
         out_specs=PartitionSpec(AXIS), check_vma=False)
-    out = shard(padded(X), jax.tree_util.tree_map(padded, params), budget)
+    out = shard(padded(X), jax.tree_util.tree_map(padded, params), max_nodes)
     return jax.tree_util.tree_map(lambda a: a[:B], out) if pad else out
 
 
@@ -234,22 +183,20 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
     """
     if not isinstance(problem, Problem):
         raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
-    if solver not in SOLVERS:
-        raise ValueError(f"solver must be one of {list(SOLVERS)}, got {solver!r}")
-    pop_width = positive_int("pop_width", pop_width)
-    max_memory = positive_int("max_memory", max_memory)
-    chunk_nodes = positive_int("chunk_nodes", chunk_nodes)
-    if max_nodes is not None and solver == "exhaustive":
-        raise ValueError("max_nodes applies to the sDFS solvers; exhaustive search always visits the whole tree")
-    if pop_width != 1 and solver == "exhaustive":
-        raise ValueError("pop_width applies to the sDFS solvers; solver='exhaustive' expands level by level")
-    if lanes is not None and solver != "sdfs":
+    table = solvers.get(solver)
+    if max_nodes is not None and not table.budgets:
+        raise ValueError(f"max_nodes applies to the sDFS solvers; solver={solver!r} always visits the whole tree")
+    if pop_width != 1 and "method" in table.options:
+        raise ValueError(f"pop_width applies to the sDFS solvers; solver={solver!r} expands level by level")
+    if lanes is not None and "lanes" not in table.options:
         raise ValueError(f"lanes sizes the work pool of solver='sdfs'; solver={solver!r} has no pool")
-    if solver != "exhaustive":
-        chunk_nodes = DEFAULT_CHUNK_NODES  # unused: keep the compiled batch's cache key
+    given = {"pop_width": pop_width, "lanes": lanes, "chunk_nodes": chunk_nodes, "max_memory": max_memory}
+    options = solvers.check_options(solver, {k: v for k, v in given.items() if k in table.options})
+    max_memory = options.pop("max_memory")
+    options.pop("max_nodes", None)
     budget = node_budget(max_nodes)
     refuse_differentiation(X0, params)
-    X = _check_batch(X0)
+    X = as_batch(X0)
     B, n = X.shape
     params = check_params(params, leading=B)
     check_state(problem, X[0], params, batched_params=True)
@@ -265,16 +212,23 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
                              "dispatched at once; inside jax.jit or over several processes pass cores=None")
     item = max(X.dtype.itemsize, 4)  # as fj.sdfs sizes its stack
     param_bytes = sum(a.dtype.itemsize * math.prod(a.shape[1:]) for a in jax.tree_util.tree_leaves(params))
-    lanes = None if lanes is None else positive_int("lanes", lanes)
-    plan = _plan(problem, solver, n, item, B, mesh.devices.size, min(parts, B), lanes, pop_width, chunk_nodes,
-                 param_bytes, max_memory)
+    plan = _plan(problem, solver, options, n, item, B, mesh.devices.size, min(parts, B), param_bytes, max_memory)
     if multi:
         X = global_rows(X, mesh)
         params = jax.tree_util.tree_map(lambda a: global_rows(a, mesh), params)
-    run = compiled(_solve, problem, mesh=mesh, solver=solver, pop_width=pop_width, chunk_nodes=chunk_nodes,
-                   rows_per_chunk=plan.rows_per_chunk, lanes=plan.lanes, budgeted=max_nodes is not None)
+    run = compiled(_solve, problem, mesh=mesh, solver=solver, rows_per_chunk=plan.rows_per_chunk,
+                   budgeted=max_nodes is not None, options=tuple(sorted(plan.options.items())))
     if plan.parts > 1:
         out = run_parts(run, X, params, budget, plan.parts)
     else:
         out = run(X, params, budget)
     return raise_on_errors(replicated(out, mesh) if multi else out)
+
+
+def row_memory(problem: Problem, n: int, itemsize: int, solver: str, pop_width: int = 1,
+               chunk_nodes: int = DEFAULT_CHUNK_NODES) -> int:
+    """Estimated peak bytes one row needs under the vmapped solvers (``"sdfs-vmap"``: the sDFS stack,
+    ``"exhaustive"``: the level chunks)."""
+    options = solvers.check_options(solver, {"pop_width": pop_width} if solver != "exhaustive"
+                                    else {"chunk_nodes": chunk_nodes})
+    return solvers.get(solver).memory(problem, n, itemsize, **options)

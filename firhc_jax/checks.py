@@ -111,6 +111,29 @@ def as_state(x0, name: str = "x0"):
     return x0
 
 
+def as_batch(X0, name: str = "X0"):
+    """``X0`` ``[B, n]`` as a strongly typed floating array of finite states, or a clear error."""
+    if isinstance(X0, jax.core.Tracer):
+        X = X0
+    else:
+        try:
+            X = jnp.asarray(strong(X0))
+        except (TypeError, ValueError) as e:
+            raise TypeError(f"{name} must be a numeric array [B, n]: {e}") from None
+    if X.ndim != 2:
+        raise ValueError(f"{name} must be a 2-D batch of states [B, n], got shape {tuple(X.shape)}; "
+                         "for one state use fj.sdfs")
+    if X.shape[0] == 0:
+        raise ValueError(f"{name} is an empty batch (B = 0)")
+    if not jnp.issubdtype(X.dtype, jnp.floating):
+        raise TypeError(f"{name} must have a floating dtype, got {X.dtype}")
+    if not isinstance(X, jax.core.Tracer):
+        bad = np.flatnonzero(~np.all(np.isfinite(np.asarray(X)), axis=1))
+        if bad.size:
+            raise ValueError(f"{name} contains NaN or inf in rows {bad[:10].tolist()}{' ...' if bad.size > 10 else ''}")
+    return X
+
+
 def check_state(problem: Problem, x0, params=None, batched_params: bool = False) -> jax.Array:
     """Validate ``x0`` (and the callables against it and ``params``) and return
     it as an array. Raises ``ValueError``/``TypeError`` naming the mismatch:
@@ -125,17 +148,24 @@ def check_state(problem: Problem, x0, params=None, batched_params: bool = False)
     return x0
 
 
-def _call_shape(problem, fn, name, signature, with_params, pspec, *args):
+def shape_of(fn, pspec, *args, blame: str, hint: str = ""):
+    """``jax.eval_shape`` of ``fn(*args[, p])``; a failure is raised again as a ``TypeError`` (a type or
+    attribute error) or ``ValueError`` (any other) that starts with ``blame`` and ends with ``hint``."""
     try:
-        return jax.eval_shape(lambda p, *a: call(fn, p, *a), pspec if with_params else None, *args)
+        return jax.eval_shape(lambda p, *a: call(fn, p, *a), pspec, *args)
     except (TypeError, ValueError, KeyError, IndexError, AttributeError) as e:  # name the callable, keep the cause
-        shapes = ", ".join(f"{tuple(a.shape)} {a.dtype}" for a in args)
-        hint = f" (this problem calls {callable_forms(problem, with_params)}"
-        hint += ("" if with_params else "; pass params=... to give the callables a p argument")
-        hint += ("; set step_index=False if they take no step index k)" if problem.step_index else
-                 "; set Problem(..., step_index=True) if they take the step index k)")
-        cls = TypeError if isinstance(e, TypeError) else ValueError
-        raise cls(f"{name}{signature} failed on inputs of shape/dtype ({shapes}): {e}{hint}") from e
+        cls = TypeError if isinstance(e, (TypeError, AttributeError)) else ValueError
+        raise cls(f"{blame}: {type(e).__name__}: {e}{hint}") from e
+
+
+def _call_shape(problem, fn, name, signature, with_params, pspec, *args):
+    shapes = ", ".join(f"{tuple(a.shape)} {a.dtype}" for a in args)
+    hint = f" (this problem calls {callable_forms(problem, with_params)}"
+    hint += ("" if with_params else "; pass params=... to give the callables a p argument")
+    hint += ("; set step_index=False if they take no step index k)" if problem.step_index else
+             "; set Problem(..., step_index=True) if they take the step index k)")
+    return shape_of(fn, pspec if with_params else None, *args,
+                    blame=f"{name}{signature} failed on inputs of shape/dtype ({shapes})", hint=hint)
 
 
 def _check_callables(problem: Problem, x: jax.ShapeDtypeStruct, pspec, with_params: bool):

@@ -38,7 +38,7 @@ from .checks import cost_dtype
 from .nodes import SearchStats, expand, no_stats
 from .problem import Problem
 from .result import SearchResult, finish
-from .sdfs import Incumbent, seed, settle_children, stack_memory
+from .sdfs import seed, settle_children, stack_memory, start_incumbent
 from .stack import Popped, Stack
 
 
@@ -98,7 +98,8 @@ def incumbent(rows: Rows, row):
     return rows.cost.at[row].get(mode="fill", fill_value=jnp.inf)
 
 
-def plan(pool: Pool, rows: Rows, head, n_valid, budget, L: int) -> tuple[Pool, Rows, jax.Array, Plan]:
+def plan(pool: Pool, rows: Rows, head, n_valid, max_nodes, L: int, steal: bool = True
+         ) -> tuple[Pool, Rows, jax.Array, Plan]:
     """Each slot's next nodes: the K next nodes of its deepest live batch. A
     slot with none takes the next row's root (``head``: the first row not yet
     started) or, once every row has started, steals the next node of the
@@ -114,19 +115,21 @@ def plan(pool: Pool, rows: Rows, head, n_valid, budget, L: int) -> tuple[Pool, R
     busy = jnp.any(live, axis=1)
     sharing = jnp.zeros((B + 1,), jnp.int32).at[jnp.where(busy, pool.row, B)].add(1)  # busy slots per row
     nodes = rows.stats.nodes.at[pool.row].get(mode="fill", fill_value=0)  # [S] of each slot's row
+    budget = max_nodes.at[pool.row].get(mode="fill", fill_value=0)  # [S] of each slot's row
     spent = nodes > budget - sharing[pool.row] * L  # [S] the row's budget is out
     rows = rows._replace(cut=rows.cut.at[jnp.where(spent & busy, pool.row, B)].add(1, mode="drop"))
     live = live & ~spent[:, None]
     top = jnp.max(jnp.where(live, depths, -1), axis=1)  # [S] deepest live batch
     free = top < 0
     roomy = nodes <= budget - (sharing[pool.row] + S) * L  # [S] room for every slot on the row
-    stealable = live & roomy[:, None] & (depths < top[:, None])
+    stealable = live & roomy[:, None] & (depths < top[:, None]) & steal
     can = jnp.any(stealable, axis=1)
     ranks = jnp.cumsum(jnp.stack([free, can]), axis=1, dtype=jnp.int32) - 1  # one scan for both
     free_rank, can_rank = ranks[0], ranks[1]
     root = jnp.where(free & (head + free_rank < n_valid), head + free_rank, -1)
     # A row whose seeds (a budgeted search) left too little of its budget never starts.
-    late = (root >= 0) & (rows.stats.nodes.at[root].get(mode="fill", fill_value=0) > budget - L)
+    late = (root >= 0) & (rows.stats.nodes.at[root].get(mode="fill", fill_value=0)
+                          > max_nodes.at[root].get(mode="fill", fill_value=0) - L)
     rows = rows._replace(cut=rows.cut.at[jnp.where(late, root, B)].add(1, mode="drop"))
     root = jnp.where(late, -1, root)
     # Free slots left without a row are thieves; the i-th thief robs the i-th slot that can be robbed.
@@ -208,35 +211,35 @@ def expand_and_store(problem: Problem, pool: Pool, rows: Rows, work: Work, param
     return pool._replace(stack=stack), rows._replace(cost=new_cost, path=path, stats=stats)
 
 
-def pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_width: int,
-                budgeted: bool = False) -> SearchResult:
+def pool_search(problem: Problem, X, params, n_valid, max_nodes, lanes: int, pop_width: int,
+                budgeted: bool = False, warm_start=None, steal: bool = True) -> SearchResult:
     """Exact sDFS of rows ``X[:n_valid]`` of ``[B, n]`` (with ``params[b]``
-    for row b) on a pool of ``lanes`` slots. A row whose node count exceeds
-    ``budget - K M`` is not expanded further (no row starts when that is
-    negative). ``budgeted``: each row first gets ``fj.sdfs``'s seeds
-    (``firhc_jax.sdfs.seed``, vmapped over the rows), within its budget.
-    Returns a batched result."""
+    for row b) on a pool of ``lanes`` slots. ``max_nodes``: ``[]`` or
+    ``[B]``, each row's node budget: a row whose node count exceeds
+    ``max_nodes - K M`` is not expanded further (it never starts when that is
+    negative). ``warm_start`` ``[B, N]`` (optional): each row's candidate
+    sequence, evaluated first as ``fj.sdfs`` does. ``budgeted``: each row
+    first gets ``fj.sdfs``'s seeds (``firhc_jax.sdfs.seed``, vmapped over
+    the rows), within its budget. ``steal``: see ``plan``. Returns a batched
+    result."""
     N, M, K, S = problem.horizon, problem.num_controls, pop_width, lanes
     B = X.shape[0]
     dtype = cost_dtype(problem, X[0], params, batched_params=True)
-    limit = budget - K * M
+    max_nodes = jnp.broadcast_to(jnp.asarray(max_nodes, jnp.int32), (B,))
     one = stacks.init(N + 1, K, M, N, X[0], dtype)
     pool = Pool(stack=jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (S,) + a.shape), one)._replace(
         low=jnp.full((S, N + 1), jnp.inf, dtype)), row=jnp.full((S,), B, jnp.int32))
-    zeros = jnp.zeros((B,), jnp.int32)
-    # A budget below one expansion stops every row before its root, as fj.sdfs stops before an iteration
-    # could take the count above it: no nodes, complete=False.
-    short = limit < 0
-    rows = Rows(cost=jnp.full((B,), jnp.inf, dtype), path=jnp.full((B, N), -1, jnp.int32),
-                stats=jax.vmap(lambda _: no_stats())(zeros), cut=zeros + short)
-    n_valid = jnp.where(short, 0, n_valid)
+    # A budget below one expansion stops its row before the root, as fj.sdfs stops before an iteration could
+    # take the count above it: no nodes, complete=False.
+    cut = (max_nodes < K * M).astype(jnp.int32)
+    start = jax.vmap(lambda x, p, w, b: start_incumbent(problem, x, p, w, b, dtype),
+                     in_axes=(0, 0, None if warm_start is None else 0, 0))(X, params, warm_start, max_nodes)
     if budgeted:
-        start = Incumbent(rows.cost[0], rows.path[0], no_stats())
-        seeds = jax.vmap(lambda x, p: seed(problem, x, p, start, budget, pop_width=K))(X, params)
-        rows = rows._replace(cost=seeds.cost, path=seeds.path, stats=seeds.stats)
+        start = jax.vmap(lambda x, p, s, b: seed(problem, x, p, s, b, pop_width=K))(X, params, start, max_nodes)
+    rows = Rows(cost=start.cost, path=start.path, stats=start.stats, cut=cut)
 
     def next_work(pool, rows, head):
-        pool, rows, head, todo = plan(pool, rows, head, n_valid, budget, K * M)
+        pool, rows, head, todo = plan(pool, rows, head, n_valid, max_nodes, K * M, steal)
         pool, work = take(pool, todo, X, K)
         return pool, rows, head, work
 
@@ -245,7 +248,10 @@ def pool_search(problem: Problem, X, params, n_valid, budget, lanes: int, pop_wi
         pool, rows = expand_and_store(problem, pool, rows, work, params)
         return next_work(pool, rows, head)
 
+    def more(carry):  # a slot has work, or rows are left to start (every free slot may have drawn a late row)
+        return jnp.any(carry[3].depth >= 0) | (carry[2] < n_valid)
+
     carry = next_work(pool, rows, jnp.array(0, jnp.int32))
-    _, rows, _, _ = jax.lax.while_loop(lambda c: jnp.any(c[3].depth >= 0), body, carry)
+    _, rows, _, _ = jax.lax.while_loop(more, body, carry)
     return jax.vmap(lambda c, path, st, cut, x, p: finish(problem, c, path, st, cut == 0, x, p))(
         rows.cost, rows.path, rows.stats, rows.cut, X, params)

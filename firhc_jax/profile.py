@@ -21,9 +21,9 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from .batch import _check_batch, solve_batch
+from .batch import solve_batch
 from .cache import cached
-from .checks import check_params, check_state
+from .checks import as_batch, check_params, check_state
 from .exhaustive import exhaustive
 from .problem import Problem, positive_int
 from .sdfs import sdfs
@@ -101,7 +101,7 @@ def profile(problem: Problem, states, params=None, *, pop_widths=POP_WIDTHS, lan
     """
     if not isinstance(problem, Problem):
         raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
-    X = _check_batch(states)
+    X = as_batch(states, "states")
     S = X.shape[0]
     params = check_params(params, leading=S)
     check_state(problem, X[0], params, batched_params=True)

@@ -275,20 +275,26 @@ def seed(problem: Problem, x0, params, start: Incumbent, budget, *, pop_width: i
     return best
 
 
+def start_incumbent(problem: Problem, x0, params, warm_start, budget, dtype) -> Incumbent:
+    """The first incumbent: none, or the ``warm_start`` sequence ``[N]`` where it is feasible. An all -1
+    warm start is no warm start; one whose N nodes do not fit in the budget is not evaluated."""
+    N, M = problem.horizon, problem.num_controls
+    inf = jnp.array(jnp.inf, dtype)
+    start = Incumbent(inf, jnp.full((N,), -1, jnp.int32), no_stats())
+    if warm_start is None:
+        return start
+    cost, flags = rollout_cost(problem, x0, warm_start, dtype, params)
+    used = jnp.all((warm_start >= 0) & (warm_start < M)) & (N <= budget)
+    cost = jnp.where(used, cost, inf)
+    return Incumbent(cost, jnp.where(cost < inf, warm_start, start.path),
+                     no_stats(jnp.where(used, N, 0), jnp.where(used, flags, 0)))
+
+
 def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int, prune: bool,
             budgeted: bool = False) -> SearchResult:
     N, M, K = problem.horizon, problem.num_controls, pop_width
     L = K * M
-    dtype = cost_dtype(problem, x0, params)
-    inf = jnp.array(jnp.inf, dtype)
-    start = Incumbent(inf, jnp.full((N,), -1, jnp.int32), no_stats())
-    if warm_start is not None:
-        cost, flags = rollout_cost(problem, x0, warm_start, dtype, params)
-        # An all -1 warm start is no warm start; one whose N nodes do not fit in the budget is not evaluated.
-        used = jnp.all((warm_start >= 0) & (warm_start < M)) & (N <= budget)
-        cost = jnp.where(used, cost, inf)
-        start = Incumbent(cost, jnp.where(cost < inf, warm_start, start.path),
-                          no_stats(jnp.where(used, N, 0), jnp.where(used, flags, 0)))
+    start = start_incumbent(problem, x0, params, warm_start, budget, cost_dtype(problem, x0, params))
     if budgeted:
         start = seed(problem, x0, params, start, budget, pop_width=K)
     # An iteration computes at most L children.

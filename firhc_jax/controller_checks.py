@@ -1,0 +1,135 @@
+"""Checks of a controller's decision and closed loop, and what it says when no input was found.
+
+They run once per argument signature (shapes, dtypes, parameter structure),
+before anything is compiled or while ``jax.jit`` traces, on abstract values
+(``jax.eval_shape``); each failure names the callable or argument at fault.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import solvers
+from .checks import check_state, shape_of
+from .problem import Problem, input_dtype, is_tracer
+
+_DEFAULT_PLANT_HINT = ("; the default plant is the model's dynamics, which with observe set runs on model states: "
+                       "pass plant= with the plant's own dynamics")
+
+
+def as_inputs(problem: Problem, name: str, value, leading: tuple = (), concrete: bool = False):
+    """``value`` as searched inputs ``leading + [m]`` of the problem's input dtype, finite (default, None:
+    zeros), or a clear error. One input ``[m]`` is repeated over ``leading``; a traced one is taken as it is
+    unless ``concrete`` (compiled in as a constant)."""
+    m, dtype = problem.input_dim, input_dtype(problem)
+    if value is None:
+        return np.zeros(leading + (m,), dtype)
+    if is_tracer(value):
+        if concrete:
+            raise TypeError(f"{name} must be concrete, not a traced array (it is compiled in as a constant)")
+        if value.shape != (m,):
+            raise ValueError(f"{name} must be one input of shape ({m},), got {value.shape}")
+        return value.astype(dtype)
+    try:
+        a = np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{name} must be one input of shape ({m},): {e}") from None
+    if a.shape != (m,) and a.shape != leading + (m,):
+        also = f" (every loop) or {leading + (m,)} (one per loop)" if leading else ""
+        raise ValueError(f"{name} must be one input of shape ({m},){also}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or inf: {a}")
+    return np.broadcast_to(a, leading + (m,)).copy() if a.shape != leading + (m,) else a
+
+
+def sample_times(dt, steps: int):
+    """``[T+1]`` seconds of each state (None without ``dt``)."""
+    if dt is None:
+        return None
+    if isinstance(dt, (bool, np.bool_)) or not isinstance(dt, (int, float, np.integer, np.floating)) \
+            or not np.isfinite(dt) or dt <= 0:
+        raise ValueError(f"dt must be a finite positive number of seconds, got {dt!r}")
+    return np.arange(steps + 1) * float(dt)
+
+
+def check_search(opts, x, pspec) -> None:
+    """The problems (main and fallback) on the model state ``x`` and the solver's memory."""
+    for problem in (opts.problem, opts.fallback):
+        if isinstance(problem, Problem):
+            check_state(problem, np.zeros(x.shape, x.dtype), pspec)
+    solvers.check_memory(opts.solver, opts.solver_options, opts.problem, x.shape[0], max(x.dtype.itemsize, 4))
+
+
+def check_decision(opts, u, plan, x, pspec):
+    """A decision's argument shapes, ``observe``, the problems on the model state, the solver's memory and
+    ``actuate``; returns the plant input's shape and dtype."""
+    N, m = opts.problem.horizon, opts.problem.input_dim
+    if u.shape != (m,) or plan.shape != (N,) or not jnp.issubdtype(plan.dtype, jnp.integer):
+        raise ValueError(f"state does not belong to this controller: u {u.shape}, plan {plan.shape} "
+                         f"{plan.dtype}, expected u ({m},) and plan ({N},) int32; make it with ctrl.init")
+    if len(x.shape) != 1 or not jnp.issubdtype(x.dtype, jnp.floating):
+        raise TypeError(f"x must be a 1-D real floating state [n], got shape {x.shape} dtype {x.dtype}")
+    if pspec is not None:
+        for path, leaf in jax.tree_util.tree_flatten_with_path(pspec)[0]:
+            if jnp.dtype(leaf.dtype).kind not in "biuf":
+                raise TypeError(f"params leaf {jax.tree_util.keystr(path)} must be a real numeric or boolean "
+                                f"array, got dtype {leaf.dtype}")
+    xm = shape_of(opts.observe, pspec, x, u, blame="observe(x, u_prev[, p]) failed on the closed loop's shapes") \
+        if opts.observe else x
+    if not isinstance(xm, jax.ShapeDtypeStruct):
+        raise TypeError(f"observe must return one array (the model state), got {type(xm).__name__}")
+    check_search(opts, xm, pspec)
+    up = shape_of(opts.actuate, pspec, x, u, blame="actuate(x, u[, p]) failed on the closed loop's shapes") \
+        if opts.actuate else u
+    if not isinstance(up, jax.ShapeDtypeStruct):
+        raise TypeError(f"actuate must return one array (the plant input), got {type(up).__name__}")
+    return up
+
+
+def check_loop(opts, plant, u, plan, x, pspec, default_plant: bool) -> None:
+    """The decision's checks, then (for a traced loop, ``plant`` not None) the plant's, each blamed by name."""
+    try:
+        up = check_decision(opts, u, plan, x, pspec)
+    except (TypeError, ValueError) as e:
+        if default_plant and opts.observe is not None and "x0" in str(e):
+            raise type(e)(f"{e}{_DEFAULT_PLANT_HINT}") from e
+        raise
+    if plant is None:
+        return
+    hint = _DEFAULT_PLANT_HINT if default_plant else ""
+    out = shape_of(plant, pspec, x, up, blame="plant(x, u[, p]) failed on the closed loop's shapes", hint=hint)
+    if not isinstance(out, jax.ShapeDtypeStruct) or out.shape != x.shape or out.dtype != x.dtype:
+        desc = f"shape {tuple(out.shape)} dtype {out.dtype}" if isinstance(out, jax.ShapeDtypeStruct) \
+            else type(out).__name__
+        raise TypeError(f"plant(x, u[, p]) must return the next plant state, shape {tuple(x.shape)} dtype "
+                        f"{x.dtype} like x0; got {desc}"
+                        + ("; the default plant is the model's dynamics: with observe set, pass plant="
+                           if default_plant and opts.observe is not None else ""))
+
+
+def no_input_message(opts, info) -> str:
+    """Why a decision found no input, in the problem's own terms."""
+    p, r, N = opts.problem, info.result, opts.problem.horizon
+    if np.asarray(r.feasible):  # held although a sequence was found: its input is not finite
+        return (f"first_input_of returned a non-finite input {np.asarray(r.first_input).tolist()} for the "
+                f"optimal sequence {np.asarray(r.sequence).tolist()}; a controller never applies it")
+    if not np.asarray(info.complete):
+        return (f"no input found: the search stopped at max_nodes={opts.solver_options.get('max_nodes')} "
+                f"(the whole decision's budget) before it reached a complete input sequence of length {N}; "
+                "raise max_nodes")
+    needs = ["a finite cost"]
+    if p.terminal is not None:
+        needs.append("the terminal constraint met")
+    if getattr(p, "constraint", None) is not None:
+        needs.append("every constraint satisfied")
+    msg = f"no input sequence of length {N} with {' and '.join(needs)} was found from this state"
+    if np.asarray(info.used_fallback):
+        msg += "; the fallback search found none either"
+    if np.asarray(r.overflow):
+        msg += " (the accumulated cost overflowed: scale the cost down or use float64)"
+    if np.asarray(r.nan_encountered):
+        msg += " (non-finite states or NaN costs were met and discarded: check the state and the parameters)"
+    if p.terminal is not None and opts.fallback is None:
+        msg += "; use fallback='unconstrained' or relax the terminal constraint"
+    return msg

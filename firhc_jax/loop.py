@@ -1,0 +1,175 @@
+"""The closed-loop runner: a decision function and a plant, driven for T steps.
+
+``decide(state, x, p) -> (u, state, StepInfo)`` and ``plant(x, u, p) -> x``
+are pure functions; for a batch of loops both take and return arrays with a
+leading axis B (the runner does not care). ``run_compiled`` drives them as
+one compiled ``lax.scan`` (or, with a progress bar, as one compiled chunk of
+steps dispatched again and again from Python, the bar moved between chunks:
+a host callback inside the scan costs more than cheap steps,
+docs/xla_notes.md). ``run_python`` drives an already compiled decision from a
+Python loop, timing each decision, for plants that cannot be traced. Both
+return a time-major ``ClosedLoop`` (``states`` ``[T+1, ...]``).
+
+The compiled functions are cached under the caller's ``key``: equal keys
+must mean equal ``decide`` and ``plant``.
+"""
+from __future__ import annotations
+
+import functools
+import time
+import warnings
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .cache import cached
+from .closed_loop import ClosedLoop
+from .decision import StepInfo
+from .problem import call, is_tracer
+from .progress import due, interval, tick_python
+
+
+def run_compiled(decide: Callable, plant: Callable, state, x0, params, steps: int, *, key, progress: bool,
+                 ticks_per_step: int = 1) -> ClosedLoop:
+    """``steps`` steps as compiled scans; ``params`` leaves ``[steps, ...]`` (row k: step k).
+    With ``progress`` the bar moves by ``ticks_per_step`` per step done (a batch counts its loops)."""
+    if not progress:
+        run = cached(("closed loop", key, steps), lambda: jax.jit(lambda s, x, p: _with_x0(
+            x, _scan(decide, plant, (s, x), p, 0, steps)[1], jnp.full((steps,) + _batch(x), jnp.nan))))
+        return run(state, x0, params)
+    length = interval(steps)
+    chunks = -(-steps // length)
+    if params is not None and chunks * length > steps:  # the last chunk's extra steps repeat the last row
+        pad = chunks * length - steps
+        params = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, 0)]), params)
+    run = cached(("closed loop chunk", key, length),
+                 lambda: jax.jit(lambda c, p, start: _scan(decide, plant, c, p, start, length)))
+    carry, recs, last = (state, x0), [], None
+    for start in range(0, steps, length):
+        carry, rec = run(carry, params, np.int32(start))
+        recs.append(rec)
+        if last is not None:  # the chunk before this one is done (or nearly): move the bar
+            _report(*last)
+        last = (min(start + length, steps) - 1) * ticks_per_step + ticks_per_step - 1, carry[1]
+    _report(*last)
+    join = cached(("closed loop join", steps, length), lambda: jax.jit(functools.partial(_join, steps=steps)))
+    return join(x0, recs)
+
+
+def _batch(x) -> tuple:
+    """The leading batch axes of a state ``[n]`` or ``[B, n]``."""
+    return tuple(np.shape(x)[:-1])
+
+
+def _scan(decide, plant, carry, params, start, length):
+    """Steps ``start`` .. ``start + length - 1`` (parameter rows ``start`` ..): ``(carry, ClosedLoop)``
+    whose ``states`` are the states after each step (only what a ``ClosedLoop`` keeps is stacked: each
+    stacked output costs time per step)."""
+    def body(carry, p):
+        # Barriers keep the decision and the plant apart, as in a user's loop of the compiled step and a
+        # jitted plant: XLA fuses (and rounds) each the same way there and here.
+        state, x = jax.lax.optimization_barrier(carry)
+        u, state, info = decide(state, x, p)
+        x_next = plant(*jax.lax.optimization_barrier((x, u)), p)
+        return (state, x_next), (x_next, u, _kept(info))
+
+    rows = None if params is None else jax.tree.map(lambda a: jax.lax.dynamic_slice_in_dim(a, start, length),
+                                                     params)
+    carry, (xs, us, info) = jax.lax.scan(body, carry, rows, length=length)
+    return carry, closed_loop(xs, us, info, None)
+
+
+def run_python(decide: Callable, plant: Callable, state, x0, params, steps: int, *, progress: bool) -> ClosedLoop:
+    """``steps`` steps of the compiled ``decide`` from Python, each decision timed (``solve_times``);
+    ``plant`` is called as it is (jit it, or each of its operations is one eager dispatch a step)."""
+    x = x0
+    host = None if params is None else jax.tree.map(np.asarray, params)  # rows as views: no dispatch each
+    rows = [None if host is None else jax.tree.map(lambda a, k=k: a[k, ...], host) for k in range(steps)]
+    decide(state, x, rows[0])  # compiles the decision for these shapes, so that solve_times never count it
+    records, times = [], []
+    for k in range(steps):
+        t0 = time.perf_counter()
+        u, state, info = jax.block_until_ready(decide(state, x, rows[k]))
+        times.append(time.perf_counter() - t0)
+        x_next = plant(x, u, rows[k])
+        if not hasattr(x_next, "shape") or tuple(np.shape(x_next)) != x.shape:
+            raise TypeError(f"plant(x, u[, p]) must return the next plant state of shape {tuple(x.shape)} "
+                            f"like x0, got {type(x_next).__name__} of shape {np.shape(x_next)} at step {k}")
+        x = x_next if _ready(x_next) and x_next.dtype == x.dtype else np.asarray(x_next, x.dtype)
+        records.append((x, u, _kept(info)))  # each field is read back to the host once
+        if progress and due(k, steps):
+            tick_python(k)
+    # Stacked on the host, one device array per field: an eager jnp.stack of T arrays compiles a
+    # T-operand concatenation per field on a run's first call.
+    stacked = jax.tree.map(lambda *a: jnp.asarray(np.stack(a)), *records)
+    return _with_x0(x0, closed_loop(*stacked, None), jnp.asarray(times))
+
+
+def warn_held(held, decisions: int, u_safe: bool) -> None:
+    """A ``RuntimeWarning`` after a run with held steps."""
+    if is_tracer(held):
+        return
+    where = np.argwhere(np.asarray(held))
+    if where.size:
+        what = "u_safe" if u_safe else "the input applied last"
+        first = where[0].tolist()
+        at = f"step {first[0]}" if len(first) == 1 else f"loop {first[0]}, step {first[1]}"
+        warnings.warn(f"closed loop: no feasible input sequence found (or its first input was not finite) "
+                      f"at {len(where)} of {decisions} steps (first: {at}); {what} was held there, flagged in "
+                      "ClosedLoop.held", RuntimeWarning, stacklevel=3)
+
+
+def user_plant(plant: Callable) -> Callable:
+    """``plant(x, u[, p])`` as the runner calls it, ``(x, u, p)``."""
+    return lambda x, u, p: call(plant, p, x, u)
+
+
+def _ready(a) -> bool:
+    """An argument a compiled function takes as it is: a real NumPy array, or a JAX array (or tracer)
+    without weak type (a weakly typed one would compile a second function for the same shapes)."""
+    if type(a) is np.ndarray:
+        return a.dtype.kind in "biuf"
+    return isinstance(a, jax.Array) and not a.weak_type
+
+
+def _kept(info: StepInfo) -> StepInfo:
+    """The parts of a ``StepInfo`` a ``ClosedLoop`` keeps (the rest is not stacked)."""
+    return info._replace(result=info.result._replace(
+        first_input=None, nodes=None, feasible=None, iterations=None, negative_cost=None, nan_encountered=None,
+        overflow=None, complete=None))
+
+
+def _report(tick: int, x) -> None:
+    """Move the bar to ``tick`` once the chunk that computed ``x`` is done."""
+    if not is_tracer(x):
+        jax.block_until_ready(x)
+    tick_python(tick)
+
+
+def _join(x0, chunks, steps: int) -> ClosedLoop:
+    """The run of ``steps`` steps from the ``ClosedLoop`` of each chunk (one compiled call: eager
+    concatenations of many arrays cost more than the chunks' own dispatch)."""
+    loop = jax.tree.map(lambda *a: jnp.concatenate(a)[:steps], *chunks)
+    return _with_x0(x0, loop, jnp.full((steps,) + _batch(x0), jnp.nan))
+
+
+def _with_x0(x0, loop: ClosedLoop, times) -> ClosedLoop:
+    """``loop`` with ``x0`` before its states and these ``solve_times``."""
+    return loop._replace(states=jnp.concatenate([jnp.asarray(x0)[None], loop.states]), solve_times=times)
+
+
+def closed_loop(xs, us, info: StepInfo, times) -> ClosedLoop:
+    """The ``ClosedLoop`` of stacked steps ``[T, ...]``, ``states`` the states after each step (``x0`` not
+    included)."""
+    plans = jnp.where(info.held[..., None], -1, info.result.sequence)  # -1 where held, found or not
+    return ClosedLoop(states=xs, inputs=us, input_indices=plans[..., 0], stage_costs=info.stage_cost,
+                      predicted_costs=info.result.cost, nodes=info.nodes, fallback_nodes=info.fallback_nodes,
+                      feasible=info.feasible, used_fallback=info.used_fallback, complete=info.complete,
+                      held=info.held, plans=plans, solve_times=times)
+
+
+def batch_major(loop: ClosedLoop) -> ClosedLoop:
+    """A time-major run of B loops (``[T, B, ...]`` fields) with loop first: ``[B, T, ...]``."""
+    return jax.tree.map(lambda a: jnp.moveaxis(a, 0, 1), loop)
