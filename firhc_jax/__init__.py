@@ -28,7 +28,8 @@ from . import diagnostics
 from .cache import cache_info, clear_cache, set_cache_size
 from .closed_loop import ClosedLoop
 from .compilation_cache import enable_compilation_cache
-from .controller import FIRHC, ControllerState, InfeasibleError, StepInfo
+from .controller import FIRHC, InfeasibleError
+from .decision import ControllerState, StepInfo
 from .diagnostics import check_lower_bound, check_problem
 from .exhaustive import exhaustive
 from .linear import (discretize, horizon_windows, input_change_cost, linear_dynamics, product_controls,

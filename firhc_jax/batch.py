@@ -23,11 +23,10 @@ fit on its own is refused before anything is compiled. Where the rows run
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
 from . import solvers

@@ -38,11 +38,12 @@ def strong(a):
     return a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False)
 
 
-def check_params(params, leading: int | None = None, what: str = "params", axis: str = "B"):
+def check_params(params, leading: int | tuple | None = None, what: str = "params", axis: str = "B"):
     """``params`` with every leaf an array without weak type (``strong``; tracers stay), or a clear error.
 
-    Leaves must be real numeric or boolean arrays; with ``leading`` each must
-    have that leading axis (one entry per row or per step). Concrete leaves
+    Leaves must be real numeric or boolean arrays; with ``leading`` (an int,
+    or a tuple of them) each must have those leading axes (one entry per row,
+    per step, or per loop and step). Concrete leaves
     with NaN are refused (a NaN parameter would silently make states
     infeasible). Values and dtypes are kept (JAX's own canonicalisation aside:
     without x64, 64-bit arrays become 32-bit, as everywhere in JAX).
@@ -66,19 +67,22 @@ def check_params(params, leading: int | None = None, what: str = "params", axis:
             if kind == "f" and not np.all(np.isfinite(np.asarray(arr))):
                 raise ValueError(f"{name} contains NaN or inf")
             a = strong(arr)
-        if leading is not None and (a.ndim == 0 or a.shape[0] != leading):
+        if isinstance(leading, tuple) and tuple(a.shape[:len(leading)]) != leading:
+            raise ValueError(f"{name} must have leading axes {axis} = {list(leading)}, got shape {tuple(a.shape)}")
+        if isinstance(leading, int) and (a.ndim == 0 or a.shape[0] != leading):
             raise ValueError(f"{name} must have leading axis {axis} = {leading}, got shape {tuple(a.shape)}")
         out.append(a)
     return jax.tree_util.tree_unflatten(treedef, out)
 
 
-def params_spec(params, drop_leading: bool = False):
-    """Abstract shapes of ``params`` (one row of it with ``drop_leading``): a
+def params_spec(params, drop_leading: bool | int = False):
+    """Abstract shapes of ``params`` (one row of it with ``drop_leading``, or
+    without that many leading axes): a
     hashable cache key and the argument for ``jax.eval_shape``."""
     if params is None:
         return None, None
     leaves, treedef = jax.tree_util.tree_flatten(params)
-    specs = [jax.ShapeDtypeStruct(a.shape[1:] if drop_leading else a.shape, a.dtype) for a in leaves]
+    specs = [jax.ShapeDtypeStruct(a.shape[int(drop_leading):], a.dtype) for a in leaves]
     key = (treedef, tuple((s.shape, jnp.dtype(s.dtype)) for s in specs))
     return key, jax.tree_util.tree_unflatten(treedef, specs)
 

@@ -47,20 +47,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import solvers
 from .cache import cached
-from .checks import as_batch, as_state, check_params, params_spec
+from .checks import as_batch, as_state, check_params
 from .closed_loop import ClosedLoop
-from .decision import ControllerState, StepInfo, decide, decide_rows, solve
-from .controller_checks import (as_inputs, check_decision, check_loop, check_search, no_input_message,
-                                sample_times)
-from .loop import _ready, batch_major, run_compiled, run_python, user_plant, warn_held
+from .decision import ControllerState, decide, decide_rows
+from .controller_checks import (as_inputs, as_previous, check_closed_loop, controller_options, decide_checked,
+                                no_input_message, sample_times, solve_checked)
+from .loop import ready, batch_major, run_compiled, run_python, user_plant, warn_held
 from .problem import Problem, is_tracer, positive_int
 from .progress import Progress
 from .result import SearchResult, raise_on_errors
-
-__all__ = ["FIRHC", "Options", "ControllerState", "StepInfo", "InfeasibleError"]
-
 
 class InfeasibleError(RuntimeError):
     """A one-shot decision (``FIRHC.__call__``) found no input to apply."""
@@ -154,26 +150,8 @@ class FIRHC:
     def __init__(self, problem: Problem, solver: str = "sdfs", *, fallback=None,
                  warm_start=False, observe: Optional[Callable] = None, actuate: Optional[Callable] = None,
                  u_safe=None, **solver_options):
-        if not isinstance(problem, Problem):
-            raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
-        table = solvers.get(solver)
-        options = solvers.check_options(solver, solver_options)
-        if isinstance(fallback, Problem):
-            if (fallback.horizon, fallback.num_controls) != (problem.horizon, problem.num_controls):
-                raise ValueError(f"a fallback Problem needs the problem's horizon and inputs (N={problem.horizon}, "
-                                 f"M={problem.num_controls}), got N={fallback.horizon}, M={fallback.num_controls}")
-        elif fallback not in (None, "unconstrained"):
-            raise ValueError(f"fallback must be None, 'unconstrained' or a Problem, got {fallback!r}")
-        if not isinstance(warm_start, bool) and not callable(warm_start):
-            raise TypeError(f"warm_start must be a bool or a callable (problem, x, previous, params) -> [N], "
-                            f"got {type(warm_start).__name__}")
-        if warm_start is not False and not table.warm_starts:
-            raise ValueError(f"warm_start applies to the sDFS solvers, not solver={solver!r}")
-        for name, fn in (("observe", observe), ("actuate", actuate)):
-            if fn is not None and not callable(fn):
-                raise TypeError(f"{name} must be callable or None, got {type(fn).__name__}")
-        u_safe = None if u_safe is None else as_inputs(problem, "u_safe", u_safe, concrete=True)
-        self.options = Options(problem, solver, options, fallback, warm_start, observe, actuate, u_safe)
+        self.options = Options(**controller_options(problem, solver, fallback, warm_start, observe, actuate,
+                                                    u_safe, solver_options))
 
     problem = property(lambda self: self.options.problem)
     solver = property(lambda self: self.options.solver)
@@ -194,7 +172,8 @@ class FIRHC:
         checked by the first ``step`` (they need the parameters' shapes).
         """
         as_state(x0)
-        return ControllerState(u=as_inputs(self.problem, "u0", u0), plan=np.full((self.problem.horizon,), -1, np.int32))
+        u0 = as_inputs(self.problem, "u0", u0)
+        return ControllerState(u=u0, plan=np.full((self.problem.horizon,), -1, np.int32))
 
     def step(self, state: ControllerState, x, params=None):
         """One decision at plant state ``x``: ``(u, state, info)``.
@@ -220,15 +199,15 @@ class FIRHC:
         if type(state) is not ControllerState:
             raise TypeError(f"state must be the ControllerState from ctrl.init or ctrl.step, got "
                             f"{type(state).__name__}")
-        if not _ready(x):
+        if not ready(x):
             x = as_state(x, "x")
-        if params is not None and not all(map(_ready, jax.tree_util.tree_leaves(params))):
+        if params is not None and not all(map(ready, jax.tree_util.tree_leaves(params))):
             params = check_params(params)
         return self._decide()(state, x, params)
 
     def _decide(self) -> Callable:
         """The jitted decision of this controller's key (checked while traced: once per signature)."""
-        return cached(("step", self.options.key), lambda: jax.jit(functools.partial(_checked_decide, self.options)))
+        return cached(("step", self.options.key), lambda: jax.jit(functools.partial(decide_checked, self.options)))
 
     def __call__(self, x, params=None, *, u_prev=None):
         """One-shot decision at plant state ``x``: ``(u, info)``.
@@ -263,16 +242,8 @@ class FIRHC:
         False and ``result.first_input`` NaN.
         """
         x, params = as_state(x, "x"), check_params(params)
-        prev = None
-        if self.warm_start and previous_sequence is not None:
-            prev = np.asarray(previous_sequence)
-            N, M = self.problem.horizon, self.problem.num_controls
-            if prev.shape != (N,) or prev.dtype.kind not in "iu" or not (
-                    np.all((prev >= 0) & (prev < M)) or np.all(prev == -1)):
-                raise ValueError(f"previous_sequence must be [N] = [{N}] indices in [0, {M}) (or all -1), "
-                                 f"got {prev.tolist()}")
-            prev = prev.astype(np.int32)
-        fn = cached(("solve", self.options.key), lambda: jax.jit(functools.partial(_checked_solve, self.options)))
+        prev = as_previous(self.problem, previous_sequence) if self.warm_start else None
+        fn = cached(("solve", self.options.key), lambda: jax.jit(functools.partial(solve_checked, self.options)))
         result, used = fn(x, params, prev)
         return raise_on_errors(result), used
 
@@ -308,8 +279,8 @@ class FIRHC:
         state = self.init(x0, u0)
         times = sample_times(dt, steps)
         plant, plant_key, default = self._plant(plant)
-        self._check_loop(plant_key if compiled else False, plant if compiled else None, state.u, x0, params,
-                         default, drop=1)
+        check_closed_loop(self.options, plant_key if compiled else False, plant if compiled else None, state.u, x0,
+                          params, default, drop=1)
         with Progress(steps, f"FIRHC[{self.solver}]", enabled=progress):
             if compiled:
                 out = run_compiled(functools.partial(decide, self.options), user_plant(plant), state, x0, params,
@@ -344,15 +315,12 @@ class FIRHC:
         steps = positive_int("steps", steps)
         X0 = as_batch(X0)
         B = X0.shape[0]
-        params = check_params(params, leading=B, axis="B (loops)")
-        for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0] if params is not None else ():
-            if leaf.ndim < 2 or leaf.shape[1] != steps:
-                raise ValueError(f"params leaf {jax.tree_util.keystr(path)} must be [B, steps, ...] = "
-                                 f"[{B}, {steps}, ...], got shape {tuple(leaf.shape)}")
-        state = ControllerState(u=as_inputs(self.problem, "u0", u0, (B,)), plan=np.full((B, self.problem.horizon), -1, np.int32))
+        params = check_params(params, leading=(B, steps), axis="[B (loops), steps]")
+        u0 = as_inputs(self.problem, "u0", u0, (B,))
+        state = ControllerState(u=u0, plan=np.full((B, self.problem.horizon), -1, np.int32))
         times = sample_times(dt, steps)
         plant, plant_key, default = self._plant(plant)
-        self._check_loop(plant_key, plant, state.u[0], X0[0], params, default, drop=2)
+        check_closed_loop(self.options, plant_key, plant, state.u[0], X0[0], params, default, drop=2)
         rows = jax.vmap(user_plant(plant))
         with Progress(B * steps, f"FIRHC[{self.solver}] x {B} loops", enabled=progress):
             out = run_compiled(functools.partial(decide_rows, self.options), rows, state, X0,
@@ -371,31 +339,3 @@ class FIRHC:
         if not callable(plant):
             raise TypeError(f"plant must be callable, got {type(plant).__name__}")
         return plant, plant, False
-
-    def _check_loop(self, plant_key, plant, u, x0, params, default: bool, drop: int) -> None:
-        """The closed loop's checks, once per signature (``drop``: the leading axes of ``params``)."""
-        pkey, pspec = params_spec(params, drop_leading=True)
-        if drop == 2 and pspec is not None:
-            pkey, pspec = params_spec(jax.tree.map(lambda a: a[0], pspec), drop_leading=True)
-        spec = lambda a: jax.ShapeDtypeStruct(np.shape(a), a.dtype)  # noqa: E731
-        plan = jax.ShapeDtypeStruct((self.problem.horizon,), np.int32)
-        cached(("closed-loop check", self.options.key, plant_key, spec(x0), spec(u), pkey),
-               lambda: check_loop(self.options, plant, spec(u), plan, spec(x0), pspec, default))
-
-
-def _checked_decide(opts: Options, state: ControllerState, x, p):
-    """``decide`` after the abstract checks (run while jit traces: once per argument signature)."""
-    pkey, pspec = params_spec(p)
-    spec = lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype)  # noqa: E731
-    cached(("step check", opts.key, spec(state.u), spec(state.plan), spec(x), pkey),
-           lambda: check_decision(opts, spec(state.u), spec(state.plan), spec(x), pspec))
-    return decide(opts, state, x, p)
-
-
-def _checked_solve(opts: Options, x, params, previous):
-    """``solve`` after the checks of its searches (once per argument signature)."""
-    pkey, pspec = params_spec(params)
-    cached(("solve check", opts.key, x.shape, jnp.dtype(x.dtype), pkey),
-           lambda: check_search(opts, jax.ShapeDtypeStruct(x.shape, x.dtype), pspec))
-    result, _, used = solve(opts, x, params, previous)
-    return result, used

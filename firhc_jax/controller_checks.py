@@ -11,7 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import solvers
-from .checks import check_state, shape_of
+from .cache import cached
+from .decision import decide, solve
+from .checks import check_state, params_spec, shape_of
 from .problem import Problem, input_dtype, is_tracer
 
 _DEFAULT_PLANT_HINT = ("; the default plant is the model's dynamics, which with observe set runs on model states: "
@@ -51,6 +53,44 @@ def sample_times(dt, steps: int):
             or not np.isfinite(dt) or dt <= 0:
         raise ValueError(f"dt must be a finite positive number of seconds, got {dt!r}")
     return np.arange(steps + 1) * float(dt)
+
+
+def controller_options(problem, solver, fallback, warm_start, observe, actuate, u_safe, solver_options) -> dict:
+    """``FIRHC``'s arguments, checked: the fields of its ``Options``."""
+    if not isinstance(problem, Problem):
+        raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
+    table = solvers.get(solver)
+    options = solvers.check_options(solver, solver_options)
+    if isinstance(fallback, Problem):
+        if (fallback.horizon, fallback.num_controls) != (problem.horizon, problem.num_controls):
+            raise ValueError(f"a fallback Problem needs the problem's horizon and inputs (N={problem.horizon}, "
+                             f"M={problem.num_controls}), got N={fallback.horizon}, M={fallback.num_controls}")
+    elif fallback not in (None, "unconstrained"):
+        raise ValueError(f"fallback must be None, 'unconstrained' or a Problem, got {fallback!r}")
+    if not isinstance(warm_start, bool) and not callable(warm_start):
+        raise TypeError(f"warm_start must be a bool or a callable (problem, x, previous, params) -> [N], "
+                        f"got {type(warm_start).__name__}")
+    if warm_start is not False and not table.warm_starts:
+        raise ValueError(f"warm_start applies to the sDFS solvers, not solver={solver!r}")
+    for name, fn in (("observe", observe), ("actuate", actuate)):
+        if fn is not None and not callable(fn):
+            raise TypeError(f"{name} must be callable or None, got {type(fn).__name__}")
+    u_safe = None if u_safe is None else as_inputs(problem, "u_safe", u_safe, concrete=True)
+    return dict(problem=problem, solver=solver, solver_options=options, fallback=fallback, warm_start=warm_start,
+                observe=observe, actuate=actuate, u_safe=u_safe)
+
+
+def as_previous(problem: Problem, previous_sequence):
+    """``previous_sequence`` ``[N]`` as int32 indices into the controls (all -1: none), or None."""
+    if previous_sequence is None:
+        return None
+    prev = np.asarray(previous_sequence)
+    N, M = problem.horizon, problem.num_controls
+    if prev.shape != (N,) or prev.dtype.kind not in "iu" or not (
+            np.all((prev >= 0) & (prev < M)) or np.all(prev == -1)):
+        raise ValueError(f"previous_sequence must be [N] = [{N}] indices in [0, {M}) (or all -1), "
+                         f"got {prev.tolist()}")
+    return prev.astype(np.int32)
 
 
 def check_search(opts, x, pspec) -> None:
@@ -133,3 +173,30 @@ def no_input_message(opts, info) -> str:
     if p.terminal is not None and opts.fallback is None:
         msg += "; use fallback='unconstrained' or relax the terminal constraint"
     return msg
+
+
+def check_closed_loop(opts, plant_key, plant, u, x0, params, default: bool, drop: int) -> None:
+    """The closed loop's checks, once per signature (``drop``: the leading axes of ``params``)."""
+    pkey, pspec = params_spec(params, drop_leading=drop)
+    spec = lambda a: jax.ShapeDtypeStruct(np.shape(a), a.dtype)  # noqa: E731
+    plan = jax.ShapeDtypeStruct((opts.problem.horizon,), np.int32)
+    cached(("closed-loop check", opts.key, plant_key, spec(x0), spec(u), pkey),
+           lambda: check_loop(opts, plant, spec(u), plan, spec(x0), pspec, default))
+
+
+def decide_checked(opts, state, x, p):
+    """``decide`` after the abstract checks (run while jit traces: once per argument signature)."""
+    pkey, pspec = params_spec(p)
+    spec = lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype)  # noqa: E731
+    cached(("step check", opts.key, spec(state.u), spec(state.plan), spec(x), pkey),
+           lambda: check_decision(opts, spec(state.u), spec(state.plan), spec(x), pspec))
+    return decide(opts, state, x, p)
+
+
+def solve_checked(opts, x, params, previous):
+    """``solve`` after the checks of its searches (once per argument signature)."""
+    pkey, pspec = params_spec(params)
+    cached(("solve check", opts.key, x.shape, jnp.dtype(x.dtype), pkey),
+           lambda: check_search(opts, jax.ShapeDtypeStruct(x.shape, x.dtype), pspec))
+    result, _, used = solve(opts, x, params, previous)
+    return result, used

@@ -91,13 +91,13 @@ def run_python(decide: Callable, plant: Callable, state, x0, params, steps: int,
     records, times = [], []
     for k in range(steps):
         t0 = time.perf_counter()
-        u, state, info = jax.block_until_ready(decide(state, x, rows[k]))
+        u, state, info = jax.block_untilready(decide(state, x, rows[k]))
         times.append(time.perf_counter() - t0)
         x_next = plant(x, u, rows[k])
         if not hasattr(x_next, "shape") or tuple(np.shape(x_next)) != x.shape:
             raise TypeError(f"plant(x, u[, p]) must return the next plant state of shape {tuple(x.shape)} "
                             f"like x0, got {type(x_next).__name__} of shape {np.shape(x_next)} at step {k}")
-        x = x_next if _ready(x_next) and x_next.dtype == x.dtype else np.asarray(x_next, x.dtype)
+        x = x_next if ready(x_next) and x_next.dtype == x.dtype else np.asarray(x_next, x.dtype)
         records.append((x, u, _kept(info)))  # each field is read back to the host once
         if progress and due(k, steps):
             tick_python(k)
@@ -126,7 +126,7 @@ def user_plant(plant: Callable) -> Callable:
     return lambda x, u, p: call(plant, p, x, u)
 
 
-def _ready(a) -> bool:
+def ready(a) -> bool:
     """An argument a compiled function takes as it is: a real NumPy array, or a JAX array (or tracer)
     without weak type (a weakly typed one would compile a second function for the same shapes)."""
     if type(a) is np.ndarray:
@@ -144,7 +144,7 @@ def _kept(info: StepInfo) -> StepInfo:
 def _report(tick: int, x) -> None:
     """Move the bar to ``tick`` once the chunk that computed ``x`` is done."""
     if not is_tracer(x):
-        jax.block_until_ready(x)
+        jax.block_untilready(x)
     tick_python(tick)
 
 

@@ -292,8 +292,8 @@ def start_incumbent(problem: Problem, x0, params, warm_start, budget, dtype) -> 
 
 def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int, prune: bool,
             budgeted: bool = False) -> SearchResult:
-    N, M, K = problem.horizon, problem.num_controls, pop_width
-    L = K * M
+    K = pop_width
+    L = K * problem.num_controls
     start = start_incumbent(problem, x0, params, warm_start, budget, cost_dtype(problem, x0, params))
     if budgeted:
         start = seed(problem, x0, params, start, budget, pop_width=K)

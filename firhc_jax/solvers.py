@@ -46,7 +46,7 @@ class Solver(NamedTuple):
     batch: Callable[..., SearchResult]  # rows: (problem, X [R, n], params, warm_start, max_nodes [R], n_valid, ...)
     options: Mapping[str, Any]  # every option it takes, with its default (None: chosen per call)
     memory: Callable[..., int]  # (problem, n, itemsize, **options) -> bytes of one search
-    batch_memory: Callable[..., tuple[int, int]]  # (problem, n, itemsize, rows, param_bytes, **options) -> (fixed, per row)
+    batch_memory: Callable[..., tuple[int, int]]  # (problem, n, itemsize, rows, param_bytes, **opts) -> bytes
     budgets: bool  # takes max_nodes
     warm_starts: bool  # takes a warm start
     doc: str  # one line for tables and --help
