@@ -9,8 +9,9 @@ swept over the loops from 0 to ``--fuel-max`` deg^2 per firing. The params
 leaves are ``[B, steps, ...]``. The controller is ``fj.FIRHC(problem)`` and the
 plant the finer RK4 integration of the same equations (``make_plant``).
 
-Ways of batching, each timed after a warm-up call that compiles it, the best
-of ``--repeats`` calls (``block_until_ready``):
+Ways of batching, each called once to compile it, then timed in
+``--repeats`` rounds over all of them (``block_until_ready``; a noisy
+neighbour hits every way alike), the best round of each:
 
 (a) a Python loop of ``ctrl.simulate``, one loop at a time, timed on
     ``--python-loops`` loops spread over the fuel sweep and scaled to loops/s;
@@ -18,8 +19,8 @@ of ``--repeats`` calls (``block_until_ready``):
     for many states (one execution: a vmapped while loop runs every lane until
     the slowest lane's search ends);
 (c) ``jax.jit(lax.scan over fj.solve_batch)``: one execution (inside ``jit``
-    ``solve_batch`` runs one part), at each of ``--lanes``; and the best lanes
-    again with the loops split into one part per core, each part's jitted scan
+    ``solve_batch`` runs one part), at each of ``--lanes``; and each again
+    with the loops split into one part per core, each part's jitted scan
     dispatched on its own execution stream without waiting (what
     ``solve_batch`` itself does outside ``jit``);
 (d) ``ctrl.simulate_batch(X0, steps, plant, params=...)``.
@@ -47,19 +48,6 @@ from jaxlib import xla_client
 import firhc_jax as fj
 from firhc_jax.models import spacecraft as sc
 from firhc_jax.sharding import usable_cores
-
-
-def best_of(fn, repeats: int):
-    """``(best seconds, first-call seconds, result)``: the first call compiles, then ``repeats`` timed calls."""
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    best, out = np.inf, None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn())
-        best = min(best, time.perf_counter() - t0)
-    return best, first, out
 
 
 def vmap_of_step(ctrl, plant, steps):
@@ -120,7 +108,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--horizon", type=int, default=3)
     ap.add_argument("--python-loops", type=int, default=32, help="loops of (a), spread over the sweep")
-    ap.add_argument("--lanes", type=int, nargs="+", default=[16, 32, 64], help="pool slots tried in (c)")
+    ap.add_argument("--lanes", type=int, nargs="+", default=[16, 32], help="pool slots tried in (c)")
     ap.add_argument("--fuel-max", type=float, default=20.0, help="deg^2 per firing, the last loop's weight")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--check", type=int, default=8, help="decisions of (d) solved again by fj.exhaustive")
@@ -143,45 +131,48 @@ def main() -> None:
     print(f"# spacecraft Monte Carlo: {B} loops x {T} steps, N = {N}, M = 27, fuel 0..{args.fuel_max:g} deg^2; "
           f"float64; jax {jax.__version__}; {platform.machine()}, {parts} usable cores; best of {args.repeats}")
 
-    rows = []  # (way, seconds per loop, compile seconds, note)
     sub = np.unique(np.linspace(0, B - 1, min(args.python_loops, B)).round().astype(int))
 
     def python_loop():
         return [ctrl.simulate(X0[b], T, plant, params=jax.tree.map(lambda a, b=b: a[b], P)) for b in sub]
 
-    t, first, runs_a = best_of(python_loop, args.repeats)
-    rows.append(("(a) Python loop of ctrl.simulate", t / len(sub), first - t,
-                 f"{len(sub)} loops timed, scaled"))
-
-    t, first, (costs_b, inputs_b) = best_of(lambda: vmap_of_step(ctrl, plant, T)(X0, P), args.repeats)
-    rows.append(("(b) jit(vmap(scan(ctrl.step)))", t / B, first - t, "one execution"))
-
-    best_c = None
+    step_vmapped = vmap_of_step(ctrl, plant, T)
+    ways = {"(a) Python loop of ctrl.simulate": (python_loop, len(sub), f"{len(sub)} loops timed, scaled"),
+            "(b) jit(vmap(scan(ctrl.step)))": (lambda: step_vmapped(X0, P), B, "one execution")}
     for lanes in args.lanes:
         run = scan_of_solve_batch(problem, plant, lanes)
-        t, first, out = best_of(lambda run=run: run(X0, P), args.repeats)
-        rows.append((f"(c) jit(scan(solve_batch)), lanes={lanes}", t / B, first - t, "one execution"))
-        if best_c is None or t < best_c[0]:
-            best_c = (t, lanes, run, out)
-    costs_c, inputs_c = best_c[3]
-    t, first, _ = best_of(lambda: on_every_core(best_c[2], X0, P, parts), args.repeats)
-    rows.append((f"(c) the same, lanes={best_c[1]}, {parts} parts on their own streams", t / B, first - t,
-                 "one execution per core"))
+        ways[f"(c) jit(scan(solve_batch)), lanes={lanes}"] = (lambda run=run: run(X0, P), B, "one execution")
+        ways[f"(c) the same, lanes={lanes}, {parts} parts on their own streams"] = (
+            lambda run=run: on_every_core(run, X0, P, parts), B, "one execution per core")
+    ways["(d) ctrl.simulate_batch"] = (lambda: ctrl.simulate_batch(X0, T, plant, params=P), B, "default options")
+    first, best, out = {}, dict.fromkeys(ways, np.inf), {}
+    for name, (fn, _, _) in ways.items():  # the first call compiles
+        t0 = time.perf_counter()
+        out[name] = jax.block_until_ready(fn())
+        first[name] = time.perf_counter() - t0
+    for _ in range(args.repeats):  # rounds over every way, so that a noisy neighbour hits them alike
+        for name, (fn, _, _) in ways.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            best[name] = min(best[name], time.perf_counter() - t0)
 
-    t, first, run_d = best_of(lambda: ctrl.simulate_batch(X0, T, plant, params=P), args.repeats)
-    rows.append(("(d) ctrl.simulate_batch", t / B, first - t, "default options"))
-
-    d_per_loop = rows[-1][1]
+    d_name = "(d) ctrl.simulate_batch"
+    rate = {name: loops / best[name] for name, (_, loops, _) in ways.items()}
     print("\n| way | loops/s | ratio to (d) | first call - best (s) | note |\n|---|---|---|---|---|")
-    for way, per_loop, compile_s, note in rows:
-        print(f"| {way} | {1.0 / per_loop:,.1f} | {d_per_loop / per_loop:.2f} | {compile_s:.1f} | {note} |")
+    for name, (_, _, note) in ways.items():
+        print(f"| {name} | {rate[name]:,.1f} | {rate[name] / rate[d_name]:.2f} | {first[name] - best[name]:.1f} | "
+              f"{note} |")
 
+    runs_a, run_d = out["(a) Python loop of ctrl.simulate"], out[d_name]
+    costs_b, inputs_b = out["(b) jit(vmap(scan(ctrl.step)))"]
+    lanes = max(args.lanes, key=lambda lanes: rate[f"(c) jit(scan(solve_batch)), lanes={lanes}"])
+    costs_c, inputs_c = out[f"(c) jit(scan(solve_batch)), lanes={lanes}"]
     ref_costs, ref_inputs = np.asarray(run_d.predicted_costs), np.asarray(run_d.inputs)
     print()
     print(compare("(a) against (d)", np.stack([r.predicted_costs for r in runs_a]),
                   np.stack([r.inputs for r in runs_a]), ref_costs[sub], ref_inputs[sub]))
     print(compare("(b) against (d)", costs_b, inputs_b, ref_costs, ref_inputs))
-    print(compare(f"(c) lanes={best_c[1]} against (d)", costs_c, inputs_c, ref_costs, ref_inputs))
+    print(compare(f"(c) lanes={lanes} against (d)", costs_c, inputs_c, ref_costs, ref_inputs))
     picks = rng.choice(B * T, size=min(args.check, B * T), replace=False)
     worst = 0.0
     for b, k in zip(*np.unravel_index(picks, (B, T)), strict=True):
