@@ -53,10 +53,11 @@ from .closed_loop import ClosedLoop
 from .decision import ControllerState, decide, decide_rows
 from .controller_checks import (as_inputs, as_previous, check_closed_loop, controller_options, decide_checked,
                                 no_input_message, sample_times, solve_checked)
-from .loop import ready, batch_major, run_compiled, run_python, user_plant, warn_held
+from .loop import batch_major, ready, run_compiled, run_python, user_plant, warn_held
 from .problem import Problem, is_tracer, positive_int
 from .progress import Progress
 from .result import SearchResult, raise_on_errors
+from .sharding import _mesh, default_parts, join_rows, split_rows
 
 class InfeasibleError(RuntimeError):
     """A one-shot decision (``FIRHC.__call__``) found no input to apply."""
@@ -283,8 +284,8 @@ class FIRHC:
                           params, default, drop=1)
         with Progress(steps, f"FIRHC[{self.solver}]", enabled=progress):
             if compiled:
-                out = run_compiled(functools.partial(decide, self.options), user_plant(plant), state, x0, params,
-                                   steps, key=(self.options.key, plant_key), progress=progress)
+                out, = run_compiled(functools.partial(decide, self.options), user_plant(plant), [(state, x0, params)],
+                                    steps, key=(self.options.key, plant_key), progress=progress)
             else:
                 out = run_python(self._decide(), user_plant(plant), state, x0, params, steps, progress=progress)
         warn_held(out.held, steps, self.u_safe is not None)
@@ -321,13 +322,16 @@ class FIRHC:
         times = sample_times(dt, steps)
         plant, plant_key, default = self._plant(plant)
         check_closed_loop(self.options, plant_key, plant, state.u[0], X0[0], params, default, drop=2)
-        rows = jax.vmap(user_plant(plant))
+        traced = any(map(is_tracer, jax.tree_util.tree_leaves((X0, params, u0))))
+        parts = 1 if traced else min(B, default_parts(_mesh(None)))
+        runs = [(ControllerState(*s), x, None if p is None else jax.tree.map(lambda a: np.swapaxes(a, 0, 1), p))
+                for s, x, p in split_rows((tuple(state), X0, params), parts)] if parts > 1 else \
+            [(state, X0, None if params is None else jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), params))]
         with Progress(B * steps, f"FIRHC[{self.solver}] x {B} loops", enabled=progress):
-            out = run_compiled(functools.partial(decide_rows, self.options), rows, state, X0,
-                               None if params is None else jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), params),
-                               steps, key=("batch", self.options.key, plant_key), progress=progress,
-                               ticks_per_step=B)
-        out = batch_major(out)
+            outs = run_compiled(functools.partial(decide_rows, self.options), jax.vmap(user_plant(plant)), runs, steps,
+                                key=("batch", self.options.key, plant_key), progress=progress,
+                                ticks_per_step=B)
+        out = join_rows([batch_major(o) for o in outs], B) if parts > 1 else batch_major(outs[0])
         warn_held(out.held, steps * B, self.u_safe is not None)
         return out._replace(times=times)
 

@@ -29,33 +29,49 @@ from .closed_loop import ClosedLoop
 from .decision import StepInfo
 from .problem import call, is_tracer
 from .progress import due, interval, tick_python
+from .sharding import on_stream
 
 
-def run_compiled(decide: Callable, plant: Callable, state, x0, params, steps: int, *, key, progress: bool,
-                 ticks_per_step: int = 1) -> ClosedLoop:
-    """``steps`` steps as compiled scans; ``params`` leaves ``[steps, ...]`` (row k: step k).
-    With ``progress`` the bar moves by ``ticks_per_step`` per step done (a batch counts its loops)."""
+def run_compiled(decide: Callable, plant: Callable, runs: list, steps: int, *, key, progress: bool,
+                 ticks_per_step: int = 1) -> list[ClosedLoop]:
+    """``steps`` steps of each run ``(state, x0, params)`` in ``runs`` (``params`` leaves ``[steps, ...]``,
+    row k: step k) as compiled scans, one ``ClosedLoop`` each. Several runs (parts of a batch of loops) are
+    dispatched each on its own execution stream, so they run side by side on the CPU's cores
+    (``firhc_jax.sharding``). With ``progress`` the bar moves by ``ticks_per_step`` per step done."""
     if not progress:
         run = cached(("closed loop", key, steps), lambda: jax.jit(lambda s, x, p: _with_x0(
             x, _scan(decide, plant, (s, x), p, 0, steps)[1], jnp.full((steps,) + _batch(x), jnp.nan))))
-        return run(state, x0, params)
+        return [_dispatch(i, len(runs), run, *r) for i, r in enumerate(runs)]
     length = interval(steps)
     chunks = -(-steps // length)
-    if params is not None and chunks * length > steps:  # the last chunk's extra steps repeat the last row
-        pad = chunks * length - steps
-        params = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, 0)]), params)
+
+    def padded(params):  # the last chunk's extra steps repeat the last row
+        if params is None or chunks * length == steps:
+            return params
+        return jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], chunks * length - steps, 0)]), params)
+
     run = cached(("closed loop chunk", key, length),
                  lambda: jax.jit(lambda c, p, start: _scan(decide, plant, c, p, start, length)))
-    carry, recs, last = (state, x0), [], None
+    carries, params = [(s, x) for s, x, _ in runs], [padded(p) for _, _, p in runs]
+    recs, last = [[] for _ in runs], None
     for start in range(0, steps, length):
-        carry, rec = run(carry, params, np.int32(start))
-        recs.append(rec)
+        for i, (carry, p) in enumerate(zip(carries, params, strict=True)):
+            carries[i], rec = _dispatch(i, len(runs), run, carry, p, np.int32(start))
+            recs[i].append(rec)
         if last is not None:  # the chunk before this one is done (or nearly): move the bar
             _report(*last)
-        last = (min(start + length, steps) - 1) * ticks_per_step + ticks_per_step - 1, carry[1]
+        last = min(start + length, steps) * ticks_per_step - 1, [c[1] for c in carries]
     _report(*last)
     join = cached(("closed loop join", steps, length), lambda: jax.jit(functools.partial(_join, steps=steps)))
-    return join(x0, recs)
+    return [join(x0, r) for (_, x0, _), r in zip(runs, recs, strict=True)]
+
+
+def _dispatch(i: int, parts: int, fn: Callable, *args):
+    """``fn(*args)``, on execution stream ``i + 1`` when there are several parts."""
+    if parts == 1:
+        return fn(*args)
+    with on_stream(i):
+        return fn(*args)
 
 
 def _batch(x) -> tuple:
@@ -91,7 +107,7 @@ def run_python(decide: Callable, plant: Callable, state, x0, params, steps: int,
     records, times = [], []
     for k in range(steps):
         t0 = time.perf_counter()
-        u, state, info = jax.block_untilready(decide(state, x, rows[k]))
+        u, state, info = jax.block_until_ready(decide(state, x, rows[k]))
         times.append(time.perf_counter() - t0)
         x_next = plant(x, u, rows[k])
         if not hasattr(x_next, "shape") or tuple(np.shape(x_next)) != x.shape:
@@ -144,7 +160,7 @@ def _kept(info: StepInfo) -> StepInfo:
 def _report(tick: int, x) -> None:
     """Move the bar to ``tick`` once the chunk that computed ``x`` is done."""
     if not is_tracer(x):
-        jax.block_untilready(x)
+        jax.block_until_ready(x)
     tick_python(tick)
 
 

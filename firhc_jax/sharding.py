@@ -21,6 +21,7 @@ then the parts are put back in row order (``run_parts``).
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import os
@@ -101,22 +102,40 @@ def default_parts(mesh: Mesh) -> int:
     return max(1, usable_cores() // mesh.devices.size)
 
 
-def run_parts(run, X, params, budget, parts: int):
-    """``run(X, params, budget)`` (a compiled batch, result with leading axis
-    B) on ``parts`` shares of the rows at once: row i goes to part
-    ``i % parts`` (interleaved, so that a run of hard rows is shared out;
-    the last part's missing rows repeat row B - 1), each part is dispatched
-    on its own execution stream without waiting, and the results are put back
-    in row order. One compiled batch serves every part (equal shapes)."""
-    B = X.shape[0]
+def split_rows(trees, parts: int) -> list:
+    """The rows of ``trees`` (leaves ``[B, ...]``, on the host) in ``parts`` shares: row i goes to part
+    ``i % parts`` (interleaved, so that a run of hard rows is shared out; the last part's missing rows repeat
+    row B - 1). ``join_rows`` puts results back in row order."""
+    B = jax.tree_util.tree_leaves(trees)[0].shape[0]
     per_part = -(-B // parts)
     take = np.minimum(np.arange(per_part * parts).reshape(per_part, parts).T, B - 1)  # [parts, per_part] rows
-    X, params = np.asarray(X), jax.tree_util.tree_map(np.asarray, params)
+    host = jax.tree_util.tree_map(np.asarray, trees)
+    return [jax.tree_util.tree_map(lambda a, i=i: a[take[i]], host) for i in range(parts)]
+
+
+def join_rows(outs, rows: int):
+    """The parts' results (``split_rows``) back in row order, ``rows`` of them."""
+    return _interleave(outs, rows)
+
+
+@contextlib.contextmanager
+def on_stream(part: int):
+    """Dispatch on execution stream ``part + 1`` of the devices (a setting of this thread, restored after)."""
+    with xla_client.execution_stream_id(part + 1):
+        yield
+
+
+def run_parts(run, X, params, budget, parts: int):
+    """``run(X, params, budget)`` (a compiled batch, result with leading axis
+    B) on ``parts`` shares of the rows at once (``split_rows``), each part
+    dispatched on its own execution stream without waiting, and the results
+    put back in row order. One compiled batch serves every part (equal
+    shapes)."""
     outs = []
-    for i in range(parts):
-        with xla_client.execution_stream_id(i + 1):
-            outs.append(run(X[take[i]], jax.tree_util.tree_map(lambda a, i=i: a[take[i]], params), budget))
-    return _interleave(outs, B)
+    for i, (Xi, pi) in enumerate(split_rows((X, params), parts)):
+        with on_stream(i):
+            outs.append(run(Xi, pi, budget))
+    return join_rows(outs, X.shape[0])
 
 
 @functools.partial(jax.jit, static_argnames="rows")
