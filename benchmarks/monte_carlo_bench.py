@@ -23,7 +23,8 @@ neighbour hits every way alike), the best round of each:
     with the loops split into one part per core, each part's jitted scan
     dispatched on its own execution stream without waiting (what
     ``solve_batch`` itself does outside ``jit``);
-(d) ``ctrl.simulate_batch(X0, steps, plant, params=...)``.
+(d) ``ctrl.simulate_batch(X0, steps, plant, params=...)``, with the default
+    options and at each of ``--lanes`` (``fj.FIRHC(problem, lanes=...)``).
 
 Then the decisions are compared: the predicted cost of every loop and step of
 (a), (b) and (c) against (d) (relative difference; a loop whose inputs differ
@@ -145,6 +146,10 @@ def main() -> None:
         ways[f"(c) the same, lanes={lanes}, {parts} parts on their own streams"] = (
             lambda run=run: on_every_core(run, X0, P, parts), B, "one execution per core")
     ways["(d) ctrl.simulate_batch"] = (lambda: ctrl.simulate_batch(X0, T, plant, params=P), B, "default options")
+    for lanes in args.lanes:
+        tuned = fj.FIRHC(problem, lanes=lanes)
+        ways[f"(d) the same, lanes={lanes}"] = (lambda tuned=tuned: tuned.simulate_batch(X0, T, plant, params=P), B,
+                                               f"fj.FIRHC(problem, lanes={lanes})")
     first, best, out = {}, dict.fromkeys(ways, np.inf), {}
     for name, (fn, _, _) in ways.items():  # the first call compiles
         t0 = time.perf_counter()
