@@ -189,10 +189,11 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         raise ValueError(f"pop_width applies to the sDFS solvers; solver={solver!r} expands level by level")
     if lanes is not None and "lanes" not in table.options:
         raise ValueError(f"lanes sizes the work pool of solver='sdfs'; solver={solver!r} has no pool")
-    given = {"pop_width": pop_width, "lanes": lanes, "chunk_nodes": chunk_nodes, "max_memory": max_memory}
+    given = {"pop_width": positive_int("pop_width", pop_width), "chunk_nodes": positive_int("chunk_nodes", chunk_nodes),
+             "lanes": None if lanes is None else positive_int("lanes", lanes)}
     options = solvers.check_options(solver, {k: v for k, v in given.items() if k in table.options})
-    max_memory = options.pop("max_memory")
-    options.pop("max_nodes", None)
+    options.pop("max_memory"), options.pop("max_nodes", None)
+    max_memory = positive_int("max_memory", max_memory)
     budget = node_budget(max_nodes)
     refuse_differentiation(X0, params)
     X = as_batch(X0)

@@ -29,7 +29,8 @@ _LAYOUT = {"states": ("T+1", 2, "f"), "inputs": ("T", 2, "f"), "input_indices": 
 
 
 class ClosedLoop(NamedTuple):
-    """A closed-loop run of T steps (one ``StepInfo`` per step, stacked)."""
+    """A closed-loop run of T steps (one ``StepInfo`` per step, stacked). A run of B loops
+    (``FIRHC.simulate_batch``) has a leading axis B on every field but ``times``."""
 
     states: jax.Array  # [T+1, n] plant states x(0) .. x(T)
     inputs: jax.Array  # [T, m'] inputs applied to the plant (after actuate); the safe input where held
@@ -52,9 +53,15 @@ class ClosedLoop(NamedTuple):
         return self.nodes + self.fallback_nodes
 
     @property
+    def batched(self) -> bool:
+        """A run of B loops (``simulate_batch``): every field but ``times`` has a leading axis B."""
+        return np.ndim(self.inputs) == 3
+
+    @property
     def first_infeasible_step(self) -> Optional[int]:
-        """Index of the first step whose terminal-constrained search found no sequence, or None."""
-        bad = np.flatnonzero(~np.asarray(self.feasible))
+        """Index of the first step whose terminal-constrained search found no sequence (in any loop of a
+        batched run), or None."""
+        bad = np.flatnonzero(~np.asarray(self.feasible).reshape(-1, np.shape(self.feasible)[-1]).all(axis=0))
         return int(bad[0]) if bad.size else None
 
     def save(self, path) -> str:
@@ -99,9 +106,14 @@ class ClosedLoop(NamedTuple):
         index. ``state_names`` ``[n]`` and ``input_names`` ``[m']`` (e.g.
         ``"i_a [A]"``, units included) label the curves in legends; default
         ``x[0]``, ``u[0]``, ... Built without pyplot: the backend is never
-        switched; show it with ``fig.savefig`` or display it in a notebook."""
+        switched; show it with ``fig.savefig`` or display it in a notebook.
+        A batched run (``simulate_batch``) draws, per step, the median over
+        the loops and the band between the 10th and 90th percentiles (the
+        extremes dotted) of every state and input, and the nodes' spread."""
         from matplotlib.figure import Figure
 
+        if self.batched:
+            return self._plot_batch(title, state_names, input_names)
         states, inputs = np.asarray(self.states), np.asarray(self.inputs)
         state_names = _names("state_names", state_names, states.shape[1], "x", "states [T+1, n]")
         input_names = _names("input_names", input_names, inputs.shape[1], "u", "inputs [T, m']")
@@ -135,6 +147,45 @@ class ClosedLoop(NamedTuple):
         if title:
             fig.suptitle(title)
         return fig
+
+
+    def _plot_batch(self, title: str, state_names, input_names):
+        """``plot`` of B loops: percentile bands over the loops, step by step."""
+        from matplotlib.figure import Figure
+
+        states, inputs = np.asarray(self.states), np.asarray(self.inputs)  # [B, T+1, n], [B, T, m']
+        B, T = inputs.shape[:2]
+        state_names = _names("state_names", state_names, states.shape[2], "x", "states [B, T+1, n]")
+        input_names = _names("input_names", input_names, inputs.shape[2], "u", "inputs [B, T, m']")
+        t = np.arange(T + 1) if self.times is None else np.asarray(self.times)
+        fig = Figure(figsize=(8, 8), layout="constrained")
+        ax = fig.subplots(3, 1, sharex=True)
+        for a, values, names, x in ((ax[0], states, state_names, t), (ax[1], inputs, input_names, t[:-1])):
+            for j, name in enumerate(names):
+                _band(a, x, values[:, :, j], name, f"C{j % 10}")
+            a.legend(loc="best", fontsize="small")
+        ax[0].set_ylabel(f"states ({B} loops)")
+        ax[1].set_ylabel("inputs")
+        held = np.asarray(self.held).sum(axis=0)
+        if held.any():
+            steps = np.flatnonzero(held)
+            ax[1].plot(t[steps], np.median(inputs[:, steps, 0], axis=0), "rx", label="a loop held (no input found)")
+            ax[1].legend(loc="best", fontsize="small")
+        _band(ax[2], t[:-1], np.asarray(self.decision_nodes, float), "nodes per decision", "C0")
+        ax[2].set_ylabel("nodes")
+        ax[2].legend(loc="best", fontsize="small")
+        ax[2].set_xlabel("step" if self.times is None else "time [s]")
+        fig.suptitle(title or f"{B} closed loops: median, 10-90 % band, extremes dotted")
+        return fig
+
+
+def _band(ax, x, values, name: str, color: str) -> None:
+    """The median of ``values`` ``[B, len(x)]`` over the loops, its 10-90 % band and its extremes."""
+    low, mid, high = np.percentile(values, [10, 50, 90], axis=0)
+    ax.plot(x, mid, color=color, label=f"{name} (median)")
+    ax.fill_between(x, low, high, color=color, alpha=0.25, linewidth=0)
+    ax.plot(x, values.min(axis=0), color=color, linestyle=":", linewidth=0.8)
+    ax.plot(x, values.max(axis=0), color=color, linestyle=":", linewidth=0.8)
 
 
 def _names(arg: str, names, count: int, symbol: str, what: str) -> list[str]:
@@ -190,14 +241,19 @@ def _declared_arrays(path: str) -> dict:
 
 
 def _check_layout(path: str, declared: dict) -> None:
-    """The fields' declared shapes and dtypes agree with one run of T steps (``inputs`` ``[T, m']``)."""
+    """The fields' declared shapes and dtypes agree with one run of T steps (``inputs`` ``[T, m']``), or
+    with B runs of T steps (``inputs`` ``[B, T, m']``: every field but ``times`` then leads with B)."""
     inputs = declared["inputs"][0]
-    T = inputs[0] if len(inputs) else None
+    batch = tuple(inputs[:1]) if len(inputs) == 3 else ()
+    T = inputs[len(batch)] if len(inputs) > len(batch) else None
     for name, (shape, dtype) in declared.items():
         lead, ndim, kinds = _LAYOUT[name]
         length = None if T is None else T + (lead == "T+1")
-        if len(shape) != ndim or shape[0] != length or dtype.kind not in kinds:
+        first = () if name == "times" else batch
+        if len(shape) != ndim + len(first) or tuple(shape[:len(first)]) != first \
+                or shape[len(first)] != length or dtype.kind not in kinds:
             want = {"f": "floating", "iu": "integer", "b": "boolean"}[kinds]
+            axes = f"leading axes B = {first[0]}, {lead} = {length}" if first else f"leading axis {lead} = {length}"
             raise ValueError(f"{path} is not a consistent ClosedLoop: {name} has shape {shape} dtype {dtype}, "
-                             f"expected {ndim} axes with leading axis {lead} = {length} (T from inputs "
+                             f"expected {ndim + len(first)} axes with {axes} (T from inputs "
                              f"{inputs}) and a {want} dtype")

@@ -44,7 +44,7 @@ class StepInfo(NamedTuple):
         return self.nodes + self.fallback_nodes
 
 
-def budget(opts) -> jax.Array:
+def max_nodes_of(opts) -> jax.Array:
     """[] int32 the decision's node budget (``INT32_MAX``: none)."""
     max_nodes = opts.solver_options.get("max_nodes")
     return jnp.asarray(INT32_MAX if max_nodes is None else max_nodes, jnp.int32)
@@ -79,7 +79,7 @@ def merged(first: SearchResult, relaxed: SearchResult) -> SearchResult:
 def solve(opts, x, params, previous):
     """The searches of one decision at model state ``x``: ``(deciding result, nodes of the constrained
     search, used_fallback)``; the fallback searches only when needed, within what the first search left."""
-    max_nodes = budget(opts)
+    max_nodes = max_nodes_of(opts)
     result = _search(opts, opts.problem, x, params, previous, max_nodes)
     if opts.relaxed is None:
         return result, result.nodes, jnp.zeros((), bool)
@@ -98,7 +98,7 @@ def solve_rows(opts, X, params, previous):
     slots (no stealing), so every row is searched in ``solve``'s order, node for node."""
     B = X.shape[0]
     batch = solvers.get(opts.solver).batch
-    max_nodes = jnp.broadcast_to(budget(opts), (B,))
+    max_nodes = jnp.broadcast_to(max_nodes_of(opts), (B,))
 
     def search(problem, X, params, previous, max_nodes, n_valid):
         seeds = None if not opts.warm_start else jax.vmap(

@@ -89,7 +89,7 @@ def expand(problem: Problem, x, cost, params, *, steps_left, check_terminal: boo
 class SearchStats(NamedTuple):
     """What a search counts: the same fields in every solver (batched searches
     add a leading axis). Three bool flags, not one array: docs/xla_notes.md
-    ("Tried in the third session")."""
+    ("Tried and not kept", three flags against one array)."""
 
     nodes: jax.Array  # [] int32 child nodes computed (the paper's count)
     iterations: jax.Array  # [] int32 batched expansions (SearchResult.iterations says per solver)

@@ -224,7 +224,7 @@ def _rollout(problem: Problem, x0, params, prefix, length, start: Incumbent) -> 
     return Incumbent(jnp.where(better, cost, start.cost), jnp.where(better, path, start.path), stats)
 
 
-def seed(problem: Problem, x0, params, start: Incumbent, budget, *, pop_width: int) -> Incumbent:
+def seed(problem: Problem, x0, params, start: Incumbent, max_nodes, *, pop_width: int) -> Incumbent:
     """First incumbents for a budgeted search, by iterative deepening: for
     ``D = 1, 2, ...`` the exact problem of horizon D (stage costs of steps
     ``0 .. D-1`` plus the terminal cost at ``x(D)``, no terminal test; the
@@ -240,7 +240,7 @@ def seed(problem: Problem, x0, params, start: Incumbent, budget, *, pop_width: i
     N, M, K = problem.horizon, problem.num_controls, pop_width
     L = K * M
     level = problem.replace(terminal=None, terminal_cost=None, lower_bound=None)
-    share = jnp.asarray(budget) // 2  # the seeds take at most half the budget; the full problem the rest
+    share = jnp.asarray(max_nodes) // 2  # the seeds take at most half the budget; the full problem the rest
     none = jnp.full((N,), -1, jnp.int32)
     inf = jnp.array(jnp.inf, start.cost.dtype)
 
@@ -262,7 +262,7 @@ def seed(problem: Problem, x0, params, start: Incumbent, budget, *, pop_width: i
         D, best, _ = c
         found, done = _dfs(level, x0, params, Incumbent(inf, none, best.stats), share - N * M - L, pop_width=K,
                            leaf_depth=D, leaves=leaves(D))  # leaves room for its extension
-        fits = (found.cost < inf) & (found.stats.nodes + N * M <= budget)
+        fits = (found.cost < inf) & (found.stats.nodes + N * M <= max_nodes)
         best = best._replace(stats=found.stats)
         best = jax.lax.cond(fits, lambda: _rollout(problem, x0, params, found.path, D, best), lambda: best)
         return D + 1, best, done
@@ -275,7 +275,7 @@ def seed(problem: Problem, x0, params, start: Incumbent, budget, *, pop_width: i
     return best
 
 
-def start_incumbent(problem: Problem, x0, params, warm_start, budget, dtype) -> Incumbent:
+def start_incumbent(problem: Problem, x0, params, warm_start, max_nodes, dtype) -> Incumbent:
     """The first incumbent: none, or the ``warm_start`` sequence ``[N]`` where it is feasible. An all -1
     warm start is no warm start; one whose N nodes do not fit in the budget is not evaluated."""
     N, M = problem.horizon, problem.num_controls
@@ -284,21 +284,23 @@ def start_incumbent(problem: Problem, x0, params, warm_start, budget, dtype) -> 
     if warm_start is None:
         return start
     cost, flags = rollout_cost(problem, x0, warm_start, dtype, params)
-    used = jnp.all((warm_start >= 0) & (warm_start < M)) & (N <= budget)
+    used = jnp.all((warm_start >= 0) & (warm_start < M)) & (N <= max_nodes)
     cost = jnp.where(used, cost, inf)
     return Incumbent(cost, jnp.where(cost < inf, warm_start, start.path),
                      no_stats(jnp.where(used, N, 0), jnp.where(used, flags, 0)))
 
 
-def _search(problem: Problem, x0, params, warm_start, budget, *, pop_width: int, prune: bool,
-            budgeted: bool = False) -> SearchResult:
+def search(problem: Problem, x0, params, warm_start, max_nodes, *, pop_width: int = 1, prune: bool = True,
+           budgeted: bool = False, **_) -> SearchResult:
+    """The sorted search, traced: the ``search`` of the solver table (``firhc_jax.solvers``). ``max_nodes``
+    ``[]`` int32 (``INT32_MAX``: none); ``budgeted`` (static): seed the incumbent first (``seed``)."""
     K = pop_width
     L = K * problem.num_controls
-    start = start_incumbent(problem, x0, params, warm_start, budget, cost_dtype(problem, x0, params))
+    start = start_incumbent(problem, x0, params, warm_start, max_nodes, cost_dtype(problem, x0, params))
     if budgeted:
-        start = seed(problem, x0, params, start, budget, pop_width=K)
+        start = seed(problem, x0, params, start, max_nodes, pop_width=K)
     # An iteration computes at most L children.
-    out, done = _dfs(problem, x0, params, start, budget - L, pop_width=K, prune=prune)
+    out, done = _dfs(problem, x0, params, start, max_nodes - L, pop_width=K, prune=prune)
     return finish(problem, out.cost, out.path, out.stats, done, x0, params)
 
 
@@ -332,8 +334,8 @@ def _run(problem: Problem, x0, params, warm_start, max_nodes, pop_width, prune, 
     check_memory(stack_memory(problem, x0.shape[0], max(x0.dtype.itemsize, 4), pop_width), max_memory,
                  f"the sDFS stack of N={problem.horizon}, M={problem.num_controls}, pop_width={pop_width}")
     ws = _check_warm_start(problem, warm_start)
-    search = compiled(_search, problem, pop_width=pop_width, prune=prune, budgeted=max_nodes is not None)
-    return raise_on_errors(search(x0, params, ws, node_budget(max_nodes)))
+    run = compiled(search, problem, pop_width=pop_width, prune=prune, budgeted=max_nodes is not None)
+    return raise_on_errors(run(x0, params, ws, node_budget(max_nodes)))
 
 
 def sdfs(problem: Problem, x0, *, params=None, pop_width: int = 1, warm_start=None, max_nodes=None,

@@ -32,7 +32,8 @@ from . import exhaustive as exhaustive_module
 from .pool import pool_memory, pool_row_memory, pool_search
 from .problem import Problem, positive_int
 from .result import SearchResult
-from .sdfs import DEFAULT_MAX_MEMORY, INT32_MAX, _search as sdfs_search
+from .sdfs import DEFAULT_MAX_MEMORY, INT32_MAX
+from .sdfs import search as sdfs_search
 from .sdfs import stack_memory
 
 DEFAULT_LANES = 64  # pool slots of a batch when ``lanes`` is not given: at most this many, at most the rows
@@ -60,11 +61,6 @@ def _vmapped(search: Callable) -> Callable:
         return jax.vmap(one, in_axes=(0, 0, None if warm_start is None else 0, 0))(X, params, warm_start,
                                                                                 max_nodes)
     return batch
-
-
-def _sdfs(problem, x, params, warm_start, max_nodes, *, budgeted, pop_width, **_):
-    return sdfs_search(problem, x, params, warm_start, max_nodes, pop_width=pop_width, prune=True,
-                       budgeted=budgeted)
 
 
 def _pool_batch(problem, X, params, warm_start, max_nodes, n_valid, *, budgeted, pop_width, lanes, steal=True, **_):
@@ -124,18 +120,20 @@ def lanes_for(lanes, rows: int) -> int:
 
 _SDFS_OPTIONS = {"pop_width": 1, "max_nodes": None, "max_memory": DEFAULT_MAX_MEMORY}
 SOLVERS: dict[str, Solver] = {
-    "sdfs": Solver(_sdfs, _pool_batch, {**_SDFS_OPTIONS, "lanes": None}, _stack_memory, _pool_memory, True, True,
-                   "sorted depth-first search (the paper's Table 1); a batch shares a work pool"),
-    "pool": Solver(_pool_one, _pool_batch, {**_SDFS_OPTIONS, "lanes": None}, _one_pool_memory, _pool_memory,
-                   True, True,
-                   f"sDFS on a work pool: one decision on `lanes` slots (default {DECISION_LANES}) by stealing"),
-    "sdfs-vmap": Solver(_sdfs, _vmapped(_sdfs), _SDFS_OPTIONS, _stack_memory, _rows_of(_stack_memory), True, True,
-                        "sDFS vmapped over a batch's rows (each row its own loop, lanes in lock-step)"),
-    "exhaustive": Solver(_exhaustive, _vmapped(_exhaustive),
-                         {"method": "levels", "chunk_nodes": exhaustive_module.DEFAULT_CHUNK_NODES, "pop_width": 1,
-                          "max_memory": DEFAULT_MAX_MEMORY},
-                         _exhaustive_memory, _rows_of(_exhaustive_memory), False, False,
-                         "every node of the tree (the reference)"),
+    "sdfs": Solver(search=sdfs_search, batch=_pool_batch, options={**_SDFS_OPTIONS, "lanes": None},
+                   memory=_stack_memory, batch_memory=_pool_memory, budgets=True, warm_starts=True,
+                   doc="sorted depth-first search (the paper's Table 1); a batch shares a work pool"),
+    "pool": Solver(search=_pool_one, batch=_pool_batch, options={**_SDFS_OPTIONS, "lanes": None},
+                   memory=_one_pool_memory, batch_memory=_pool_memory, budgets=True, warm_starts=True,
+                   doc=f"sDFS on a work pool: one decision on `lanes` slots (default {DECISION_LANES}) by stealing"),
+    "sdfs-vmap": Solver(search=sdfs_search, batch=_vmapped(sdfs_search), options=_SDFS_OPTIONS,
+                        memory=_stack_memory, batch_memory=_rows_of(_stack_memory), budgets=True, warm_starts=True,
+                        doc="sDFS vmapped over a batch's rows (each row its own loop, lanes in lock-step)"),
+    "exhaustive": Solver(search=_exhaustive, batch=_vmapped(_exhaustive),
+                         options={"method": "levels", "chunk_nodes": exhaustive_module.DEFAULT_CHUNK_NODES,
+                                  "pop_width": 1, "max_memory": DEFAULT_MAX_MEMORY},
+                         memory=_exhaustive_memory, batch_memory=_rows_of(_exhaustive_memory), budgets=False,
+                         warm_starts=False, doc="every node of the tree (the reference)"),
 }
 _COUNTS = ("pop_width", "max_nodes", "max_memory", "chunk_nodes", "lanes")
 

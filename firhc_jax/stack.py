@@ -76,11 +76,6 @@ def top(stack: Stack, bound):
     return jnp.max(jnp.where(stack.low < bound, rows, -1))
 
 
-def empty(stack: Stack, bound):
-    """True when no node's key is below ``bound``: the search is over."""
-    return top(stack, bound) < 0
-
-
 def pop(stack: Stack, row, k: int) -> tuple[Stack, Popped]:
     """Take the ``k`` cheapest remaining nodes of ``row`` (a traced int32; a
     row outside the stack takes nothing and returns +inf keys)."""

@@ -1,4 +1,4 @@
-"""The sDFS stack (``firhc_jax.stack``) on its own: push, pop, top, empty and paths."""
+"""The sDFS stack (``firhc_jax.stack``) on its own: push, pop, top and paths."""
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -25,11 +25,11 @@ def batch(keys, row=2):
 
 def test_init_holds_only_the_root():
     s = fresh()
-    assert int(stacks.top(s, jnp.inf)) == 0 and not bool(stacks.empty(s, jnp.inf))
+    assert int(stacks.top(s, jnp.inf)) == 0 and not int(stacks.top(s, jnp.inf)) < 0
     s, p = stacks.pop(s, jnp.int32(0), 1)
     np.testing.assert_array_equal(p.x[0], [1.0, 2.0])
     assert float(p.cost[0]) == 0 and float(p.key[0]) == 0 and np.all(np.asarray(p.path) == -1)
-    assert bool(stacks.empty(s, jnp.inf)) and int(stacks.top(s, jnp.inf)) == -1
+    assert int(stacks.top(s, jnp.inf)) < 0 and int(stacks.top(s, jnp.inf)) == -1
 
 
 def test_push_writes_only_its_row():
@@ -50,7 +50,7 @@ def test_pop_takes_the_cheapest_first_and_ties_by_lowest_index():
         taken += np.asarray(p.x).tolist()
         np.testing.assert_array_equal(p.cost, 10 + p.key)
     assert taken == [[1, 1], [1, 3], [1, 5], [2, 2], [3, 0], [5, 4]]  # [key, index] in pop order
-    assert bool(stacks.empty(s, jnp.inf))
+    assert int(stacks.top(s, jnp.inf)) < 0
 
 
 def test_pop_ties_in_index_order_gives_paths():
@@ -63,7 +63,7 @@ def test_pop_ties_in_index_order_gives_paths():
 def test_top_follows_the_bound_and_empty_rows():
     s = batch([4.0, 6.0, 5.0, 9.0, 7.0, 8.0])
     assert int(stacks.top(s, jnp.inf)) == 2
-    assert int(stacks.top(s, 4.0)) == -1 and bool(stacks.empty(s, 4.0))  # nothing below 4: pruned as a whole
+    assert int(stacks.top(s, 4.0)) == -1 and int(stacks.top(s, 4.0)) < 0  # nothing below 4: pruned as a whole
     assert int(stacks.top(s, 4.5)) == 2
     s, p = stacks.pop(s, jnp.int32(2), 1)
     assert float(p.key[0]) == 4.0 and float(s.low[2]) == 5.0  # the row's next key

@@ -1,0 +1,193 @@
+"""Batched closed loops: ``ctrl.simulate_batch`` runs B loops in one compiled run, loop b deciding as
+``ctrl.simulate`` of loop b, with everything a single loop has."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import firhc_jax as fj
+import random_problems
+from test_step import CONTROLS, N, PROBLEM, actuate, dynamics, observe, plant, stage_cost, terminal
+
+T = 8
+
+
+def loop_params(rng, B):
+    """[B, T] parameters: a reference, a plant gain and a terminal band per loop and step; some bands are
+    out of reach (the fallback decides there) and some loose."""
+    k = np.arange(T)
+    phase = rng.uniform(0, 2 * np.pi, (B, 1))
+    return {"ref": 0.5 * np.sin(0.5 * k + phase), "gain": 1.0 + 0.1 * rng.uniform(-1, 1, (B, T)),
+            "band": np.where((k + rng.integers(0, 4, (B, 1))) % 4 == 1, 1e-6, 0.6)}
+
+
+def row(tree, b):
+    return jax.tree_util.tree_map(lambda a: a[b], tree)
+
+
+FIELDS = ("states", "inputs", "plans", "used_fallback", "feasible", "held", "complete")
+COSTS = ("predicted_costs", "stage_costs")  # sums XLA may round apart in the last bit in a batched program
+CONTROLLERS = {
+    "full": dict(fallback="unconstrained", warm_start=True, observe=observe, actuate=actuate),
+    # A budget that cuts searches and leaves some decisions with no input (held): no stealing, node for node.
+    "budget": dict(fallback="unconstrained", warm_start=True, observe=observe, actuate=actuate, max_nodes=24, lanes=2,
+                   u_safe=np.array([0.0])),
+    "lanes": dict(fallback="unconstrained", observe=observe, actuate=actuate, lanes=2),
+    "exhaustive": dict(solver="exhaustive", fallback="unconstrained", observe=observe, actuate=actuate),
+}
+
+
+@pytest.fixture(scope="module", params=list(CONTROLLERS))
+def ctrl(request):
+    return request.param, fj.FIRHC(PROBLEM, **CONTROLLERS[request.param])
+
+
+@settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**31 - 1), B=st.sampled_from([1, 3, 5]))
+def test_loop_b_is_simulate_of_loop_b(ctrl, seed, B):
+    name, c = ctrl
+    rng = np.random.default_rng(seed)
+    X0 = rng.uniform(-1, 1, (B, 2))
+    U0 = rng.choice(CONTROLS, (B, 1))
+    params = loop_params(rng, B)
+    with pytest.warns() if name == "budget" else _nothing():
+        run = c.simulate_batch(X0, T, plant, params=params, u0=U0)
+    assert run.states.shape == (B, T + 1, 2) and run.plans.shape == (B, T, N) and run.nodes.shape == (B, T)
+    for b in range(B):
+        with pytest.warns() if name == "budget" else _nothing():
+            one = c.simulate(X0[b], T, plant, params=row(params, b), u0=U0[b])
+        for field in FIELDS:
+            np.testing.assert_array_equal(np.asarray(getattr(run, field)[b]), np.asarray(getattr(one, field)),
+                                          err_msg=f"{name}: loop {b}, {field}")
+        for field in COSTS:
+            np.testing.assert_allclose(np.asarray(getattr(run, field)[b]), np.asarray(getattr(one, field)),
+                                       rtol=1e-13, atol=0, err_msg=f"{name}: loop {b}, {field}")
+        if name in ("budget", "exhaustive"):  # nobody steals: the same nodes
+            np.testing.assert_array_equal(np.asarray(run.decision_nodes[b]), np.asarray(one.decision_nodes))
+    if name == "budget":
+        assert int(np.max(np.asarray(run.decision_nodes))) <= 24
+        assert not np.asarray(run.complete).all()
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_the_cases_cover_what_they_claim(ctrl):
+    """Fallback decisions, held steps and cut searches all happen in these loops."""
+    name, c = ctrl
+    rng = np.random.default_rng(7)
+    params = loop_params(rng, 5)
+    with pytest.warns(RuntimeWarning) if name == "budget" else _nothing():
+        run = c.simulate_batch(rng.uniform(-1, 1, (5, 2)), T, plant, params=params)
+    assert np.asarray(run.used_fallback).any() and not np.asarray(run.used_fallback).all()
+    if name == "budget":
+        assert np.asarray(run.held).any() and not np.asarray(run.complete).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_random_problems_batched_equal_their_single_loops(seed):
+    """Random nonlinear problems with a terminal set: the pool's loops equal the single loops' costs."""
+    rp = random_problems.make(seed, n=2, m=1, M=3, N=3, terminal="loose")
+    c = fj.FIRHC(rp.problem(), fallback="unconstrained", warm_start=True)
+    X0 = np.random.default_rng(seed).uniform(-1, 1, (6, 2))
+    run = c.simulate_batch(X0, 5)
+    for b in range(6):
+        one = c.simulate(X0[b], 5)
+        np.testing.assert_allclose(np.asarray(run.predicted_costs[b]), np.asarray(one.predicted_costs), rtol=1e-13)
+        np.testing.assert_array_equal(np.asarray(run.states[b]), np.asarray(one.states))
+
+
+def test_new_values_never_recompile():
+    traces = []
+
+    def counted(z, u, p):
+        if isinstance(z, jax.core.Tracer):
+            traces.append(1)
+        return dynamics(z, u, p)
+
+    c = fj.FIRHC(fj.Problem(counted, CONTROLS, stage_cost, N, terminal=terminal), fallback="unconstrained",
+                 observe=observe, actuate=actuate)
+    rng = np.random.default_rng(3)
+    c.simulate_batch(rng.uniform(-1, 1, (4, 2)), T, plant, params=loop_params(rng, 4), u0=np.array([1.0]))
+    before = len(traces)
+    for _ in range(2):
+        c.simulate_batch(rng.uniform(-1, 1, (4, 2)), T, plant, params=loop_params(rng, 4),
+                         u0=rng.choice(CONTROLS, (4, 1)))
+    assert before > 0 and len(traces) == before
+
+
+def test_bad_batches_are_refused_before_any_work():
+    c = fj.FIRHC(PROBLEM, observe=observe, actuate=actuate)
+    params = loop_params(np.random.default_rng(0), 3)
+    X0 = np.zeros((3, 2))
+    with pytest.raises(ValueError, match=r"X0 must be a 2-D batch"):
+        c.simulate_batch(np.zeros(2), T, plant, params=params)
+    with pytest.raises(ValueError, match=r"params leaf \['ref'\] must have leading axes"):
+        c.simulate_batch(X0, T, plant, params=dict(params, ref=params["ref"][:, :-1]))
+    with pytest.raises(ValueError, match=r"params leaf \['gain'\] must have leading axes"):
+        c.simulate_batch(X0, T, plant, params=dict(params, gain=params["gain"][:2]))
+    with pytest.raises(ValueError, match=r"u0 must be one input of shape \(1,\)"):
+        c.simulate_batch(X0, T, plant, params=params, u0=np.zeros((2, 1)))
+    with pytest.raises(ValueError, match="X0 contains NaN"):
+        c.simulate_batch(np.full((3, 2), np.nan), T, plant, params=params)
+
+
+def test_a_batched_run_saves_loads_and_plots(tmp_path):
+    import matplotlib
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    c = fj.FIRHC(PROBLEM, fallback="unconstrained", observe=observe, actuate=actuate)
+    rng = np.random.default_rng(1)
+    run = c.simulate_batch(rng.uniform(-1, 1, (6, 2)), T, plant, params=loop_params(rng, 6), dt=0.1)
+    path = run.save(tmp_path / "batch.npz")
+    back = fj.ClosedLoop.load(path)
+    for field in fj.ClosedLoop._fields:
+        a, b = getattr(run, field), getattr(back, field)
+        if a is None:
+            assert b is None
+        else:
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=field)
+    fig = run.plot()
+    assert isinstance(fig, Figure) and fig.axes and all(ax.get_xlabel() or ax.get_ylabel() for ax in fig.axes)
+
+
+@pytest.mark.float32
+def test_float32_loops_equal_their_single_loops():
+    c = fj.FIRHC(fj.Problem(lambda x, u: 0.9 * x + u, jnp.array([[-0.5], [0.0], [0.5]], jnp.float32),
+                            fj.quadratic_cost(1.0, jnp.zeros(1, jnp.float32), 0.1), 3))
+    X0 = np.linspace(-2, 2, 5, dtype=np.float32)[:, None]
+    run = c.simulate_batch(X0, 6)
+    assert run.states.dtype == jnp.float32
+    for b in range(5):
+        np.testing.assert_array_equal(np.asarray(run.states[b]), np.asarray(c.simulate(X0[b], 6).states))
+
+
+def test_linear_tracking_loops_apply_first_input_of_as_single_loops():
+    """A LinearTracking problem (classes of inputs, first_input_of picking the member) batched over loops
+    with per-loop references and disturbances."""
+    from test_linear_tracking import Case
+
+    case = Case("common", True, 5)
+    lt = case.tracker()
+    B, steps = 3, 4
+    rng = np.random.default_rng(2)
+    params = lt.params(rng.normal(size=(B, steps) + case.y_ref.shape), 0.3 * rng.normal(size=(B, steps) + case.d.shape))
+    ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
+
+    def lin_plant(x, u, p):
+        return jnp.asarray(case.A) @ x + jnp.asarray(case.B) @ u + p["d"][0]
+
+    X0 = case.x + 0.5 * rng.normal(size=(B,) + case.x.shape)
+    run = ctrl.simulate_batch(X0, steps, lin_plant, params=params, u0=case.controls[0])
+    for b in range(B):
+        one = ctrl.simulate(X0[b], steps, lin_plant, params=row(params, b), u0=case.controls[0])
+        np.testing.assert_array_equal(np.asarray(run.inputs[b]), np.asarray(one.inputs))
+        np.testing.assert_allclose(np.asarray(run.predicted_costs[b]), np.asarray(one.predicted_costs), rtol=1e-12)
