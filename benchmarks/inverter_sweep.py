@@ -12,11 +12,12 @@ weight's tracker, stacked over the loops) and one controller on
 --levels 3``) runs them all: ``ctrl.simulate_batch(I0 [64, 2], T, plant,
 params=[64, T, ...])``.
 
-Timed after a warm-up call, best of ``--repeats``: that call against a Python
-loop of ``ctrl.simulate`` (the same controller, so one compilation) over
+Each way called once to compile it, then timed in ``--repeats`` rounds over
+both, the best round of each: that call against a Python loop of
+``ctrl.simulate`` (the same controller, so one compilation) over
 ``--python-loops`` of the loops, scaled to loops/s; the Python loop's
 decisions are compared with the batch's. Per loop: THD (every
-non-fundamental component of the phase currents, averaged over the phases)
+non-fundamental component of the three phase currents, averaged over them)
 and switching frequency per leg (unit level steps over the run, halved,
 averaged over the legs), as ``apps/inverter_three_level.summarize``. Writes a
 table of the means per weight and the figure ``--figure``
@@ -61,19 +62,6 @@ def metrics(currents, inputs) -> tuple[float, float]:
     thd = np.mean([distortion(phases[:, x], PARAMS)[1] for x in range(3)])
     changes = np.abs(np.diff(inputs, axis=0)).sum(axis=0)
     return float(thd), float(changes.mean() / (2.0 * inputs.shape[0] * PARAMS.ts))
-
-
-def best_of(fn, repeats: int):
-    """``(best seconds, first-call seconds, result)``: the first call compiles, then ``repeats`` timed calls."""
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    best, out = np.inf, None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn())
-        best = min(best, time.perf_counter() - t0)
-    return best, first, out
 
 
 def plot(lambdas, thd, fsw, N: int, path: Path) -> None:
@@ -135,20 +123,32 @@ def main() -> None:
           f"{size / 2**20:.0f} MiB; float64; jax {jax.__version__}; {platform.machine()}")
 
     u0 = jnp.zeros(3)
-    t_b, first_b, run = best_of(lambda: ctrl.simulate_batch(I0, T, plant, params=params, u0=u0, dt=PARAMS.ts),
-                                args.repeats)
     sub = np.unique(np.linspace(0, B - 1, min(args.python_loops, B)).round().astype(int))
+
+    def batch():
+        return ctrl.simulate_batch(I0, T, plant, params=params, u0=u0, dt=PARAMS.ts)
 
     def python_loop():
         return [ctrl.simulate(I0[b], T, plant, params=jax.tree.map(lambda a, b=b: a[b], params), u0=u0)
                 for b in sub]
 
-    t_p, first_p, runs = best_of(python_loop, args.repeats)
-    print("\n| way | loops/s | ratio | first call - best (s) |\n|---|---|---|---|")
-    print(f"| ctrl.simulate_batch, {B} loops | {B / t_b:,.2f} | {(B / t_b) / (len(sub) / t_p):.2f} | "
-          f"{first_b - t_b:.1f} |")
-    print(f"| Python loop of ctrl.simulate ({len(sub)} loops timed, scaled) | {len(sub) / t_p:,.2f} | 1.00 | "
-          f"{first_p - t_p:.1f} |")
+    ways = {f"ctrl.simulate_batch, {B} loops": (batch, B),
+            f"Python loop of ctrl.simulate ({len(sub)} loops timed, scaled)": (python_loop, len(sub))}
+    first, best, out = {}, dict.fromkeys(ways, np.inf), {}
+    for name, (fn, _) in ways.items():  # the first call compiles
+        t0 = time.perf_counter()
+        out[name] = jax.block_until_ready(fn())
+        first[name] = time.perf_counter() - t0
+    for _ in range(args.repeats):  # rounds over both, so that a noisy neighbour hits them alike
+        for name, (fn, _) in ways.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            best[name] = min(best[name], time.perf_counter() - t0)
+    rate = {name: loops / best[name] for name, (_, loops) in ways.items()}
+    run, runs = out.values()
+    print("\n| way | loops/s | ratio to the Python loop | first call (s) |\n|---|---|---|---|")
+    for name in ways:
+        print(f"| {name} | {rate[name]:,.2f} | {rate[name] / list(rate.values())[1]:.2f} | {first[name]:.1f} |")
     inputs = np.asarray(run.inputs)
     differ = [b for b, r in zip(sub, runs, strict=True) if not np.array_equal(np.asarray(r.inputs), inputs[b])]
     rel = max(np.max(np.abs(np.asarray(r.predicted_costs) - np.asarray(run.predicted_costs)[b])
