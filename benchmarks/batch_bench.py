@@ -52,9 +52,9 @@ def closed_loop_states(plant: str, horizon: int):
     """``(problem, states [S, n])``: the states a closed loop searched at."""
     if plant == "synthetic":
         from firhc_jax.batch import solve_batch
-        from firhc_jax.models.synthetic import benchmark_state, synthetic_problem
+        from firhc_jax.models.synthetic import SyntheticParams, benchmark_state, make_problem
 
-        problem = synthetic_problem(17, horizon)
+        problem = make_problem(horizon, SyntheticParams(17))
         rng = np.random.default_rng(0)
         X = jnp.asarray(np.asarray(benchmark_state()) + rng.normal(0.0, 0.3, (16, 3)))
         states = []

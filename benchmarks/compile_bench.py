@@ -62,9 +62,10 @@ def _build(plant: str):
     import firhc_jax as fj
 
     if plant == "hopper":
+        from firhc_jax.apps.hopper import controller
         from firhc_jax.models import hopper as hm
         params = hm.HopperParams()
-        return hm.controller(params, 6, "sdfs"), hm.initial_state(params), None, None
+        return controller(6, params, "sdfs"), hm.initial_state(params), None, None
     if plant == "tanks":
         from firhc_jax.models import tanks
         return fj.FIRHC(tanks.make_problem(5), fallback="unconstrained"), tanks.initial_state(), None, None

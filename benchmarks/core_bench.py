@@ -49,10 +49,10 @@ def main(argv=None):
     args = ap.parse_args(argv)
     jax.config.update("jax_enable_x64", not args.f32)
     import firhc_jax as fj
-    from firhc_jax.models.synthetic import benchmark_state, synthetic_problem
+    from firhc_jax.models.synthetic import SyntheticParams, benchmark_state, make_problem
 
     dtype = jnp.float32 if args.f32 else jnp.float64
-    problem = synthetic_problem(17, args.horizon, dtype=dtype)
+    problem = make_problem(args.horizon, SyntheticParams(17), dtype=dtype)
     x0 = benchmark_state(dtype)
     rows = []
 

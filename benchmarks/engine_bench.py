@@ -69,7 +69,7 @@ def main(argv=None):
     import numba_peer as peer
     from batch_bench import cpu_use
     from firhc_jax.models import tanks
-    from firhc_jax.models.synthetic import benchmark_state, synthetic_problem
+    from firhc_jax.models.synthetic import SyntheticParams, benchmark_state, make_problem
 
     N = 3 if args.quick else 5
     reps = 2 if args.quick else args.repeats
@@ -114,7 +114,7 @@ def main(argv=None):
             note="ratio to the floor (the Numba column holds the floor's time)")
 
         single(f"linear N={N}", lin, peer.linear_children, lin_p, np.array([1.5, -1.0, 0.8]))
-        syn = synthetic_problem(M, N, dtype=np.float64)
+        syn = make_problem(N, SyntheticParams(M), dtype=np.float64)
         single(f"synthetic N={N}", syn, peer.synthetic_children, peer.synthetic_params(syn),
                np.asarray(benchmark_state(np.float64)))
 

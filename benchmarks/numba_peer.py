@@ -61,7 +61,8 @@ def synthetic_children(P, x, out_x, out_stage):
 
 
 def synthetic_params(problem):
-    """Peer parameters of ``synthetic_problem(M, N)`` (work 0), input cost summed as XLA folds it."""
+    """Peer parameters of ``synthetic.make_problem(N, SyntheticParams(M))`` (work 0), input cost summed as XLA
+    folds it."""
     U = np.asarray(problem.controls, np.float64)
     return U, 0.2 * U[:, 1], (0.0 + 0.5 * (U[:, 0] * U[:, 0])) + 0.5 * (U[:, 1] * U[:, 1]), np.array([1.0, 0.1, 1.0])
 

@@ -104,7 +104,7 @@ def other_setting(name: str, max_nodes, steps: int):
         from firhc_jax.models import hopper as hm
         run, _, _ = ha.simulate(steps * hm.CONTROL_PERIOD, 10, "sdfs", progress=False, timed=True, bound=True,
                                 **opts)
-        problem = hm.problem(hm.HopperParams(), 10, True)
+        problem = hm.make_problem(10, hm.HopperParams(), bound=True)
         model = jax.vmap(hm.observe)(run.states[1:], run.inputs)
         costs = jax.vmap(problem.stage_cost)(model, run.inputs[:, 1:])
     ms = 1e3 * np.asarray(run.solve_times)

@@ -83,7 +83,7 @@ def inverter_loop(N, steps, lambda_u, plain_cap=None, plain_every=1):
     timed; with ``plain_cap``, every ``plain_every``-th decision is also solved by the plain sDFS
     (``plain_problem``: no classes, no bound; the same warm start, at most ``plain_cap`` nodes), right after
     it, so that both see the same machine load. Returns the tracker and per-decision records."""
-    lt = three_level.tracking(N, lambda_u)
+    lt = three_level.make_problem(N, lambda_u=lambda_u)
     A, B = three_level.model()
     refs = inverter.horizon_references(three_level.PARAMS, steps, N)  # [T, N, 2]
     K = three_level.pop_width(N)  # the app's, for both searches
@@ -250,7 +250,7 @@ def section_granularity(args):
                   f"{np.sum(secs) / np.sum(its) * 1e6:>8.2f}")
     # A rank-deficient F: no switching penalty and fewer outputs than inputs (the thermal process).
     N = args.rank_horizon
-    lt = thermal.tracking(N, 0.0)
+    lt = thermal.make_problem(N, lambda_u=0.0)
     X, U = thermal.calm_states(args.rank_states, np.random.default_rng(0))
     _, _, d = thermal.model()
     p = lt.params(np.broadcast_to(thermal.ThermalParams().set_point, (N, 2)), np.broadcast_to(d, (N, 4)))
@@ -283,7 +283,7 @@ def section_granularity(args):
 
 def section_thermal(args):
     N = args.thermal_horizon
-    lt = thermal.tracking(N, args.thermal_lambda_u)
+    lt = thermal.make_problem(N, lambda_u=args.thermal_lambda_u)
     X, U = thermal.calm_states(args.thermal_states, np.random.default_rng(0))
     _, _, d = thermal.model()
     p = lt.params(np.broadcast_to(thermal.ThermalParams().set_point, (N, 2)), np.broadcast_to(d, (N, 4)))
@@ -314,7 +314,7 @@ def section_thermal(args):
 
 def section_batch(args):
     N, B = 10, args.batch
-    lt = three_level.tracking(N, args.lambda_u)
+    lt = three_level.make_problem(N, lambda_u=args.lambda_u)
     rng = np.random.default_rng(0)
     phase = rng.uniform(0, 1 / three_level.PARAMS.frequency, B)
     X = inverter.reference(three_level.PARAMS, phase) + rng.uniform(-1.0, 1.0, (B, 2))
@@ -357,7 +357,7 @@ def section_tradeoff(args):
     for N in args.tradeoff_horizons:
         refs = jnp.asarray(inverter.horizon_references(three_level.PARAMS, steps, N))
         for lam in args.tradeoff_lambdas:
-            lt = three_level.tracking(N, lam)
+            lt = three_level.make_problem(N, lambda_u=lam)
             ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
             t0 = time.perf_counter()
             run = jax.block_until_ready(ctrl.simulate(i0, steps, plant, params=lt.params(refs), u0=jnp.zeros(3),

@@ -122,7 +122,7 @@ def closed_loop(horizon: int, steps: int, lambda_u: float = 0.1):
 
     from firhc_jax.models import inverter, three_level
 
-    lt = three_level.tracking(horizon, lambda_u)
+    lt = three_level.make_problem(horizon, lambda_u=lambda_u)
     A, B = three_level.model()
     peer = SphereDecoder(A, B, lt.C, lt.Q, (-1.0, 0.0, 1.0), horizon, lambda_u, lt.max_step)
     refs = inverter.horizon_references(three_level.PARAMS, steps, horizon)

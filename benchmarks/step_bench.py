@@ -120,7 +120,7 @@ def section_oneshot(calls: int, rounds: int):
     states = [np.asarray(mem.observe(rng.normal(size=2) * 5, inverter.SWITCH_STATES[rng.integers(8)]))
               for _ in range(calls)]
     rows = [{"ref": refs[k], "lambda_u": np.float64(1.0)} for k in range(calls)]
-    lt = three_level.tracking(5)
+    lt = three_level.make_problem(5)
     A, B = three_level.model()
     lrefs = inverter.horizon_references(three_level.PARAMS, calls, 5)
     x, u, largs = inverter.reference(three_level.PARAMS, 0.0), np.zeros(3), []

@@ -35,6 +35,7 @@ from .exhaustive import exhaustive
 from .linear import (discretize, horizon_windows, input_change_cost, linear_dynamics, product_controls,
                      tracking_cost)
 from .linear_tracking import LinearTracking
+from .nodes import rollout_cost
 from .problem import Problem, quadratic_cost
 from .profile import profile
 from .result import SearchResult
@@ -45,5 +46,5 @@ __all__ = ["Problem", "quadratic_cost", "discretize", "linear_dynamics", "produc
            "input_change_cost", "horizon_windows", "LinearTracking", "sdfs", "exhaustive", "SearchResult", "FIRHC",
            "ControllerState", "StepInfo", "ClosedLoop", "InfeasibleError", "InputMemory", "with_input_memory",
            "solve_batch", "clear_cache", "set_cache_size", "cache_info", "enable_compilation_cache", "check_problem",
-           "check_lower_bound", "diagnostics", "profile"]
+           "check_lower_bound", "diagnostics", "profile", "rollout_cost"]
 __version__ = "0.2.0"

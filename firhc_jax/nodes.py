@@ -16,6 +16,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .checks import cost_dtype as dtype_of_cost
 from .problem import Problem, call
 
 # Error flags, as bits of one int32 (combined with |).
@@ -141,16 +142,19 @@ def best_leaf(cost, terminal_ok, usable, is_leaf, incumbent):
     return low, i, low < incumbent
 
 
-def rollout_cost(problem: Problem, x0, sequence, cost_dtype, params=None):
+def rollout_cost(problem: Problem, x0, sequence, cost_dtype=None, params=None):
     """Cost of one input sequence ``[N]`` from ``x0`` (stage costs and the
     terminal cost), +inf if it fails the terminal test or a constraint,
     contains an out-of-range index, or meets a non-finite state.
 
-    Returns ``(cost, flags)``; accumulates exactly as ``expand`` does. This is
-    also the differentiable evaluation of a found sequence (``jax.grad`` with
-    respect to ``x0`` or ``params`` works through it).
+    Returns ``(cost, flags)``; accumulates exactly as ``expand`` does, in
+    ``cost_dtype`` (default: the stage cost's dtype at ``x0``). This is also
+    the differentiable evaluation of a found sequence (``jax.grad`` with
+    respect to ``x0`` or ``params`` works through it): ``fj.rollout_cost``.
     """
     M = problem.num_controls
+    if cost_dtype is None:
+        cost_dtype = dtype_of_cost(problem, x0, params)
     in_range = jnp.all((sequence >= 0) & (sequence < M))
 
     N = problem.horizon

@@ -47,7 +47,7 @@ three per-step callables take ``k`` after their usual arguments:
 
 Nothing in a search is differentiable (it is a discrete argmin); the cost of
 a returned sequence can be re-evaluated differentiably with
-``firhc_jax.nodes.rollout_cost``.
+``fj.rollout_cost``.
 """
 from __future__ import annotations
 
@@ -281,8 +281,7 @@ def refuse_differentiation(*trees) -> None:
         if type(leaf).__name__ in ("JVPTracer", "LinearizeTracer"):  # jax.jvp, jax.grad
             raise TypeError("the searches are not differentiable (a discrete argmin over input sequences); "
                             "differentiate the cost of the returned sequence instead: "
-                            "firhc_jax.nodes.rollout_cost(problem, x0, jax.lax.stop_gradient(result.sequence), "
-                            "dtype, params)")
+                            "fj.rollout_cost(problem, x0, jax.lax.stop_gradient(result.sequence), params=params)")
 
 
 def input_dtype(problem: Problem):

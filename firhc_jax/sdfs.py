@@ -369,7 +369,7 @@ def sdfs(problem: Problem, x0, *, params=None, pop_width: int = 1, warm_start=No
 
     Works under ``jax.jit`` and ``jax.vmap`` over ``x0`` and ``params``. In an
     un-jitted call a negative stage cost raises ``ValueError``. Not
-    differentiable (a discrete search); see ``firhc_jax.nodes.rollout_cost``.
+    differentiable (a discrete search); see ``fj.rollout_cost``.
     """
     return _run(problem, x0, params, warm_start, max_nodes, pop_width, True, max_memory)
 

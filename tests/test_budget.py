@@ -245,7 +245,7 @@ def test_the_pumping_station_is_exact_and_its_bounds_admissible(bound):
     from firhc_jax.models import pumping as pm
 
     N = 3
-    problem_ = pm.make_problem(N, bound)
+    problem_ = pm.make_problem(N, bound=bound)
     params = pm.horizon_params(*pm.forecast(20), 12, N)
     states = np.array([[2.2, 2.0], [0.6, 4.4], [4.4, 0.55], [1.0, 1.0]])
     for t, x in zip((0, 5, 9, 11), states, strict=True):

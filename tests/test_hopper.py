@@ -226,13 +226,13 @@ def test_bound_is_admissible_and_keeps_the_closed_loop(sdfs_loop):
     S = np.asarray(plain.states[:-1])
     Zall = jnp.asarray(np.asarray(jax.vmap(lambda X: hm.observe(X, None))(S[hm.contact(S)])))
     Z = Zall[::4]
-    problem = hm.problem(P, 4, bound=True)
+    problem = hm.make_problem(4, P, bound=True)
     assert check_lower_bound(problem, Z, max_steps=2) == []
     inflated = problem.replace(lower_bound=lambda z, s: problem.lower_bound(z, s) + 1.0)
     assert check_lower_bound(inflated, Z, max_steps=1)  # caught wherever the band is reachable in one step
 
     v = hm.liftoff_velocity(P)
-    fallback = hm.fallback_problem(P, 4)
+    fallback = hm.make_problem(4, P, bound=True, terminal=False)
     three = jnp.int32(3)
 
     @jax.jit
@@ -268,7 +268,7 @@ def test_warm_candidate_takes_the_unshifted_plan_when_the_shifted_one_misses_the
 
     loop, _ = sdfs_loop
     S = np.asarray(loop.states)
-    problem = hm.problem(P, 4, bound=True)
+    problem = hm.make_problem(4, P, bound=True)
     previous = np.array([0, 0, 0, 1], np.int32)  # step 28's plan: exhaust for three periods
     z = hm.observe(jnp.asarray(S[29]), None)
 
@@ -276,7 +276,7 @@ def test_warm_candidate_takes_the_unshifted_plan_when_the_shifted_one_misses_the
     def probe(z, previous):
         shifted = jnp.concatenate([previous[1:], previous[-1:]])
         return (rollout_cost(problem, z, shifted, jnp.float64)[0], rollout_cost(problem, z, previous, jnp.float64)[0],
-                hm.warm_candidate(problem, z, previous), hm.warm_candidate(problem, z, jnp.full(4, -1, jnp.int32)))
+                app.warm_candidate(problem, z, previous), app.warm_candidate(problem, z, jnp.full(4, -1, jnp.int32)))
 
     c_shifted, c_previous, warm, none = probe(z, jnp.asarray(previous))
     assert np.isinf(c_shifted) and np.isfinite(c_previous)

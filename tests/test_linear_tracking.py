@@ -383,7 +383,7 @@ def test_three_level_inverter_model():
 
 
 def test_the_inverter_switch_states_form_19_classes_of_equal_voltage():
-    lt = three_level.tracking(2)
+    lt = three_level.make_problem(2)
     A, B = three_level.model()
     assert (lt.num_classes, lt.class_size) == (19, 3)
     sizes = np.bincount(lt.class_of)
@@ -479,7 +479,7 @@ def test_cli_three_level_inverter_writes_summary_and_figure(tmp_path, capsys):
 
 def test_an_input_outside_the_controls_has_no_child():
     """The problem's dynamics on an input of no class: discarded (constraint False), never read as class 0."""
-    lt = three_level.tracking(2)
+    lt = three_level.make_problem(2)
     p = lt.params(np.zeros((2, 2)))
     z = lt.observe(np.zeros(2), np.zeros(3))
     stray = np.array([0.5, 0.0, 0.0])

@@ -9,7 +9,7 @@ import pytest
 
 import firhc_jax as fj
 from firhc_jax.models import tanks
-from firhc_jax.models.synthetic import benchmark_state, synthetic_problem
+from firhc_jax.models.synthetic import SyntheticParams, benchmark_state, make_problem
 
 pytest.importorskip("numba", reason="the Numba peer check needs the bench extra: pip install -e '.[test,bench]' "
                                     "(README, Tests)")
@@ -21,7 +21,7 @@ N = 3
 
 def _cases():
     rng = np.random.default_rng(7)
-    syn = synthetic_problem(17, N, dtype=np.float64)
+    syn = make_problem(N, SyntheticParams(17), dtype=np.float64)
     x_syn = np.vstack([np.asarray(benchmark_state(np.float64)), rng.uniform(-1, 1, (3, 3))])
     x_tank = np.zeros((4, 5))
     x_tank[:, :3] = rng.uniform(0.05, 0.5, (4, 3))

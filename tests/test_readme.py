@@ -49,6 +49,13 @@ def test_readme_parameter_and_switching_snippets(after):
     assert not bool(jnp.any(jnp.isnan(run.inputs)))
 
 
+def test_readme_batched_closed_loops(after):
+    ns = next(n for n in after if "runs" in n)
+    runs, run = ns["runs"], after[0]["run"]
+    assert runs.states.shape == (33, 41, 2) and runs.plans.shape == (33, 40, 8)
+    np.testing.assert_array_equal(np.asarray(runs.states[-1]), np.asarray(run.states[:41]))  # loop 32 is x0's
+
+
 def test_readme_batched_search(after):
     ns = next(n for n in after if "tracked" in n)
     res, tracked = ns["res"], ns["tracked"]

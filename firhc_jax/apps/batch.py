@@ -29,6 +29,7 @@ from pathlib import Path
 
 from ._args import number
 from ._user_code import import_user_module, user_code
+from ..solvers import SOLVERS, options_help
 
 PLANTS = ("tanks", "synthetic")
 MAX_LANES = 4096  # pool slots per device, each with a stack of sDFS nodes
@@ -66,8 +67,8 @@ def register(subparsers) -> None:
     p.add_argument("--params", type=Path, default=None,
                    help=".npz of per-row parameters, every array with leading axis B (key 'a/b': leaf p['a']['b'])")
     p.add_argument("--horizon", "-N", type=number(int, 1, 10), default=4, help="horizon of --plant (default 4)")
-    p.add_argument("--solver", choices=("sdfs", "sdfs-vmap", "exhaustive"), default="sdfs",
-                   help="solve_batch's solver (default sdfs, the work pool)")
+    p.add_argument("--solver", choices=tuple(SOLVERS), default="sdfs",
+                   help=f"solve_batch's solver (default sdfs, the work pool): {options_help()}")
     p.add_argument("--lanes", type=number(int, 1, MAX_LANES), default=None,
                    help=f"pool slots per device (default min(rows, 64), at most {MAX_LANES})")
     p.add_argument("--pop-width", type=number(int, 1, 64), default=1, help="K (default 1, at most 64)")
@@ -158,9 +159,9 @@ def make_problem(args):
         from ..models import tanks
 
         return tanks.make_problem(args.horizon)
-    from ..models.synthetic import synthetic_problem
+    from ..models.synthetic import SyntheticParams, make_problem
 
-    return synthetic_problem(17, args.horizon)
+    return make_problem(args.horizon, SyntheticParams(17))
 
 
 def load_params(path: Path) -> dict:

@@ -55,13 +55,14 @@ class Case(NamedTuple):
 
 def hopper_case(horizon: int, seconds: float = 2.0, bound: bool = False) -> Case:
     from ..models import hopper as hm
+    from ._hopper import controller
 
     params = hm.HopperParams()
     steps = max(1, int(round(seconds / hm.CONTROL_PERIOD)))
-    loop = hm.controller(params, horizon, "sdfs").simulate(hm.initial_state(params), steps, hm.plant(params))
+    loop = controller(horizon, params, "sdfs").simulate(hm.initial_state(params), steps, hm.make_plant(params))
     states = np.asarray(loop.states[:-1])
     searched = jax.vmap(lambda X: hm.observe(X, None))(states[hm.contact(states)])  # model states in contact
-    return _case("hopper", hm.problem(params, horizon, bound), searched)
+    return _case("hopper", hm.make_problem(horizon, params, bound), searched)
 
 
 def tanks_case(horizon: int, seconds: float = 200.0, bound: bool = False) -> Case:
@@ -75,11 +76,11 @@ def tanks_case(horizon: int, seconds: float = 200.0, bound: bool = False) -> Cas
 
 
 def synthetic_case(horizon: int, count: int = 8, work: int = 0) -> Case:
-    from ..models.synthetic import benchmark_state, synthetic_problem
+    from ..models.synthetic import SyntheticParams, benchmark_state, make_problem
 
     rng = np.random.default_rng(0)
     states = np.asarray(benchmark_state()) * (1 + 0.2 * rng.standard_normal((count, 3)))
-    return _case(f"synthetic(work={work})", synthetic_problem(17, horizon, work), states)
+    return _case(f"synthetic(work={work})", make_problem(horizon, SyntheticParams(17, work)), states)
 
 
 def _case(plant, problem, states) -> Case:

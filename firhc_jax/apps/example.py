@@ -3,26 +3,26 @@
 A pendulum driven by an on/off motor (torque in {-1, 0, +1} N m) is brought
 from 0.6 rad to rest at the bottom by FIRHC with a terminal set, solved by
 sDFS and by exhaustive search; the run prints node counts and times, writes
-``summary.json`` and a figure. The default horizon, N = 10, is where sDFS's
-point shows: 0.67 against 5.2 ms a step (88,572 nodes a step for exhaustive
-search, about 1,000 on average for sDFS; shared 2-core x86_64 CPU, jax
-0.10.2). At N = 8 the two were 0.21 and 0.43 ms, and at smaller horizons
-exhaustive search's few vectorised levels can be as fast as sDFS's
-one-node-at-a-time loop.
+``summary.json``, sDFS's ``closed_loop.npz`` and a figure. The default
+horizon, N = 10, is where sDFS's point shows: 0.67 against 5.2 ms a step
+(88,572 nodes a step for exhaustive search, about 1,000 on average for sDFS;
+shared 2-core x86_64 CPU, jax 0.10.2). At N = 8 the two were 0.21 and
+0.43 ms, and at smaller horizons exhaustive search's few vectorised levels
+can be as fast as sDFS's one-node-at-a-time loop.
 """
 from __future__ import annotations
 
 import argparse
-import functools
-import json
 import time
+from pathlib import Path
+from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._args import number, output_dir
+from ._args import number
 from ._limits import exhaustive_run
+from ._run import App
 from ._status import stage
 
 DT = 0.05  # s, control period
@@ -56,69 +56,90 @@ def _near_rest(x):
     return jnp.abs(x[0]) + 0.3 * jnp.abs(x[1]) < 0.6
 
 
-def register(subparsers):
-    p = subparsers.add_parser("example", help="small worked example: on/off pendulum under FIRHC",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--horizon", type=number(int, 1, MAX_HORIZON), default=10,
-                   help=f"prediction horizon N (1-{MAX_HORIZON}, default 10; exhaustive search: 3^N leaves a step)")
-    p.add_argument("--steps", type=number(int, 1, MAX_STEPS), default=80,
-                   help=f"closed-loop steps (default 80, at most {MAX_STEPS:,}; the exhaustive check's nodes, "
-                        f"steps x (3 + ... + 3^N), at most {EXHAUSTIVE_BUDGET:,.0f})")
-    p.add_argument("--out", type=output_dir, default="out/example", help="output folder (default out/example)")
-    p.set_defaults(func=run, check=functools.partial(_check, p))
+class ExampleRun(NamedTuple):
+    """sDFS's closed loop (the one saved and drawn) and the summary of both solvers' runs."""
+
+    loop: object  # fj.ClosedLoop
+    summary: dict  # node counts and times of both solvers, whether they applied the same inputs
 
 
-def _check(parser, args) -> None:
-    """The exhaustive check's closed loop within ``EXHAUSTIVE_BUDGET`` nodes."""
-    exhaustive_run(parser, args.steps, 3, args.horizon, EXHAUSTIVE_BUDGET, "about 30 s at 0.3 us a node, run twice",
-                   "lower --steps or --horizon")
+class Example(App):
+    name = "example"
+    help = "small worked example: on/off pendulum under FIRHC"
+    description = __doc__
+    formatter_class = argparse.RawDescriptionHelpFormatter
 
+    def add_arguments(self, p) -> None:
+        p.add_argument("--horizon", type=number(int, 1, MAX_HORIZON), default=10,
+                       help=f"prediction horizon N (1-{MAX_HORIZON}, default 10; exhaustive search: 3^N leaves a "
+                            "step)")
+        p.add_argument("--steps", type=number(int, 1, MAX_STEPS), default=80,
+                       help=f"closed-loop steps (default 80, at most {MAX_STEPS:,}; the exhaustive check's nodes, "
+                            f"steps x (3 + ... + 3^N), at most {EXHAUSTIVE_BUDGET:,.0f})")
 
-def run(args) -> int:
-    jax.config.update("jax_enable_x64", True)
-    import firhc_jax as fj
+    def check(self, parser, args) -> None:
+        """The exhaustive check's closed loop within ``EXHAUSTIVE_BUDGET`` nodes."""
+        exhaustive_run(parser, args.steps, 3, args.horizon, EXHAUSTIVE_BUDGET,
+                       "about 30 s at 0.3 us a node, run twice", "lower --steps or --horizon")
 
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    problem = make_problem(args.horizon)
-    x0 = jnp.array([0.6, 0.0])
-    runs, summary = {}, {"horizon": args.horizon, "steps": args.steps, "tree_size": problem.tree_size()}
-    for solver in ("sdfs", "exhaustive"):
-        ctrl = fj.FIRHC(problem, solver, fallback="unconstrained")
-        with stage(f"{solver}: compiling the closed loop and running it once"):
+    def simulate(self, args) -> ExampleRun:
+        """Both solvers' closed loops, each compiled and run once, then timed on a second run."""
+        import firhc_jax as fj
+
+        problem = make_problem(args.horizon)
+        x0 = jnp.array([0.6, 0.0])
+        runs, summary = {}, {"horizon": args.horizon, "steps": args.steps, "tree_size": problem.tree_size()}
+        for solver in ("sdfs", "exhaustive"):
+            ctrl = fj.FIRHC(problem, solver, fallback="unconstrained")
+            with stage(f"{solver}: compiling the closed loop and running it once"):
+                t0 = time.perf_counter()
+                ctrl.simulate(x0, args.steps, progress=not args.no_progress).states.block_until_ready()
+                compile_and_run = time.perf_counter() - t0
             t0 = time.perf_counter()
-            ctrl.simulate(x0, args.steps, progress=True).states.block_until_ready()  # compile + run
-            compile_and_run = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        runs[solver] = ctrl.simulate(x0, args.steps, progress=True)
-        runs[solver].states.block_until_ready()
-        elapsed = time.perf_counter() - t0
-        nodes = np.asarray(runs[solver].nodes)
-        summary[solver] = {"nodes_min": int(nodes.min()), "nodes_max": int(nodes.max()),
-                           "nodes_mean": float(nodes.mean()), "time_per_step_s": elapsed / args.steps,
-                           "compile_s": compile_and_run - elapsed,
-                           "infeasible_steps": int((~np.asarray(runs[solver].feasible)).sum())}
-    same = bool(np.array_equal(runs["sdfs"].input_indices, runs["exhaustive"].input_indices))
-    summary["same_inputs"] = same
-    summary["exhaustive_over_sdfs_time"] = summary["exhaustive"]["time_per_step_s"] / summary["sdfs"]["time_per_step_s"]
-    summary["final_state"] = np.asarray(runs["sdfs"].states[-1]).tolist()
-    with stage(f"writing summary.json and example.png to {out}"):
-        (out / "summary.json").write_text(json.dumps(summary, indent=2))
-        _plot(runs["sdfs"], out / "example.png")
+            runs[solver] = ctrl.simulate(x0, args.steps, progress=not args.no_progress)
+            runs[solver].states.block_until_ready()
+            elapsed = time.perf_counter() - t0
+            nodes = np.asarray(runs[solver].nodes)
+            summary[solver] = {"nodes_min": int(nodes.min()), "nodes_max": int(nodes.max()),
+                               "nodes_mean": float(nodes.mean()), "time_per_step_s": elapsed / args.steps,
+                               "compile_s": compile_and_run - elapsed,
+                               "infeasible_steps": int((~np.asarray(runs[solver].feasible)).sum())}
+        summary["same_inputs"] = bool(np.array_equal(runs["sdfs"].input_indices, runs["exhaustive"].input_indices))
+        summary["exhaustive_over_sdfs_time"] = (summary["exhaustive"]["time_per_step_s"]
+                                                / summary["sdfs"]["time_per_step_s"])
+        summary["final_state"] = np.asarray(runs["sdfs"].states[-1]).tolist()
+        return ExampleRun(runs["sdfs"], summary)
 
-    print(f"pendulum, N={args.horizon}, {args.steps} steps, full tree {problem.tree_size():,} nodes per step")
-    print(f"{'solver':<12}{'nodes min/mean/max':>24}{'ms/step':>10}{'infeasible':>12}")
-    for solver in ("sdfs", "exhaustive"):
-        s = summary[solver]
-        print(f"{solver:<12}{s['nodes_min']:>8}/{s['nodes_mean']:>7.0f}/{s['nodes_max']:>7}"
-              f"{1e3 * s['time_per_step_s']:>10.2f}{s['infeasible_steps']:>12}")
-    sd = summary["sdfs"]
-    print(f"sDFS: {summary['exhaustive_over_sdfs_time']:.1f}x as fast as exhaustive search, "
-          f"{sd['nodes_mean'] / problem.tree_size():.1%} of its nodes on average; its lead grows with N (3^N leaves), "
-          f"and at small N exhaustive search's few vectorised levels can be as fast")
-    print(f"same inputs from both solvers: {same}; final state {summary['final_state']}")
-    print(f"wrote {out / 'summary.json'} and {out / 'example.png'}")
-    return 0 if same else 1
+    def summarize(self, args, run: ExampleRun) -> dict:
+        return run.summary
+
+    def plot(self, args, run: ExampleRun, summary: dict) -> list:
+        path = Path(args.out) / "example.png"
+        _plot(run.loop, path)
+        return [path]
+
+    def report(self, args, summary: dict) -> str:
+        tree = summary["tree_size"]
+        lines = [f"pendulum, N={args.horizon}, {args.steps} steps, full tree {tree:,} nodes per step",
+                 f"{'solver':<12}{'nodes min/mean/max':>24}{'ms/step':>10}{'infeasible':>12}"]
+        for solver in ("sdfs", "exhaustive"):
+            s = summary[solver]
+            lines.append(f"{solver:<12}{s['nodes_min']:>8}/{s['nodes_mean']:>7.0f}/{s['nodes_max']:>7}"
+                         f"{1e3 * s['time_per_step_s']:>10.2f}{s['infeasible_steps']:>12}")
+        lines.append(f"sDFS: {summary['exhaustive_over_sdfs_time']:.1f}x as fast as exhaustive search, "
+                     f"{summary['sdfs']['nodes_mean'] / tree:.1%} of its nodes on average; its lead grows with N "
+                     "(3^N leaves), and at small N exhaustive search's few vectorised levels can be as fast")
+        lines.append(f"same inputs from both solvers: {summary['same_inputs']}; final state {summary['final_state']}")
+        return "\n".join(lines)
+
+    def exit_status(self, summary: dict) -> int:
+        """1 when sDFS and exhaustive search applied different inputs (they never should)."""
+        return 0 if summary["same_inputs"] else 1
+
+
+APP = Example()
+register = APP.register
+run = APP.run
 
 
 def _plot(run, path):

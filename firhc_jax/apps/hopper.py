@@ -1,9 +1,8 @@
 """``python -m firhc_jax hopper``: the pneumatic hopping robot under FIRHC (Sec. IV.1, Figs. 4-8).
 
 The robot is dropped from rest at the apex of the specified flight (foot at
-``g T_air^2 / 8``) and controlled for ``--seconds`` by
-``firhc_jax.models.hopper.controller`` (explained and measured in
-``docs/hopper.md``): side a by the paper's on/off law, valve b by FIRHC over
+``g T_air^2 / 8``) and controlled for ``--seconds`` by ``controller``
+(``_hopper.py``; explained and measured in ``docs/hopper.md``): side a by the paper's on/off law, valve b by FIRHC over
 its three states, both valves sealed in flight, a 5 ms control period and a
 plant integrated at 50 us.
 
@@ -21,9 +20,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import os
 import time
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -32,8 +31,10 @@ import numpy as np
 import firhc_jax as fj
 from firhc_jax.models import hopper as hm
 
-from ._args import number, output_dir
+from ._args import number
+from ._hopper import controller, warm_candidate  # noqa: F401  the closed loop's controller, importable here
 from ._limits import exhaustive_run
+from ._run import App
 from ._status import stage
 from ._timing import timed_closed_loop
 
@@ -71,12 +72,12 @@ def simulate(seconds: float = 2.0, horizon: int = 6, solver: str = "sdfs", param
     params = params or hm.HopperParams()
     steps = max(1, int(round(seconds / hm.CONTROL_PERIOD)))
     X0 = jnp.asarray(hm.initial_state(params))
-    ctrl = hm.controller(params, horizon, solver, bound, warm, **options)
+    ctrl = controller(horizon, params, solver, bound, warm, **options)
+    plant = hm.make_plant(params)
     if timed:
-        loop, compile_s = timed_closed_loop(ctrl, X0, steps, hm.plant(params), dt=hm.CONTROL_PERIOD,
-                                            progress=progress)
+        loop, compile_s = timed_closed_loop(ctrl, X0, steps, plant, dt=hm.CONTROL_PERIOD, progress=progress)
     else:
-        loop, compile_s = ctrl.simulate(X0, steps, hm.plant(params), dt=hm.CONTROL_PERIOD, progress=progress), None
+        loop, compile_s = ctrl.simulate(X0, steps, plant, dt=hm.CONTROL_PERIOD, progress=progress), None
     with stage(f"re-integrating the plant at {hm.PLANT_DT * 1e6:g} us for the figures"):
         fine = jax.block_until_ready(_fine_trajectory(params)(loop.states[:-1], loop.inputs))  # [S, SUBSTEPS, 6]
     return loop, np.concatenate([np.asarray(X0)[None], np.asarray(fine).reshape(-1, 6)]), compile_s
@@ -156,7 +157,7 @@ def summarize(loop: fj.ClosedLoop, X, horizon: int, solver: str, seconds: float,
         contact_steps=int(np.count_nonzero(c)), control_steps=int(len(c)),
         nodes_min=int(nodes.min()) if len(nodes) else 0, nodes_max=int(nodes.max()) if len(nodes) else 0,
         nodes_mean=mean(nodes), nodes_max_feasible=int(nodes[feasible].max(initial=0)),
-        tree_size=hm.problem(params, horizon).tree_size(),
+        tree_size=hm.make_problem(horizon, params).tree_size(),
         fallback_nodes_mean=mean(np.asarray(loop.fallback_nodes)[c][~feasible]),
         solve_time_mean_s=mean(times), solve_time_median_s=float(np.median(times)) if len(times) else None,
         solve_time_max_s=float(times.max()) if len(times) else None, compile_time_s=compile_s,
@@ -243,67 +244,74 @@ def figures(loop: fj.ClosedLoop, X, params: hm.HopperParams, out: str) -> list:
 # Command line
 # ---------------------------------------------------------------------------
 
-def register(subparsers) -> None:
-    """Add the ``hopper`` subcommand."""
-    parser = subparsers.add_parser(
-        "hopper", help="pneumatic hopping robot under FIRHC (paper Sec. IV.1, Figs. 4-8)",
-        description="Simulate the pneumatic hopping robot under FIRHC, write Figs. 4-8 and summary.json.")
-    parser.add_argument("--horizon", type=number(int, 1, 12), default=6, metavar="N",
-                        help="prediction horizon (default 6)")
-    parser.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs", help="search (default sdfs)")
-    parser.add_argument("--bound", action="store_true", help="sDFS with the admissible lower bound (docs/bounds.md)")
-    parser.add_argument("--warm", action="store_true",
-                        help="sDFS seeded with the better of the previous solution shifted and unshifted (exact; "
-                             "with --bound: N = 10 in real time, docs/bounds.md)")
-    parser.add_argument("--pop-width", type=number(int, 1, 64), default=1, metavar="K",
-                        help="nodes expanded per search iteration (default 1, the paper's sDFS; exact for every K; "
-                             "--bound --warm --pop-width 4: N = 10 within the 5 ms period, docs/bounds.md)")
-    parser.add_argument("--seconds", type=number(float, hm.CONTROL_PERIOD, 60), default=2.0,
-                        help="simulated time in s (default 2)")
-    parser.add_argument("--out", type=output_dir, default=os.path.join("out", "hopper"), metavar="DIR",
-                        help="output directory (default out/hopper)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.set_defaults(func=run, check=functools.partial(_check, parser))
-
-
 # Exhaustive search costs about 2.3 us a node here (N = 8: 23 ms for 9,840 nodes, shared 2-core CPU).
 EXHAUSTIVE_BUDGET = 1e8
 
 
-def _check(parser, args) -> None:
-    """A run's exhaustive searches within ``EXHAUSTIVE_BUDGET`` nodes; ``--warm`` with sDFS only."""
-    if args.warm and args.solver != "sdfs":
-        parser.error("--warm needs --solver sdfs")
-    if args.solver == "exhaustive":
-        steps = max(1, int(round(args.seconds / hm.CONTROL_PERIOD)))
-        exhaustive_run(parser, steps, len(hm.VALVE_B), args.horizon, EXHAUSTIVE_BUDGET,
-                       "about 4 minutes at 2.3 us a node", "lower --horizon or --seconds, or use --solver sdfs")
+class HopperRun(NamedTuple):
+    """One run of the command."""
+
+    loop: fj.ClosedLoop  # one entry per control period
+    X: np.ndarray  # [S * SUBSTEPS + 1, 6] the plant at every plant step
+    compile_s: float  # s tracing and compilation of one decision
+    wall_s: float  # s the whole simulation took, compilation and figures' re-integration included
 
 
-def run(args) -> int:
-    """Simulate with every decision timed, write the figures, ``summary.json`` and ``closed_loop.npz``."""
-    os.makedirs(args.out, exist_ok=True)
-    jax.config.update("jax_enable_x64", True)
-    params = hm.HopperParams()
-    t0 = time.perf_counter()
-    loop, X, compile_s = simulate(args.seconds, args.horizon, args.solver, params, progress=not args.no_progress,
-                                  timed=True, bound=args.bound, warm=args.warm, pop_width=args.pop_width)
-    wall = time.perf_counter() - t0
-    summary = summarize(loop, X, args.horizon, args.solver, args.seconds, params, wall, args.bound, args.warm,
-                        args.pop_width, compile_s)
-    with stage(f"writing Figs. 4-8, summary.json and closed_loop.npz to {args.out}"):
-        figures(loop, X, params, args.out)
-        with open(os.path.join(args.out, "summary.json"), "w") as f:
-            json.dump(summary, f, indent=2)
-        loop.save(os.path.join(args.out, "closed_loop.npz"))
+class Hopper(App):
+    name = "hopper"
+    help = "pneumatic hopping robot under FIRHC (paper Sec. IV.1, Figs. 4-8)"
+    description = "Simulate the pneumatic hopping robot under FIRHC, write Figs. 4-8 and summary.json."
 
-    def fmt(value, spec, scale=1.0):
-        return "n/a" if value is None else format(scale * value, spec)
+    def add_arguments(self, parser) -> None:
+        parser.add_argument("--horizon", type=number(int, 1, 12), default=6, metavar="N",
+                            help="prediction horizon (default 6)")
+        parser.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs", help="search (default sdfs)")
+        parser.add_argument("--bound", action="store_true",
+                            help="sDFS with the admissible lower bound (docs/bounds.md)")
+        parser.add_argument("--warm", action="store_true",
+                            help="sDFS seeded with the better of the previous solution shifted and unshifted "
+                                 "(exact; with --bound: N = 10 in real time, docs/bounds.md)")
+        parser.add_argument("--pop-width", type=number(int, 1, 64), default=1, metavar="K",
+                            help="nodes expanded per search iteration (default 1, the paper's sDFS; exact for every "
+                                 "K; --bound --warm --pop-width 4: N = 10 within the 5 ms period, docs/bounds.md)")
+        parser.add_argument("--seconds", type=number(float, hm.CONTROL_PERIOD, 60), default=2.0,
+                            help="simulated time in s (default 2)")
 
-    print(f"hops {summary['hops']}  T_hop {fmt(summary['t_hop_mean'], '.4f')} s  "
-          f"T_air {fmt(summary['t_air_mean'], '.4f')} s  (spec {hm.T_HOP} / {hm.T_AIR})  "
-          f"infeasible {summary['infeasible_steps']}/{summary['contact_steps']}  "
-          f"nodes {summary['nodes_min']}/{summary['nodes_max']}/{fmt(summary['nodes_mean'], '.0f')} (min/max/mean)  "
-          f"solve {fmt(summary['solve_time_mean_s'], '.2f', 1e3)} ms/step")
-    print(f"wrote {args.out}/summary.json, closed_loop.npz and hopper_fig4..8 PNGs")
-    return 0
+    def check(self, parser, args) -> None:
+        """A run's exhaustive searches within ``EXHAUSTIVE_BUDGET`` nodes; ``--warm`` with sDFS only."""
+        if args.warm and args.solver != "sdfs":
+            parser.error("--warm needs --solver sdfs")
+        if args.solver == "exhaustive":
+            steps = max(1, int(round(args.seconds / hm.CONTROL_PERIOD)))
+            exhaustive_run(parser, steps, len(hm.VALVE_B), args.horizon, EXHAUSTIVE_BUDGET,
+                           "about 4 minutes at 2.3 us a node", "lower --horizon or --seconds, or use --solver sdfs")
+
+    def simulate(self, args) -> HopperRun:
+        """Every decision timed (``simulate(..., timed=True)``)."""
+        t0 = time.perf_counter()
+        loop, X, compile_s = simulate(args.seconds, args.horizon, args.solver, hm.HopperParams(),
+                                      progress=not args.no_progress, timed=True, bound=args.bound, warm=args.warm,
+                                      pop_width=args.pop_width)
+        return HopperRun(loop, X, compile_s, time.perf_counter() - t0)
+
+    def summarize(self, args, run: HopperRun) -> dict:
+        return summarize(run.loop, run.X, args.horizon, args.solver, args.seconds, hm.HopperParams(), run.wall_s,
+                         args.bound, args.warm, args.pop_width, run.compile_s)
+
+    def plot(self, args, run: HopperRun, summary: dict) -> list:
+        return figures(run.loop, run.X, hm.HopperParams(), args.out)
+
+    def report(self, args, summary: dict) -> str:
+        def fmt(value, spec, scale=1.0):
+            return "n/a" if value is None else format(scale * value, spec)
+
+        return (f"hops {summary['hops']}  T_hop {fmt(summary['t_hop_mean'], '.4f')} s  "
+                f"T_air {fmt(summary['t_air_mean'], '.4f')} s  (spec {hm.T_HOP} / {hm.T_AIR})  "
+                f"infeasible {summary['infeasible_steps']}/{summary['contact_steps']}  "
+                f"nodes {summary['nodes_min']}/{summary['nodes_max']}/{fmt(summary['nodes_mean'], '.0f')} "
+                f"(min/max/mean)  solve {fmt(summary['solve_time_mean_s'], '.2f', 1e3)} ms/step")
+
+
+APP = Hopper()
+register = APP.register
+run = APP.run

@@ -15,9 +15,8 @@ The plant is the prediction model itself (no model error), as in the paper.
 """
 from __future__ import annotations
 
-import functools
-import json
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -25,10 +24,11 @@ import numpy as np
 
 import firhc_jax as fj
 from firhc_jax.models import tanks as model
+from firhc_jax.solvers import SOLVERS, options_help
 
-from ._args import number, output_dir
+from ._args import number
 from ._limits import exhaustive_run
-from ._status import stage
+from ._run import App
 from ._timing import timed_closed_loop
 
 MAX_HORIZON = 10  # 17^10 sequences: beyond this even sDFS's worst steps become impractical
@@ -148,67 +148,76 @@ def plot(loop: fj.ClosedLoop, path: Path, params: model.TankParams, set_point=mo
     fig.savefig(path, dpi=110)
 
 
-def register(subparsers) -> None:
-    """Add the ``tanks`` subcommand."""
-    p = subparsers.add_parser(
-        "tanks", help="three-tank system, 17 valve/pump modes (paper Sec. IV.2)",
-        description="FIRHC closed loop of the three-tank system: from {0.2, 0.18, 0.1} m to "
-                    "{0.3, 0.25, 0.15} m; writes summary.json and a figure.")
-    p.add_argument("--horizon", "-N", type=number(int, 1, MAX_HORIZON), default=4,
-                   help="prediction horizon N (default 4; paper: 3-6)")
-    p.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs",
-                   help="search (default sdfs); exhaustive visits 17+...+17^N nodes per step")
-    p.add_argument("--out", type=output_dir, default="out/tanks", help="output folder (default out/tanks)")
-    p.add_argument("--seconds", type=number(float, 0, low_open=True, high=MAX_SECONDS), default=200.0,
-                   help=f"simulated time in s, rounded down to whole 2 s samples (default 200, at most "
-                        f"{MAX_SECONDS:g})")
-    p.add_argument("--switch-penalty", type=number(float, 0), default=0.0,
-                   help="cost per actuator toggle, in mm^2 of level error (default 0)")
-    p.add_argument("--terminal-tol", type=number(float, 0, low_open=True), default=None,
-                   help="terminal box half-width in m around the set point (default: none); steps where "
-                        "it cannot be reached apply the unconstrained optimum")
-    p.add_argument("--bound", action="store_true", help="sDFS with the admissible lower bound (docs/bounds.md)")
-    p.add_argument("--tolerance", type=number(float, 0, low_open=True), default=0.005,
-                   help="settling band half-width in m (default 0.005)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=run, check=functools.partial(_check, p))
+class TanksRun(NamedTuple):
+    """One run of the command."""
+
+    loop: fj.ClosedLoop
+    compile_s: float  # s tracing and compilation of one decision
+    problem: fj.Problem
 
 
-def _check(parser, args) -> None:
-    """At least one sample; a run's exhaustive searches within ``EXHAUSTIVE_BUDGET`` nodes."""
-    ts = model.TankParams().ts
-    steps = int(args.seconds // ts)
-    if steps < 1:
-        parser.error(f"--seconds must be at least one sample ({ts:g} s), got {args.seconds:g}")
-    if args.solver == "exhaustive":
-        exhaustive_run(parser, steps, model.NUM_MODES, args.horizon, EXHAUSTIVE_BUDGET,
-                       "about 4 minutes at 0.47 us a node", "lower --horizon or --seconds, or use --solver sdfs")
+class Tanks(App):
+    name = "tanks"
+    help = "three-tank system, 17 valve/pump modes (paper Sec. IV.2)"
+    description = ("FIRHC closed loop of the three-tank system: from {0.2, 0.18, 0.1} m to "
+                   "{0.3, 0.25, 0.15} m; writes summary.json and a figure.")
 
+    def add_arguments(self, p) -> None:
+        p.add_argument("--horizon", "-N", type=number(int, 1, MAX_HORIZON), default=4,
+                       help="prediction horizon N (default 4; paper: 3-6)")
+        p.add_argument("--solver", choices=tuple(SOLVERS), default="sdfs",
+                       help=f"search (default sdfs): {options_help()}; exhaustive visits 17+...+17^N nodes per step")
+        p.add_argument("--seconds", type=number(float, 0, low_open=True, high=MAX_SECONDS), default=200.0,
+                       help=f"simulated time in s, rounded down to whole 2 s samples (default 200, at most "
+                            f"{MAX_SECONDS:g})")
+        p.add_argument("--switch-penalty", type=number(float, 0), default=0.0,
+                       help="cost per actuator toggle, in mm^2 of level error (default 0)")
+        p.add_argument("--terminal-tol", type=number(float, 0, low_open=True), default=None,
+                       help="terminal box half-width in m around the set point (default: none); steps where "
+                            "it cannot be reached apply the unconstrained optimum")
+        p.add_argument("--bound", action="store_true", help="sDFS with the admissible lower bound (docs/bounds.md)")
+        p.add_argument("--tolerance", type=number(float, 0, low_open=True), default=0.005,
+                       help="settling band half-width in m (default 0.005)")
 
-def run(args) -> int:
-    """Run the experiment described by the parsed ``args``; returns the exit status (0)."""
-    jax.config.update("jax_enable_x64", True)
-    params = model.TankParams()
-    steps = int(args.seconds // params.ts)
-    args.out.mkdir(parents=True, exist_ok=True)
-    problem = model.make_problem(args.horizon, params, switch_penalty=args.switch_penalty,
-                                 terminal_tol=args.terminal_tol, bound=args.bound)
-    loop, compile_s = simulate(problem, args.solver, steps, progress=not args.no_progress, timed=True, dt=params.ts)
-    summary = summarize(loop, compile_s, problem, args.solver, params, tolerance=args.tolerance,
-                        switch_penalty=args.switch_penalty, terminal_tol=args.terminal_tol)
-    figure = args.out / f"tanks_N{args.horizon}_{args.solver}.png"
-    with stage(f"writing summary.json, closed_loop.npz and {figure.name} to {args.out}"):
-        (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-        loop.save(args.out / "closed_loop.npz")
-        plot(loop, figure, params, tolerance=args.tolerance,
+    def check(self, parser, args) -> None:
+        """At least one sample; a run's exhaustive searches within ``EXHAUSTIVE_BUDGET`` nodes."""
+        ts = model.TankParams().ts
+        steps = int(args.seconds // ts)
+        if steps < 1:
+            parser.error(f"--seconds must be at least one sample ({ts:g} s), got {args.seconds:g}")
+        if args.solver == "exhaustive":
+            exhaustive_run(parser, steps, model.NUM_MODES, args.horizon, EXHAUSTIVE_BUDGET,
+                           "about 4 minutes at 0.47 us a node", "lower --horizon or --seconds, or use --solver sdfs")
+
+    def simulate(self, args) -> TanksRun:
+        params = model.TankParams()
+        problem = model.make_problem(args.horizon, params, switch_penalty=args.switch_penalty,
+                                     terminal_tol=args.terminal_tol, bound=args.bound)
+        loop, compile_s = simulate(problem, args.solver, int(args.seconds // params.ts),
+                                   progress=not args.no_progress, timed=True, dt=params.ts)
+        return TanksRun(loop, compile_s, problem)
+
+    def summarize(self, args, run: TanksRun) -> dict:
+        return summarize(run.loop, run.compile_s, run.problem, args.solver, model.TankParams(),
+                         tolerance=args.tolerance, switch_penalty=args.switch_penalty, terminal_tol=args.terminal_tol)
+
+    def plot(self, args, run: TanksRun, summary: dict) -> list:
+        figure = Path(args.out) / f"tanks_N{args.horizon}_{args.solver}.png"
+        plot(run.loop, figure, model.TankParams(), tolerance=args.tolerance,
              title=f"Three-tank FIRHC, N = {args.horizon}, {args.solver}: nodes/step min {summary['nodes_min']}, "
                    f"mean {summary['nodes_mean']:.0f}, max {summary['nodes_max']}")
-    settled = summary["settling_time_s"]
-    print(f"tanks N={args.horizon} {args.solver}: final levels "
-          f"{', '.join(f'{h:.4f}' for h in summary['final_levels'])} m, "
-          f"settled {'never' if settled is None else f'at {settled:g} s'}, "
-          f"max |error| last 20 s {summary['max_abs_error_last_20s'] * 1e3:.2f} mm, "
-          f"nodes/step {summary['nodes_min']}/{summary['nodes_mean']:.0f}/{summary['nodes_max']} (min/mean/max), "
-          f"{summary['solve_time_mean_s'] * 1e3:.2f} ms/step")
-    print(f"wrote {args.out / 'summary.json'}, {figure} and {args.out / 'closed_loop.npz'}")
-    return 0
+        return [figure]
+
+    def report(self, args, summary: dict) -> str:
+        settled = summary["settling_time_s"]
+        return (f"tanks N={args.horizon} {args.solver}: final levels "
+                f"{', '.join(f'{h:.4f}' for h in summary['final_levels'])} m, "
+                f"settled {'never' if settled is None else f'at {settled:g} s'}, "
+                f"max |error| last 20 s {summary['max_abs_error_last_20s'] * 1e3:.2f} mm, "
+                f"nodes/step {summary['nodes_min']}/{summary['nodes_mean']:.0f}/{summary['nodes_max']} "
+                f"(min/mean/max), {summary['solve_time_mean_s'] * 1e3:.2f} ms/step")
+
+
+APP = Tanks()
+register = APP.register
+run = APP.run

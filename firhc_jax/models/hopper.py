@@ -1,5 +1,5 @@
 """Pneumatic vertical hopping robot (the paper's Sec. III and IV.1): plant, prediction model, and the FIRHC
-problem and controller on valve b.
+problem on valve b.
 
 A vertical double-acting cylinder: the body M rides on the piston, the foot m
 is the cylinder end that touches the ground. Chamber a pushes the body up,
@@ -24,7 +24,8 @@ controller must hold the energy despite it, as in the paper).
 All functions are elementwise arithmetic (no matmuls), so a search gives the
 same bits for the same sequence whatever its batch size.
 
-Controller (last section; ``docs/hopper.md`` explains and measures it):
+Controller (last section: the problem and the pieces of its closed loop; the ``FIRHC`` itself is built by
+``firhc_jax.apps.hopper.controller``; ``docs/hopper.md`` explains and measures it):
 
 * Control period 5 ms: longer than the 2-5 ms switching time of fast 3/2
   solenoid valves, so a commanded state is actually reached within a period,
@@ -50,9 +51,9 @@ Controller (last section; ``docs/hopper.md`` explains and measures it):
   nothing (it has not happened), valve b stays closed (the controller's
   ``u_safe``) and the step is counted as unsolved.
 
-``controller`` is the ``FIRHC`` of the closed loop: ``observe`` maps the plant
-state ``[6]`` to the model's ``[5]``, ``actuate`` adds side a's law and seals
-the valves in flight, and ``plant`` integrates one period.
+The closed loop's pieces: ``observe`` maps the plant state ``[6]`` to the
+model's ``[5]``, ``actuate`` adds side a's law and seals the valves in flight,
+and ``make_plant`` integrates one period.
 """
 from __future__ import annotations
 
@@ -67,7 +68,8 @@ import numpy as np
 from scipy.optimize import brentq
 
 import firhc_jax as fj
-from firhc_jax.nodes import rollout_cost
+
+from ._deprecation import renamed
 
 PSI = 6894.757  # Pa per psi
 
@@ -464,7 +466,7 @@ def desired_energy(T_hop: float, T_air: float, params: HopperParams) -> Gait:
 
 
 # ---------------------------------------------------------------------------
-# FIRHC on valve b (Sec. IV.1): problem, bound, controller, sampled plant
+# FIRHC on valve b (Sec. IV.1): problem, bound, the closed loop's pieces, sampled plant
 # ---------------------------------------------------------------------------
 
 T_HOP, T_AIR = 0.4, 0.2  # s, gait specification (paper)
@@ -476,7 +478,7 @@ VALVE_B = (-0.01, 0.0, 0.01)  # u: exhaust, closed, supply (the paper's scaling)
 ENERGY_TOL = 0.02  # J, terminal constraint |E(k+N) - E_d| <= tol
 A_DEADBAND = 0.01  # relative: side a charges below (1 - 1%) of the reference pressure
 SUBSTEPS = int(round(CONTROL_PERIOD / PLANT_DT))  # plant steps per control period
-IN_FLIGHT = 2.0  # model state's airborne flag for a decision taken in flight (see ``problem``)
+IN_FLIGHT = 2.0  # model state's airborne flag for a decision taken in flight (see ``make_problem``)
 OPEN_COST = BETA * min(u * u for u in VALVE_B if u != 0)  # cost of one period with valve b open (0.001)
 PASSIVE_DRIFT = 1e-6  # J, allowance per closed period for the RK4 drift of the conserved E - E_d (seen: <= 1e-10)
 A_IDLE_MARGIN = 1e-6  # relative margin on side a's threshold for "its law never fires below this node"
@@ -503,9 +505,9 @@ def static_target(p: HopperParams) -> float:
     return float(orbit_energy(np.array([0.0, 0.0, p.P_a0, p.P_b0]), liftoff_velocity(p), p))
 
 
-@functools.lru_cache(maxsize=None)
-def problem(params: HopperParams, horizon: int, bound: bool = False) -> fj.Problem:
-    """The FIRHC problem for valve b (built once per parameters and horizon, so its search compiles once).
+def make_problem(horizon: int, params: HopperParams = HopperParams(), bound: bool = False,
+                 terminal: bool = True) -> fj.Problem:
+    """The FIRHC problem for valve b (built once per arguments, so its search compiles once).
 
     Prediction state ``[5]``: ``[x, xdot, P_a, P_b, airborne]`` (see
     ``model_step``; ``airborne`` 1 from a predicted lift-off on). Input
@@ -518,14 +520,27 @@ def problem(params: HopperParams, horizon: int, bound: bool = False) -> fj.Probl
 
     ``bound``: add the lower bound of ``docs/bounds.md`` (energy-band
     reachability and energy-error cost), exact results with fewer nodes.
+    ``terminal=False``: without the terminal set, for the fallback search; with
+    ``bound`` its bound is the same one without the ``+inf`` that only the
+    terminal set justifies (the core drops a bound with the terminal set).
     """
-    return _problems(params, horizon)["bounded" if bound else "plain"]
+    if terminal:
+        return _problems(params, horizon)["bounded" if bound else "plain"]
+    return _problems(params, horizon)["relaxed" if bound else "open"]
+
+
+def problem(params: HopperParams, horizon: int, bound: bool = False) -> fj.Problem:
+    """Deprecated: ``make_problem(horizon, params, bound=bound)``."""
+    renamed("firhc_jax.models.hopper.problem(params, horizon, bound)",
+            "firhc_jax.models.hopper.make_problem(horizon, params, bound=bound)")
+    return make_problem(horizon, params, bound)
 
 
 def fallback_problem(params: HopperParams, horizon: int) -> fj.Problem:
-    """The bounded problem without its terminal set, for the fallback search: its bound is the same one without
-    the ``+inf`` that only the terminal set justifies (the core drops a bound with the terminal set)."""
-    return _problems(params, horizon)["relaxed"]
+    """Deprecated: ``make_problem(horizon, params, bound=True, terminal=False)``."""
+    renamed("firhc_jax.models.hopper.fallback_problem(params, horizon)",
+            "firhc_jax.models.hopper.make_problem(horizon, params, bound=True, terminal=False)")
+    return make_problem(horizon, params, True, False)
 
 
 @functools.lru_cache(maxsize=None)
@@ -578,7 +593,7 @@ def _problems(params: HopperParams, horizon: int) -> dict:
         return bound(z, steps_left, False)
 
     plain = fj.Problem(dynamics, jnp.asarray(VALVE_B), stage_cost, horizon, terminal)
-    return dict(plain=plain, bounded=plain.replace(lower_bound=lower_bound),
+    return dict(plain=plain, bounded=plain.replace(lower_bound=lower_bound), open=plain.replace(terminal=None),
                 relaxed=plain.replace(terminal=None, lower_bound=relaxed_bound))
 
 
@@ -600,46 +615,28 @@ def observe(X, u_prev):
     return jnp.stack([X[0] - X[2], X[1] - X[3], X[4], X[5], flag])
 
 
+def actuate(X, u, p: HopperParams):
+    """The plant's commands ``[2]`` (a, b) in {-1, 0, 1} for the searched input ``u`` ``[1]``: side a by
+    ``side_a_law``, valve b by ``u``, both 0 (sealed) when the foot is off the ground at the sample."""
+    return jnp.where(contact(X), jnp.stack([side_a_law(X[0] - X[2], X[4], p), jnp.sign(u[0])]), 0.0)
+
+
 def warm_candidate(problem: fj.Problem, x, previous, params=None):
-    """The warm start for a search from ``x``: the cheaper of ``previous`` (the last decision's sequence ``[N]``)
-    shifted by one step and ``previous`` unshifted, all -1 (none) when neither meets the terminal test or there
-    is no previous sequence.
+    """Deprecated: ``firhc_jax.apps.hopper.warm_candidate``."""
+    renamed("firhc_jax.models.hopper.warm_candidate", "firhc_jax.apps.hopper.warm_candidate")
+    from ..apps._hopper import warm_candidate as candidate
 
-    Why two: the plant loses energy to friction that the model does not have, so the shifted plan often just
-    misses the terminal band (no incumbent at all), while the same plan one period later meets it. Exact either
-    way: a warm start only sets the search's first incumbent.
-    """
-    shifted = jnp.concatenate([previous[1:], previous[-1:]])
-    candidates = jnp.stack([shifted, previous])  # [2, N]
-    dtype = jnp.promote_types(x.dtype, jnp.float32)
-    costs = jax.vmap(lambda w: rollout_cost(problem, x, w, dtype, params)[0])(jnp.maximum(candidates, 0))
-    i = jnp.argmin(costs)
-    return jnp.where((previous[0] >= 0) & jnp.isfinite(costs[i]), candidates[i], -1)
+    return candidate(problem, x, previous, params)
 
 
-@functools.lru_cache(maxsize=None)
 def controller(params: HopperParams, horizon: int, solver: str, bound: bool = False, warm: bool = False,
                **options) -> fj.FIRHC:
-    """FIRHC on valve b; valve a by ``side_a_law``; both sealed in flight.
+    """Deprecated: ``firhc_jax.apps.hopper.controller(horizon, params, solver, ...)``."""
+    renamed("firhc_jax.models.hopper.controller(params, horizon, solver, ...)",
+            "firhc_jax.apps.hopper.controller(horizon, params, solver, ...)")
+    from ..apps._hopper import controller as build
 
-    ``actuate`` turns the searched input into the plant's commands ``[2]``
-    (a, b) in {-1, 0, 1}: in flight at the sample both are 0. Should no
-    sequence be found at all (it has not happened) the safe input applies:
-    valve b closed (``u_safe``), the step flagged in ``ClosedLoop.held``.
-    Cached so that repeated closed loops reuse one compiled executable.
-    ``bound`` as in ``problem``, the fallback search with ``fallback_problem``'s bound; ``warm`` (sdfs only):
-    seed each search with ``warm_candidate`` (the better of the previous solution shifted and unshifted);
-    ``options`` go to the solver (e.g. ``max_nodes``).
-    """
-    p = params
-
-    def actuate(X, u):
-        return jnp.where(contact(X), jnp.stack([side_a_law(X[0] - X[2], X[4], p), jnp.sign(u[0])]), 0.0)
-
-    return fj.FIRHC(problem(params, horizon, bound), solver,
-                    fallback=fallback_problem(params, horizon) if bound else "unconstrained",
-                    warm_start=warm_candidate if warm else False, observe=observe, actuate=actuate,
-                    u_safe=np.zeros(1), **options)
+    return build(horizon, params, solver, bound, warm, **options)
 
 
 def control_period(X, cmd, p: HopperParams):
@@ -657,6 +654,12 @@ def control_period(X, cmd, p: HopperParams):
 
 
 @functools.lru_cache(maxsize=None)
-def plant(params: HopperParams):
+def make_plant(params: HopperParams = HopperParams()):
     """``plant(X, cmd) -> X`` one control period later, for ``FIRHC.simulate`` (jitted, cached)."""
     return jax.jit(lambda X, cmd: control_period(X, cmd, params)[0])
+
+
+def plant(params: HopperParams):
+    """Deprecated: ``make_plant(params)``."""
+    renamed("firhc_jax.models.hopper.plant(params)", "firhc_jax.models.hopper.make_plant(params)")
+    return make_plant(params)

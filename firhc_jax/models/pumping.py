@@ -26,12 +26,15 @@ are left out.
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import jax.numpy as jnp
 import numpy as np
 
 import firhc_jax as fj
+
+from ._deprecation import renamed
 
 AREA = np.array([220.0, 160.0])  # m^2 per tank
 H_MIN, H_MAX = 0.5, 4.5  # m, hard bounds on both levels
@@ -45,36 +48,59 @@ PARALLEL = 0.88  # share of their summed flow that two pumps on one main deliver
 WATER_VALUE = 0.045  # EUR per m^3 missing below TARGET at the end of the horizon
 
 
-def pump_flows(levels, on, xp=jnp):
+@dataclasses.dataclass(frozen=True)
+class PumpingParams:
+    """The station's data (the module's constants by default; arrays as tuples, so the record is hashable)."""
+
+    area: tuple = tuple(AREA)  # m^2 per tank
+    h_min: float = H_MIN  # m, hard lower bound on both levels
+    h_max: float = H_MAX  # m, hard upper bound on both levels
+    target: tuple = tuple(TARGET)  # m, levels the stored water is valued against
+    tank_of: tuple = tuple(TANK_OF)  # the tank each pump fills
+    lift: tuple = tuple(LIFT)  # m, static head of each pump's main
+    a_coef: tuple = tuple(A_COEF)  # m^3/h per sqrt(m) of head margin
+    h_shut: tuple = tuple(H_SHUT)  # m, shut-off head
+    power: tuple = tuple(POWER)  # kW per pump when on
+    parallel: float = PARALLEL  # share of their summed flow that two pumps on one main deliver
+    water_value: float = WATER_VALUE  # EUR per m^3 missing below target at the end of the horizon
+
+
+def pump_flows(levels, on, xp=jnp, params: PumpingParams = PumpingParams()):
     """``[3]`` m^3/h of each pump at tank ``levels`` ``[2]`` with pumps ``on`` ``[3]`` (0/1)."""
-    head = xp.asarray(LIFT) + levels[xp.asarray(TANK_OF)]
-    q = xp.asarray(A_COEF) * xp.sqrt(xp.maximum(xp.asarray(H_SHUT) - head, 0.0)) * on
-    shared = 1.0 - (1.0 - PARALLEL) * on[0] * on[1]  # the two pumps of tank A share its main
+    p = params
+    head = xp.asarray(p.lift) + levels[xp.asarray(p.tank_of)]
+    q = xp.asarray(p.a_coef) * xp.sqrt(xp.maximum(xp.asarray(p.h_shut) - head, 0.0)) * on
+    shared = 1.0 - (1.0 - p.parallel) * on[0] * on[1]  # the two pumps of tank A share its main
     return q * xp.stack([shared, shared, xp.ones_like(shared)])
 
 
-def inflow(levels, on, xp=jnp):
+def inflow(levels, on, xp=jnp, params: PumpingParams = PumpingParams()):
     """``[2]`` m^3/h into each tank."""
-    q = pump_flows(levels, on, xp)
+    q = pump_flows(levels, on, xp, params)
     return xp.stack([q[0] + q[1], q[2]])
 
 
-def step(levels, on, demand, xp=jnp):
+def step(levels, on, demand, xp=jnp, params: PumpingParams = PumpingParams()):
     """Levels one hour later (explicit Euler)."""
-    return levels + (inflow(levels, on, xp) - demand) / xp.asarray(AREA)
+    return levels + (inflow(levels, on, xp, params) - demand) / xp.asarray(params.area)
 
 
-def energy_per_volume() -> np.ndarray:
-    """``[2]`` the least kWh per m^3 any combination spends on each tank, at ``H_MIN``
+def make_plant(params: PumpingParams = PumpingParams()):
+    """``plant(levels, on, demand) -> levels`` one hour later (``step``)."""
+    return lambda levels, on, demand: step(levels, on, demand, jnp, params)
+
+
+def energy_per_volume(params: PumpingParams = PumpingParams()) -> np.ndarray:
+    """``[2]`` the least kWh per m^3 any combination spends on each tank, at ``h_min``
     (the cheapest level to pump into)."""
     best = np.full(2, np.inf)
     for on in itertools.product([0.0, 1.0], repeat=3):
         on = np.array(on)
-        q = inflow(np.full(2, H_MIN), on, np)
+        q = inflow(np.full(2, params.h_min), on, np, params)
         for j in range(2):
-            serving = on * (TANK_OF == j)
+            serving = on * (np.asarray(params.tank_of) == j)
             if q[j] > 0:
-                best[j] = min(best[j], float(np.sum(POWER * serving)) / q[j])
+                best[j] = min(best[j], float(np.sum(np.asarray(params.power) * serving)) / q[j])
     return best
 
 
@@ -99,42 +125,50 @@ def horizon_params(price, demand, steps: int, horizon: int) -> dict:
     return {"price": np.asarray(price)[index], "demand": np.asarray(demand)[index]}
 
 
-def make_problem(horizon: int, bound: str | None = "demand") -> fj.Problem:
-    """The FIRHC problem of horizon ``horizon`` (parameters: ``horizon_params``).
+def make_problem(horizon: int, params: PumpingParams = PumpingParams(), bound: str | None = "demand") -> fj.Problem:
+    """The FIRHC problem of horizon ``horizon`` (its per-decision parameters: ``horizon_params``).
     ``bound``: ``"demand"`` (the water that must be pumped to stay above
-    ``H_MIN``; weak where the tanks are full, as a first bound tends to be),
-    ``"target"`` (also the water missing below ``TARGET`` at the end; several
-    times fewer nodes) or None."""
+    ``h_min``; weak where the tanks are full, as a first bound tends to be),
+    ``"target"`` (also the water missing below ``target`` at the end; several
+    times fewer nodes) or None. The old order ``make_problem(horizon, bound)`` is deprecated."""
+    if params is None or isinstance(params, str):
+        renamed("firhc_jax.models.pumping.make_problem(horizon, bound)",
+                "firhc_jax.models.pumping.make_problem(horizon, bound=bound)")
+        params, bound = PumpingParams(), params
+    if not isinstance(params, PumpingParams):
+        raise TypeError(f"params must be a PumpingParams, got {type(params).__name__}")
     if bound not in (None, "demand", "target"):
         raise ValueError(f"bound must be None, 'demand' or 'target', got {bound!r}")
+    st = params
     controls = fj.product_controls([0.0, 1.0], repeat=3)  # [8, 3]
-    e_min = energy_per_volume()
+    e_min = energy_per_volume(st)
 
     def dynamics(x, u, k, p):
-        return step(x, u.astype(x.dtype), p["demand"][k].astype(x.dtype))
+        return step(x, u.astype(x.dtype), p["demand"][k].astype(x.dtype), jnp, st)
 
     def stage_cost(x_next, u, k, p):
-        return p["price"][k] * jnp.sum(jnp.asarray(POWER, x_next.dtype) * u)
+        return p["price"][k] * jnp.sum(jnp.asarray(st.power, x_next.dtype) * u)
 
     def constraint(x_next, u, k, p):
-        return jnp.all((x_next >= H_MIN) & (x_next <= H_MAX))
+        return jnp.all((x_next >= st.h_min) & (x_next <= st.h_max))
 
     def terminal_cost(x, p):
-        return WATER_VALUE * jnp.sum(jnp.asarray(AREA, x.dtype) * jnp.maximum(jnp.asarray(TARGET, x.dtype) - x, 0.0))
+        return st.water_value * jnp.sum(jnp.asarray(st.area, x.dtype)
+                                        * jnp.maximum(jnp.asarray(st.target, x.dtype) - x, 0.0))
 
     def lower_bound(x, steps_left, p):
         """The water each tank must still receive (and with ``"target"`` the water that makes its level up to
-        ``TARGET`` at the end, worth ``WATER_VALUE`` a m^3 if not pumped), at the cheapest energy price left."""
+        ``target`` at the end, worth ``water_value`` a m^3 if not pumped), at the cheapest energy price left."""
         rest = jnp.arange(horizon) >= horizon - steps_left  # [N] the remaining hours
         price = jnp.min(jnp.where(rest, p["price"], jnp.inf))
-        area = jnp.asarray(AREA, x.dtype)
+        area = jnp.asarray(st.area, x.dtype)
         demand = jnp.sum(jnp.where(rest[:, None], p["demand"], 0.0), axis=0)
-        must = jnp.maximum(demand - (x - H_MIN) * area, 0.0)  # [2] m^3 to pump to stay above H_MIN
+        must = jnp.maximum(demand - (x - st.h_min) * area, 0.0)  # [2] m^3 to pump to stay above h_min
         per_m3 = price * jnp.asarray(e_min, x.dtype)
         value = per_m3 * must
         if bound == "target":
-            makeup = jnp.maximum(demand + (jnp.asarray(TARGET, x.dtype) - x) * area - must, 0.0)
-            value = value + jnp.minimum(per_m3, WATER_VALUE) * makeup
+            makeup = jnp.maximum(demand + (jnp.asarray(st.target, x.dtype) - x) * area - must, 0.0)
+            value = value + jnp.minimum(per_m3, st.water_value) * makeup
         return (1 - 1e-9) * jnp.sum(value)
 
     return fj.Problem(dynamics, controls, stage_cost, horizon, step_index=True, constraint=constraint,

@@ -3,19 +3,32 @@ plane, smooth nonlinear dynamics, and a ``work`` knob that adds dummy
 arithmetic to each step so the per-node cost can be dialled up."""
 from __future__ import annotations
 
+import dataclasses
+
 import jax.numpy as jnp
 import numpy as np
 
 from ..problem import Problem, quadratic_cost
+from ._deprecation import renamed
 
 
-def synthetic_problem(num_controls: int = 17, horizon: int = 5, work: int = 0, dtype=None) -> Problem:
+@dataclasses.dataclass(frozen=True)
+class SyntheticParams:
+    """The benchmark's size knobs."""
+
+    num_controls: int = 17  # M, inputs on the spiral
+    work: int = 0  # dummy sine terms per step: per-node cost without changing the result
+
+
+def make_problem(horizon: int, params: SyntheticParams = SyntheticParams(), dtype=None) -> Problem:
     """The benchmark problem: x = [position, velocity, heading-like state].
 
-    Inputs are ``num_controls`` points on a spiral (radius 0.2..1): input 0 is
-    the weakest. The quadratic cost weighs states and input effort so that a
-    search from ``benchmark_state()`` visits a small fraction of the tree.
+    Inputs are ``params.num_controls`` points on a spiral (radius 0.2..1):
+    input 0 is the weakest. The quadratic cost weighs states and input effort
+    so that a search from ``benchmark_state()`` visits a small fraction of the
+    tree. ``dtype``: the controls' (default: JAX's default float).
     """
+    num_controls, work = params.num_controls, params.work
     ang = np.linspace(0.0, 2 * np.pi, num_controls, endpoint=False)
     rad = np.linspace(0.2, 1.0, num_controls)
     controls = jnp.asarray(np.stack([np.cos(ang), np.sin(ang)], 1) * rad[:, None], dtype=dtype)  # [M, 2]
@@ -30,6 +43,13 @@ def synthetic_problem(num_controls: int = 17, horizon: int = 5, work: int = 0, d
 
     cost = quadratic_cost(jnp.array([1.0, 0.1, 1.0]), jnp.zeros(3), 0.5)
     return Problem(dynamics, controls, cost, horizon)
+
+
+def synthetic_problem(num_controls: int = 17, horizon: int = 5, work: int = 0, dtype=None) -> Problem:
+    """Deprecated: ``make_problem(horizon, SyntheticParams(num_controls, work), dtype=dtype)``."""
+    renamed("firhc_jax.models.synthetic.synthetic_problem(num_controls, horizon, work, dtype)",
+            "firhc_jax.models.synthetic.make_problem(horizon, SyntheticParams(num_controls, work), dtype=dtype)")
+    return make_problem(horizon, SyntheticParams(num_controls, work), dtype)
 
 
 def benchmark_state(dtype=None):

@@ -20,9 +20,12 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
+
 from ..linear import discretize, product_controls
 from ..linear_tracking import LinearTracking
+from ._deprecation import renamed
 
 HEATERS = product_controls([0.0, 1.0], repeat=4)  # [16, 4]
 OUTPUTS = np.array([[0.5, 0.5, 0.0, 0.0], [0.0, 0.0, 0.5, 0.5]])  # [2, 4] zone means
@@ -59,10 +62,28 @@ def model(params: ThermalParams = ThermalParams()) -> tuple[np.ndarray, np.ndarr
     return A, Bd[:, :-1], Bd[:, -1]
 
 
-def tracking(horizon: int, lambda_u: float = LAMBDA_U, params: ThermalParams = ThermalParams()) -> LinearTracking:
+def make_problem(horizon: int, params: ThermalParams = ThermalParams(), lambda_u: float = LAMBDA_U) -> LinearTracking:
     """Track the zone set points (``WEIGHT``, per K^2) with ``lambda_u`` per heater switched."""
     A, B, _ = model(params)
     return LinearTracking(A, B, HEATERS, horizon, C=OUTPUTS, Q=WEIGHT, lambda_u=lambda_u)
+
+
+def make_plant(params: ThermalParams = ThermalParams()):
+    """``plant(x, u) -> x_next``: room temperatures ``[4]`` (degC) one sample later with heaters ``u`` ``[4]``
+    (0/1), ambient included."""
+    A, B, d = model(params)
+
+    def plant(x, u):
+        return jnp.asarray(A) @ x + jnp.asarray(B) @ u + jnp.asarray(d)
+
+    return plant
+
+
+def tracking(horizon: int, lambda_u: float = LAMBDA_U, params: ThermalParams = ThermalParams()) -> LinearTracking:
+    """Deprecated: ``make_problem(horizon, params, lambda_u=lambda_u)``."""
+    renamed("firhc_jax.models.thermal.tracking(horizon, lambda_u, params)",
+            "firhc_jax.models.thermal.make_problem(horizon, params, lambda_u=lambda_u)")
+    return make_problem(horizon, params, lambda_u)
 
 
 def calm_states(count: int, rng: np.random.Generator, params: ThermalParams = ThermalParams(),

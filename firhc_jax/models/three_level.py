@@ -14,20 +14,36 @@ The controller tracks a sinusoidal current reference i_ref along the
 horizon, charges lambda_u ||u(k) - u(k-1)||^2 and forbids a leg to jump from
 -1 to +1 in one sample (max_step = 1, so the squared and absolute switching
 penalties coincide). The circuit is the benchmark's: R = 2 ohm, L = 2 mH,
-Vdc = 400 V, Ts = 25 us, 20 A at 50 Hz (``PARAMS``).
+Vdc = 400 V, Ts = 25 us, 20 A at 50 Hz (``ThreeLevelParams``).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
+import jax.numpy as jnp
 import numpy as np
 
 from ..linear import discretize, product_controls
 from ..linear_tracking import LinearTracking
+from ._deprecation import renamed
 from .inverter import InverterParams
 
 MAX_HORIZON = 30  # the command line's limit; N = 15 already takes about a second per decision at lambda_u = 0.1
-PARAMS = InverterParams(vdc=400.0, r=2.0, l=2e-3, ts=25e-6, amplitude=20.0, frequency=50.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class ThreeLevelParams(InverterParams):
+    """The two-level inverter's fields with the benchmark's circuit and reference (SI units; the same sampling
+    time and frequency)."""
+
+    vdc: float = 400.0  # V, dc-link voltage
+    r: float = 2.0  # ohm, load resistance per phase
+    l: float = 2e-3  # noqa: E741  H, load inductance per phase
+    amplitude: float = 20.0  # A, peak of the sinusoidal phase current reference
+
+
+PARAMS = ThreeLevelParams()
 SWITCH_STATES = product_controls([-1.0, 0.0, 1.0], repeat=3)  # [27, 3]
 CLARKE = np.array([[2.0, -1.0, -1.0], [0.0, math.sqrt(3.0), -math.sqrt(3.0)]]) / 3.0  # [2, 3] abc -> alpha-beta
 
@@ -43,8 +59,26 @@ def pop_width(horizon: int) -> int:
     return 4 if horizon > 5 else 1
 
 
-def tracking(horizon: int, lambda_u: float = 0.1, params: InverterParams = PARAMS,
-             max_step: float | None = 1.0) -> LinearTracking:
+def make_problem(horizon: int, params: InverterParams = PARAMS, lambda_u: float = 0.1,
+                 max_step: float | None = 1.0) -> LinearTracking:
     """The current controller: track i_ref along the horizon (Q = I, A^2), lambda_u per unit leg step (A^2)."""
     A, B = model(params)
     return LinearTracking(A, B, SWITCH_STATES, horizon, lambda_u=lambda_u, max_step=max_step)
+
+
+def make_plant(params: InverterParams = PARAMS):
+    """``plant(i, u) -> i_next``: alpha-beta currents ``[2]`` (A) one sample later with leg levels ``u`` ``[3]``."""
+    A, B = model(params)
+
+    def plant(i, u):
+        return jnp.asarray(A) @ i + jnp.asarray(B) @ u
+
+    return plant
+
+
+def tracking(horizon: int, lambda_u: float = 0.1, params: InverterParams = PARAMS,
+             max_step: float | None = 1.0) -> LinearTracking:
+    """Deprecated: ``make_problem(horizon, params, lambda_u=lambda_u, max_step=max_step)``."""
+    renamed("firhc_jax.models.three_level.tracking(horizon, lambda_u, params, max_step)",
+            "firhc_jax.models.three_level.make_problem(horizon, params, lambda_u=lambda_u, max_step=max_step)")
+    return make_problem(horizon, params, lambda_u, max_step)
