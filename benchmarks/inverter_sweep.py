@@ -105,7 +105,7 @@ def main() -> None:
     T = round(args.cycles * PARAMS.steps_per_cycle)
     phases = 2.0 * np.pi * np.arange(F) / F
     refs, i0 = zip(*(references(ph, T, N) for ph in phases), strict=True)
-    trackers = [three_level.tracking(N, lam) for lam in args.lambdas]
+    trackers = [three_level.make_problem(N, lambda_u=lam) for lam in args.lambdas]
     # loop b = j * F + f: weight j, phase f; leaves [B, T, ...]
     params = jax.tree.map(lambda *a: jnp.concatenate(a), *(
         lt.params(jnp.asarray(np.stack(refs)), with_model=True) for lt in trackers))

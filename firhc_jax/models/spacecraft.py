@@ -22,8 +22,8 @@ Equations: the MRP kinematics and Euler's rotation equations
     J d omega / dt = tau - omega x (J omega),
 
 integrated over each sample by classical RK4 sub-steps (the model
-``model_substeps``, the plant ``plant_substeps``: the plant is the finer
-integration of the same equations), then switched to the shadow set
+``make_problem(..., substeps=2)``, the plant ``SpacecraftParams.plant_substeps``:
+the plant is the finer integration of the same equations), then switched to the shadow set
 ``-sigma / |sigma|^2`` when ``|sigma| > 1`` (rotations past 180 deg), which
 describes the same attitude.
 
@@ -42,22 +42,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import firhc_jax as fj
+from ..linear import product_controls
+from ..problem import Problem, positive_int
 
-CONTROLS = fj.product_controls([-1.0, 0.0, 1.0], repeat=3)  # [27, 3] torque direction per axis
+CONTROLS = product_controls([-1.0, 0.0, 1.0], repeat=3)  # [27, 3] torque direction per axis
 DEG = 180.0 / math.pi  # deg per rad
 
 
 @dataclasses.dataclass(frozen=True)
 class SpacecraftParams:
-    """Actuators, sampling and the cost's rate weight (a small satellite; our choice)."""
+    """Actuators, sampling and the nominal body (a small satellite; our choice)."""
 
     max_torque: float = 0.05  # N m, torque of one firing thruster pair
     ts: float = 2.0  # s, sampling period (torque held over it)
-    model_substeps: int = 2  # RK4 sub-steps per sample in the prediction model
     plant_substeps: int = 8  # RK4 sub-steps per sample in the plant
-    rate_weight: float = 10.0  # s^2: a rate of 1 deg/s costs as much as a pointing error of 3.2 deg
     inertia: tuple = (12.0, 10.0, 8.0)  # kg m^2, nominal principal moments (``random_loops`` spreads them)
+
+
+PARAMS = SpacecraftParams()
+RATE_WEIGHT = 10.0  # s^2: a rate of 1 deg/s costs as much as a pointing error of 3.2 deg
 
 
 def _rates(sigma, omega, torque, inertia):
@@ -94,22 +97,23 @@ def _integrator(params: SpacecraftParams, substeps: int):
     return f
 
 
-def make_plant(params: SpacecraftParams | None = None):
+def make_plant(params: SpacecraftParams = PARAMS):
     """``plant(x, u, p) -> x_next``: the spacecraft after one sample (``plant_substeps`` RK4 steps)."""
-    params = SpacecraftParams() if params is None else params
     return _integrator(params, params.plant_substeps)
 
 
-def make_problem(horizon: int, params: SpacecraftParams | None = None, **options) -> fj.Problem:
+def make_problem(horizon: int, params: SpacecraftParams = PARAMS, rate_weight: float = RATE_WEIGHT,
+                 substeps: int = 2) -> Problem:
     """The attitude controller: the module's stage cost over ``horizon`` samples, no terminal set.
 
-    ``options`` replace fields of ``params`` (``rate_weight=``, ``model_substeps=``, ...). The
-    callables take the per-loop ``p`` (module docstring): solve with ``params=`` always. Each call makes
-    new callables (a new compilation): build the problem once per run.
+    ``rate_weight`` (s^2) weighs the squared rate against the squared pointing error; ``substeps``: RK4
+    sub-steps per sample of the prediction model. The callables take the per-loop ``p`` (module
+    docstring): solve with ``params=`` always. Each call makes new callables (a new compilation): build
+    the problem once per run.
     """
-    params = dataclasses.replace(SpacecraftParams() if params is None else params, **options)
-    dynamics = _integrator(params, params.model_substeps)
-    rate_weight = params.rate_weight
+    if not rate_weight >= 0:
+        raise ValueError(f"rate_weight must be >= 0 s^2, got {rate_weight}")
+    dynamics = _integrator(params, positive_int("substeps", substeps))
 
     def stage_cost(x_next, u, p):
         e = (4.0 * DEG) * x_next[:3]  # [3] deg, the pointing error
@@ -117,7 +121,7 @@ def make_problem(horizon: int, params: SpacecraftParams | None = None, **options
         firing = jnp.sum(jnp.abs(u)).astype(x_next.dtype)
         return e @ e + rate_weight * (w @ w) + jnp.asarray(p["fuel"], x_next.dtype) * firing
 
-    return fj.Problem(dynamics, CONTROLS, stage_cost, horizon)
+    return Problem(dynamics, CONTROLS, stage_cost, horizon)
 
 
 def step_params(inertia, fuel, steps: int) -> dict:
@@ -131,12 +135,11 @@ def step_params(inertia, fuel, steps: int) -> dict:
             "fuel": np.broadcast_to(fuel[..., None], lead + (steps,)).copy()}
 
 
-def random_loops(count: int, rng: np.random.Generator, params: SpacecraftParams | None = None,
+def random_loops(count: int, rng: np.random.Generator, params: SpacecraftParams = PARAMS,
                  max_angle: float = 20.0, max_rate: float = 0.5, spread: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
     """``(x0 [count, 6], inertia [count, 3])``: a random attitude error of at most ``max_angle`` deg about
     a random axis, body rates uniform within ``max_rate`` deg/s per axis, and each principal moment
     within ``spread`` (relative) of ``params.inertia``."""
-    params = SpacecraftParams() if params is None else params
     axis = rng.normal(size=(count, 3))
     axis /= np.linalg.norm(axis, axis=1, keepdims=True)
     angle = np.radians(rng.uniform(0.0, max_angle, (count, 1)))
