@@ -15,7 +15,8 @@ params=[64, T, ...])``.
 Each way called once to compile it, then timed in ``--repeats`` rounds over
 both, the best round of each: that call against a Python loop of
 ``ctrl.simulate`` (the same controller, so one compilation) over
-``--python-loops`` of the loops, scaled to loops/s; the Python loop's
+``--python-loops`` of the loops, scaled to loops/s, and the batch again at
+each of ``--lanes`` (``fj.FIRHC(..., lanes=)``); the Python loop's
 decisions are compared with the batch's. Per loop: THD (every
 non-fundamental component of the three phase currents, averaged over them)
 and switching frequency per leg (unit level steps over the run, halved,
@@ -92,13 +93,14 @@ def main() -> None:
     ap.add_argument("--phases", type=int, default=8)
     ap.add_argument("--cycles", type=float, default=2.0)
     ap.add_argument("--python-loops", type=int, default=16, help="loops of the Python loop, spread over the sweep")
+    ap.add_argument("--lanes", type=int, nargs="*", default=[16], help="simulate_batch again at these lanes")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--figure", type=Path, default=Path("docs/img/inverter_sweep.png"))
     ap.add_argument("--quick", action="store_true", help="2 weights x 8 phases of 200 steps, no figure")
     args = ap.parse_args()
     if args.quick:
-        args.lambdas, args.phases, args.cycles, args.python_loops, args.repeats, args.figure = \
-            args.lambdas[::4], 8, 0.25, 4, 1, None
+        args.lambdas, args.phases, args.cycles, args.python_loops, args.repeats, args.figure, args.lanes = \
+            args.lambdas[::4], 8, 0.25, 4, 1, None, []
     jax.config.update("jax_enable_x64", True)
 
     N, L, F = args.horizon, len(args.lambdas), args.phases
@@ -134,6 +136,11 @@ def main() -> None:
 
     ways = {f"ctrl.simulate_batch, {B} loops": (batch, B),
             f"Python loop of ctrl.simulate ({len(sub)} loops timed, scaled)": (python_loop, len(sub))}
+    for lanes in args.lanes:
+        tuned = fj.FIRHC(lt.shared_problem, observe=lt.observe, warm_start=True, pop_width=three_level.pop_width(N),
+                         lanes=lanes)
+        ways[f"the same, lanes={lanes}"] = (lambda tuned=tuned: tuned.simulate_batch(
+            I0, T, plant, params=params, u0=u0, dt=PARAMS.ts), B)
     first, best, out = {}, dict.fromkeys(ways, np.inf), {}
     for name, (fn, _) in ways.items():  # the first call compiles
         t0 = time.perf_counter()
@@ -145,7 +152,7 @@ def main() -> None:
             jax.block_until_ready(fn())
             best[name] = min(best[name], time.perf_counter() - t0)
     rate = {name: loops / best[name] for name, (_, loops) in ways.items()}
-    run, runs = out.values()
+    run, runs = list(out.values())[:2]
     print("\n| way | loops/s | ratio to the Python loop | first call (s) |\n|---|---|---|---|")
     for name in ways:
         print(f"| {name} | {rate[name]:,.2f} | {rate[name] / list(rate.values())[1]:.2f} | {first[name]:.1f} |")
