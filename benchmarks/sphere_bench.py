@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import firhc_jax as fj
-from firhc_jax.linear_tracking import psd_factor
+from firhc_jax.linear_factor import psd_factor
 from firhc_jax.models import inverter, thermal, three_level
 
 
@@ -214,7 +214,7 @@ def decoder_decide(lt, per_component):
     _, Wh, We = decoder_factor(lt)
 
     def decide(z, p, ws):
-        data = jnp.concatenate([z[:lt.n + lt.m], p["y_ref"].ravel(), p["d"].ravel()])
+        data = jnp.concatenate([z[:lt.n + lt.m], p.y_ref.ravel(), p.d.ravel()])
         e = jnp.asarray(We) @ data
         z0 = jnp.concatenate([-jnp.asarray(Wh) @ data, (e @ e)[None], z[lt.n:lt.n + lt.m], jnp.zeros(lt.m)])
         if per_component:  # digits of the product order (three levels per leg)
@@ -341,8 +341,8 @@ def section_batch(args):
 
 
 def section_tradeoff(args):
-    """THD against switching frequency per N, lambda_u swept: the closed loop as one compiled FIRHC scan (the
-    model is in params, so every lambda_u reuses it)."""
+    """THD against switching frequency per N, lambda_u swept: the closed loop as one compiled FIRHC scan per N
+    (``shared_problem``: the model, lambda_u with it, is in the params, so every lambda_u reuses it)."""
     from firhc_jax.apps import inverter_three_level as app
 
     steps = args.steps
@@ -356,12 +356,13 @@ def section_tradeoff(args):
     print(f"{'N':>3} {'lambda_u':>8} {'THD %':>6} {'f_sw Hz':>8} {'nodes mean':>11} {'nodes max':>10} {'s':>7}")
     for N in args.tradeoff_horizons:
         refs = jnp.asarray(inverter.horizon_references(three_level.PARAMS, steps, N))
+        shared = three_level.make_problem(N)
+        ctrl = fj.FIRHC(shared.shared_problem, observe=shared.observe, warm_start=True)
         for lam in args.tradeoff_lambdas:
             lt = three_level.make_problem(N, lambda_u=lam)
-            ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
             t0 = time.perf_counter()
-            run = jax.block_until_ready(ctrl.simulate(i0, steps, plant, params=lt.params(refs), u0=jnp.zeros(3),
-                                                      dt=three_level.PARAMS.ts))
+            run = jax.block_until_ready(ctrl.simulate(i0, steps, plant, params=lt.params(refs, with_model=True),
+                                                      u0=jnp.zeros(3), dt=three_level.PARAMS.ts))
             s = time.perf_counter() - t0
             out = app.summarize(app.InverterRun(run, inverter.reference(three_level.PARAMS, run.times), np.nan), N, lam)
             print(f"{N:>3} {lam:>8g} {out['thd'] * 100:>6.2f} {out['switching_frequency_hz']:>8.0f} "

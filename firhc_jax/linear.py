@@ -27,14 +27,17 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from .problem import check_target, positive_int, weight, weighted_square
+from .problem import check_target, is_tracer, positive_int, weight, weighted_square
 
 _MAX_CONTROLS = 2**31 - 1  # the searches index inputs with int32
 
 
 def _real(name: str, a, what: str) -> np.ndarray:
-    """``a`` as a float64 array, or a ``TypeError`` naming ``name`` (complex values refused: NumPy would drop
-    their imaginary part with only a warning)."""
+    """``a`` as a float64 array, or a ``TypeError`` naming ``name``: traced values refused (a model is built once,
+    in NumPy, before any search), complex ones too (NumPy would drop their imaginary part with only a warning)."""
+    if is_tracer(a):
+        raise TypeError(f"{name} must be concrete values, not a traced array: the model is built once, in NumPy, "
+                        "before any search (what changes between solves goes in the params)")
     try:
         given = np.asarray(a)
     except ValueError:  # ragged lists
@@ -47,12 +50,12 @@ def _real(name: str, a, what: str) -> np.ndarray:
         raise TypeError(f"{name} must be a real {what}, got {a!r}") from None
 
 
-def _matrix(name: str, a, shape=None) -> np.ndarray:
+def _matrix(name: str, a) -> np.ndarray:
+    """``a`` as a read-only float64 matrix (``_real``), 2-D, non-empty and finite, or a ``TypeError`` or
+    ``ValueError`` naming ``name``: the one rule for the model matrices of this module and ``LinearTracking``."""
     arr = _real(name, a, "matrix")
-    if arr.ndim != 2:
-        raise ValueError(f"{name} must be a 2-D matrix, got shape {arr.shape}")
-    if shape is not None and arr.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+    if arr.ndim != 2 or 0 in arr.shape:
+        raise ValueError(f"{name} must be a non-empty 2-D matrix, got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or inf")
     arr.flags.writeable = False
@@ -157,7 +160,7 @@ def tracking_cost(C=None, Q=None, R=None, u_ref=None, ref: str = "ref") -> Calla
     Input changes are penalised with ``fj.with_input_memory(problem,
     fj.input_change_cost(lambda_u))``.
     """
-    C = None if C is None else _matrix("C", np.atleast_2d(C))
+    C = None if C is None else _matrix("C", np.reshape(C, (1, -1)) if np.ndim(C) < 2 else C)
     Qw = weight("Q", 1.0 if Q is None else Q)
     Rw = None if R is None else weight("R", R)
     if u_ref is not None and not np.all(np.isfinite(_real("u_ref", u_ref, "vector"))):

@@ -42,35 +42,127 @@ the optimum is the cheapest class sequence with its cheapest members, which
 nodes than the plain sorted search (docs/inverter.md); without equal-effect
 inputs (R = 1) the node is the plain one.
 
-In this form the search state is the plant's own: ``[x, U, o, stage, W]``
-with U the class's R inputs and o their switching costs above the cheapest
-(n + R (m + 1) + 2 numbers instead of the decoder's N m partial sums), and
-the cost a search returns is J itself, accumulated stage by stage. W_k is
-kept factored, W_k(s) = ||T_k s + w_k||^2 + s_k for s = [x; u_prev]: T_k is
-static, w_k and s_k are linear and quadratic in (y_ref, d) and travel as
-params, so new states, references and disturbances never recompile. One node
-is one step with its C classes (not one input component per level as in the
-decoder), and where F is rank deficient W is strictly tighter than the
-decoder's distance: both measured in docs/inverter.md.
+In this form the search state is the plant's own: a ``Node`` (x, the
+class's R inputs U, their switching costs o above the cheapest, the stage cost
+and the bound W; n + R (m + 1) + 2 numbers instead of the decoder's N m
+partial sums), and the cost a search returns is J itself, accumulated stage by
+stage. W_k is kept factored, W_k(s) = ||T_k s + w_k||^2 + s_k for
+s = [x; u_prev]: T_k is static (a ``TrackingModel``), w_k and s_k are linear
+and quadratic in (y_ref, d) and travel as params (``TrackingParams``), so new
+states, references and disturbances never recompile. One node is one step with
+its C classes (not one input component per level as in the decoder), and where
+F is rank deficient W is strictly tighter than the decoder's distance: both
+measured in docs/inverter.md.
 
 W stays a lower bound at any scaling of Q, lambda_u and the units: which
 directions inputs reach is decided on F with unit rows and columns
-(``_rank``), and the factorisation's own error bound is taken off W
-(``cost_to_go``): weights whose ratio nears 1/eps weaken W towards 0, and
+(``linear_factor._rank``), and the factorisation's own error bound is taken off W
+(``linear_factor.cost_to_go``): weights whose ratio nears 1/eps weaken W towards 0, and
 the search towards the plain sorted search, which is still exact.
+
+The factorisation is NumPy, float64, done once per tracker (``firhc_jax.linear_factor``); this module holds the
+named structures and the traced callables.
 """
 from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping
+from typing import NamedTuple, Optional
 
 import numpy as np
 
 import jax
 import jax.numpy as jnp
 
-from .checks import as_state
-from .problem import Problem, _check_controls, is_tracer, positive_int, weight
 from .cache import compiled
+from .checks import as_state
+from .linear import _matrix
+from .linear_factor import child_map, factor_memory, input_classes, psd_factor
+from .problem import Problem, _check_controls, is_tracer, positive_int
 from .result import SearchResult, raise_on_errors
 from .sdfs import DEFAULT_MAX_MEMORY, node_budget, sdfs
+
+
+# ---------------------------------------------------------------------------
+# Named structures. Shapes are one decision's: n states, m inputs, p outputs, N steps, C classes of at most R
+# inputs; params and a batch of nodes take leading axes (one per row, step or loop) in front.
+# ---------------------------------------------------------------------------
+
+class Node(NamedTuple):
+    """A node of the search: the plant state that a class of inputs of equal effect reached, the class's
+    members with the cheapest switching that ends on each, the step's stage cost and the bound.
+
+    ``o[e]`` is the cheapest switching of the steps so far that ends on member e, less that of the cheapest
+    member (whose cost ``stage`` carries), so o >= 0; -1 marks a member that no allowed switching reaches (a
+    marker no cost can take, and finite: the searches discard non-finite states). ``fj.Problem`` states are
+    vectors that every search stacks ``[..., n]``, so the searches hold a node packed, ``[n + R (m + 1) + 2]``
+    (``pack``; ``LinearTracking.observe`` packs the root), and the callables read it back (``unpack``)."""
+    x: jax.Array      # [n] the plant state
+    U: jax.Array      # [R, m] the class's members (padding repeats the first)
+    o: jax.Array      # [R] each member's switching so far above the cheapest member's; -1: not reached
+    stage: jax.Array  # [] the stage cost of the step into the node: tracking error plus the cheapest switching
+    W: jax.Array      # [] the bound on the cost to go: the least o[e] + W_k(x, U[e]) over the members
+
+    def pack(self) -> jax.Array:
+        """``[n + R (m + 1) + 2]``: the node as the searches hold it."""
+        return jnp.concatenate([self.x, self.U.reshape(-1), self.o, self.stage[None], self.W[None]])
+
+    @classmethod
+    def unpack(cls, z, R: int, m: int) -> Node:
+        """The node packed in ``z`` ``[n + R (m + 1) + 2]``, its classes of ``R`` members of ``m`` inputs."""
+        n = z.shape[0] - R * (m + 1) - 2
+        return cls(z[:n], z[n:n + R * m].reshape(R, m), z[n + R * m:n + R * (m + 1)], z[-2], z[-1])
+
+
+class TrackingModel(NamedTuple):
+    """What the callables read of a tracker's model: its factorisation (``linear_factor.child_map``) and its
+    classes of inputs. Trackers of equal shapes (A, B, C, controls, horizon, classes, a ``max_step`` or none)
+    have models of equal shapes, whatever their values, Q and lambda_u."""
+    M: jax.Array             # [N, 2n + p + m, n + m] step k's map of [x; u]: x(k+1), -sqrt(Q) C x(k+1), W's residual
+    M_norm: jax.Array        # [N] Frobenius norm of M's rows of W's residual: a bound on their rounding
+    lambda_u: jax.Array      # [] the weight of ||u(k) - u(k-1)||^2
+    Tu: jax.Array            # [N, n + m, m] how W's residual moves with the child's input (the other members)
+    Tu_norm: jax.Array       # [N] Frobenius norm of Tu
+    err_s: jax.Array         # [N] the factorisation's error in sqrt(W_{k+1}) per unit of ||[x(k+1); u]||
+    members: jax.Array       # [C, R, m] each class's inputs (padding repeats the first)
+    member_index: jax.Array  # [C, R] their indices into controls, as numbers of the model's dtype
+    member_ok: jax.Array     # [C, R] 1 for a member, 0 for padding
+    max_step: Optional[jax.Array] = None  # [] the bound on |u_i(k) - u_i(k-1)|; None: no bound
+
+
+class _DataMaps(NamedTuple):
+    """The linear maps from a decision's data [vec(y_ref); vec(d)] ``[N (p + n)]`` to its params."""
+    M_data: jax.Array  # [N, 2n + p + m, N (p + n)] the data's part of each step's child map
+    Ms: jax.Array      # [N, N (p + m), N (p + n)] the data-only part of W_{k+1}'s residual
+    err_d: jax.Array   # [N] the factorisation's error in sqrt(W_{k+1}) per unit of ||data||
+
+
+class TrackingParams(NamedTuple):
+    """One decision's params of ``LinearTracking.problem`` (``lt.params(y_ref, d)``): what its data decides.
+    A closed loop's plant gets them too: ``A x + B u + p.d[0]``."""
+    off: jax.Array      # [N, 2n + p + m] the data's part of each step's child map (M_data data)
+    off_err: jax.Array  # [N] a bound on the rounding of off's rows of W's residual
+    s: jax.Array        # [N] the data-only part of W_{k+1}, rounded down
+    g_err: jax.Array    # [N] the factorisation's error in sqrt(W_{k+1}) from the data
+    y_ref: jax.Array    # [N, p] the reference: y_ref[k] is the target of C x(k+1)
+    d: jax.Array        # [N, n] the disturbance: x(k+1) = A x(k) + B u(k) + d[k]
+
+    def __getitem__(self, key):
+        """``p[i]`` as for any tuple; ``p["d"]`` (the params were a dict) warns and reads ``p.d``."""
+        if isinstance(key, str):
+            if key not in self._fields:
+                raise KeyError(f"{key!r}: LinearTracking's params have the fields {self._fields}")
+            warnings.warn(f'LinearTracking\'s params are a TrackingParams: read p.{key}, not p["{key}"] (the '
+                          "dict access goes in the next release)", DeprecationWarning, stacklevel=2)
+            return getattr(self, key)
+        return tuple.__getitem__(self, key)
+
+
+class SharedParams(NamedTuple):
+    """One decision's params of ``LinearTracking.shared_problem`` (``lt.params(y_ref, d, with_model=True)``):
+    the data and the tracker's model, so that one compiled search serves every tracker of equal shapes."""
+    data: TrackingParams  # the decision's data (the plant reads p.data.d)
+    model: TrackingModel  # the tracker's model in the data's dtype, with the data's leading axes
 
 
 class LinearTracking:
@@ -91,17 +183,28 @@ class LinearTracking:
     Attributes:
       problem: the ``fj.Problem`` the search solves (``step_index=True``): one
         child per class of inputs (its controls ``[C, m]``: each class's first
-        input), state ``[x, U, o, stage cost, W]`` ``[n + R (m + 1) + 2]``
-        (``observe``), params of one decision from ``params``, ``lower_bound``
-        the cost-to-go W, ``first_input_of`` the member to apply. Use it with
-        any solver: ``fj.sdfs``, ``fj.solve_batch``, ``fj.FIRHC``: their
+        input), state a packed ``Node`` ``[n + R (m + 1) + 2]`` (``observe``),
+        params of one decision from ``params``, ``lower_bound`` the
+        cost-to-go W, ``first_input_of`` the member to apply. Use it with any
+        solver: ``fj.sdfs``, ``fj.solve_batch``, ``fj.FIRHC``: their
         ``first_input`` is the exact optimum's; their ``sequence`` indexes
         classes (``sequence`` maps it to inputs). Its callables hold the model
-        as constants (a new tracker compiles its own search; ``solve`` passes
-        the model as params and does not).
+        as constants, so each step's params are its data only, and a new
+        tracker compiles its own search.
+      shared_problem: the same problem with callables that read the model
+        from the params (``params(..., with_model=True)``): one compiled
+        search for every tracker of equal shapes (see below); ``solve`` uses it.
       num_classes, class_size: C classes of at most R inputs (``input_classes``).
       observe: ``observe(x, u_prev[, p])``, the search state at plant state
         ``x`` after input ``u_prev``.
+
+    Weights per closed loop or per row, without recompiling: trackers of equal
+    shapes (A, B, C and Q shapes, the same ``controls`` and classes, horizon, a
+    ``max_step`` or none) differ only in their ``TrackingModel``'s values. So
+    ``fj.FIRHC(lt.shared_problem, observe=lt.observe)`` with
+    ``other.params(y_ref, d, with_model=True)`` decides as ``other``'s own
+    controller, and a batch whose rows (or loops) carry params of different
+    trackers, stacked, solves each with its own weights in one compiled call.
 
     The factorisation is done once here, in float64 (NumPy); the search runs in
     the dtype of the state given to it.
@@ -147,22 +250,17 @@ class LinearTracking:
             self._class_of[row[row >= 0]] = j
         M, M_data, Ms, Tu, err_s, err_d = child_map(A, B, C, psd_factor("Q", Q), lambda_u, N)
         filled = np.where(members >= 0, members, members[:, :1])  # padding repeats the first member
-        model = {"M": M, "M_norm": np.linalg.norm(M[:, n + p:], axis=(1, 2)), "lambda_u": np.float64(lambda_u),
-                 "Tu": Tu, "Tu_norm": np.linalg.norm(Tu, axis=(1, 2)), "err_s": err_s,
-                 "members": controls.astype(float)[filled],  # [C, R, m]
-                 "member_index": filled.astype(float), "member_ok": (members >= 0).astype(float)}  # [C, R]
-        if max_step is not None:
-            model["max_step"] = np.float64(max_step)
-        self._model = model  # float64, NumPy: the constants of problem's callables
-        self._data_maps = {"M_data": M_data, "Ms": Ms, "err_d": err_d}  # float64: what params applies
-        self._device = {}  # dtype -> the model and the data maps on the device, for solve and sequence
+        # float64, NumPy: the constants of problem's callables, and what params applies to the data
+        self._model = TrackingModel(
+            M=M, M_norm=np.linalg.norm(M[:, n + p:], axis=(1, 2)), lambda_u=np.float64(lambda_u), Tu=Tu,
+            Tu_norm=np.linalg.norm(Tu, axis=(1, 2)), err_s=err_s, members=controls.astype(float)[filled],
+            member_index=filled.astype(float), member_ok=(members >= 0).astype(float),
+            max_step=None if max_step is None else np.float64(max_step))
+        self._maps = _DataMaps(M_data, Ms, err_d)
+        self._device = {}  # dtype -> the model and the data maps on the device
         reps = controls[members[:, 0]]
-        self.problem = Problem(_bind(_dynamics, model), reps, _stage_cost, N, lower_bound=_lower_bound,
-                               constraint=_bind(_constraint, model), step_index=True,
-                               first_input_of=_bind(_first_input, model))
-        # solve's: the model travels in the params, so a new model of the same shapes reuses the compiled search
-        self._search_problem = Problem(_dynamics, reps, _stage_cost, N, lower_bound=_lower_bound,
-                                       constraint=_constraint, step_index=True, first_input_of=_first_input)
+        self.problem = Problem(controls=reps, horizon=N, step_index=True, **_callables(self._model))
+        self.shared_problem = Problem(controls=reps, horizon=N, step_index=True, **_SHARED)
         self.observe = _observer(self.class_size)
 
     @property
@@ -178,25 +276,27 @@ class LinearTracking:
     def sequence(self, z0, classes, params):
         """``[N]`` int32 indices into ``controls``: the cheapest inputs of the
         optimal class sequence ``classes`` ``[N]`` (a ``SearchResult.sequence``
-        of ``problem``) from the search state ``z0`` (``observe``); -1 where it
-        is -1 (infeasible). Its J is the search's cost."""
+        of ``problem`` or ``shared_problem``) from the search state ``z0``
+        (``observe``), with the model of ``params`` (a ``SharedParams``) or
+        this tracker's; -1 where it is -1 (infeasible). Its J is the search's cost."""
         z0 = jnp.asarray(z0)
-        return _sequence(z0, classes, self._with_model(params, z0.dtype))
+        model = params.model if isinstance(params, SharedParams) else self._on_device(z0.dtype)[0]
+        return _sequence(z0, classes, _in_dtype(model, z0.dtype))
 
-    def params(self, y_ref, d=None) -> dict:
+    def params(self, y_ref, d=None, *, with_model: bool = False) -> TrackingParams | SharedParams:
         """The params of ``problem`` for a reference ``y_ref`` ``[..., N, p]``
         (y_ref[k] is the target of C x(k+1)) and disturbance ``d`` ``[..., N, n]``
         (default 0), in y_ref's floating dtype. Leading axes batch: one row per
         state for ``fj.solve_batch``, one per step for ``FIRHC.simulate``.
 
-        Only what the data decides, per step: the data part of each step's map
-        (``off`` ``[..., N, 2n + p + m]``), bounds on the rounding of its
-        cost-to-go rows (``off_err`` ``[..., N]``) and on the factorisation's
-        own error (``g_err`` ``[..., N]``), the data-only part of the
-        cost-to-go (``s`` ``[..., N]``), and the data itself (``y_ref``,
-        ``d``: a closed loop's plant gets the same params, e.g.
-        ``A x + B u + p["d"][0]``). The model is held by ``problem``'s
-        callables. Give the state (``observe``) the same dtype."""
+        A ``TrackingParams``: what the data decides, per step (its fields), the
+        data itself included (``p.y_ref``, ``p.d``: a closed loop's plant gets
+        the same params, e.g. ``A x + B u + p.d[0]``). The model is held by
+        ``problem``'s callables. With ``with_model=True``, the params of
+        ``shared_problem``: a ``SharedParams`` of that data and this tracker's
+        model (``TrackingModel``), every leaf with y_ref's leading axes, so
+        that rows, steps or loops of different trackers stack. Give the state
+        (``observe``) the same dtype."""
         y_ref = jnp.asarray(y_ref)
         if not jnp.issubdtype(y_ref.dtype, jnp.floating):
             y_ref = y_ref.astype(jax.dtypes.canonicalize_dtype(np.float64))
@@ -208,19 +308,18 @@ class LinearTracking:
         if d.shape != lead + (N, self.n):
             raise ValueError(f"d must be [N, n] = [{N}, {self.n}] with y_ref's leading axes {lead}, "
                              f"got shape {tuple(d.shape)}")
-        return _params(self._factors(y_ref.dtype)["maps"], y_ref, d)
+        model, maps = self._on_device(y_ref.dtype)
+        data = _params(maps, y_ref, d)
+        if not with_model:
+            return data
+        return SharedParams(data, jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, lead + a.shape), model))
 
-    def _factors(self, dtype) -> dict:
+    def _on_device(self, dtype) -> tuple[TrackingModel, _DataMaps]:
         """The model and the data maps on the device in ``dtype`` (made once per dtype)."""
         key = jnp.dtype(dtype)
         if key not in self._device:
-            host = {"model": self._model, "maps": self._data_maps}
-            self._device[key] = jax.tree_util.tree_map(lambda a: jnp.asarray(a, key), host)
+            self._device[key] = _in_dtype((self._model, self._maps), key)
         return self._device[key]
-
-    def _with_model(self, params, dtype) -> dict:
-        """``params`` with the model's arrays added: the params of the module's own callables."""
-        return {**self._factors(dtype)["model"], **params}
 
     def solve(self, x, u_prev, y_ref, d=None, *, warm_start=None, max_nodes=None) -> SearchResult:
         """The exact minimiser of J from state ``x`` ``[n]`` after input
@@ -249,144 +348,164 @@ class LinearTracking:
             warm_start = ws.astype(np.int32)
         # One compiled call (observe, params, search, members), shared by trackers of equal shapes: the model
         # travels as an argument, so a new A, B, Q or lambda_u of the same shapes reuses it.
-        run = compiled(_solve, self._search_problem, observe=self.observe)
-        return raise_on_errors(run(self._factors(x.dtype), self._controls, self._class_of, x, u_prev, y_ref, d,
+        run = compiled(_solve, self.shared_problem, observe=self.observe)
+        return raise_on_errors(run(*self._on_device(x.dtype), self._controls, self._class_of, x, u_prev, y_ref, d,
                                    warm_start, node_budget(max_nodes)))
 
 
-def _solve(problem, factors, controls, class_of, x, u_prev, y_ref, d, warm_start, budget, *, observe):
-    """``LinearTracking.solve`` after its checks, traced (``problem``: the one whose params carry the model)."""
+def _solve(problem, model, maps, controls, class_of, x, u_prev, y_ref, d, warm_start, budget, *, observe):
+    """``LinearTracking.solve`` after its checks, traced (``problem``: ``shared_problem``)."""
     if warm_start is not None:  # indices into controls -> their classes (all -1 stays none)
         M = class_of.shape[0]
         inside = (warm_start >= 0) & (warm_start < M)
         warm_start = jnp.where(inside, class_of[jnp.clip(warm_start, 0, M - 1)],
                                jnp.where(warm_start < 0, warm_start, problem.num_controls))
     d = jnp.zeros(y_ref.shape[:-1] + x.shape, x.dtype) if d is None else d
-    z0, params = observe(x, u_prev), {**factors["model"], **_params(factors["maps"], y_ref, d)}
-    result = sdfs(problem, z0, params=params, warm_start=warm_start, max_nodes=budget)
-    sequence = _sequence(z0, result.sequence, params)
+    z0 = observe(x, u_prev)
+    result = sdfs(problem, z0, params=SharedParams(_params(maps, y_ref, d), model), warm_start=warm_start,
+                  max_nodes=budget)
+    sequence = _sequence(z0, result.sequence, model)
     # the first of these inputs (first_input_of may break a tie between members the other way)
     first = controls.astype(result.first_input.dtype)[jnp.maximum(sequence[0], 0)]
     return result._replace(sequence=sequence, first_input=jnp.where(result.feasible, first, jnp.nan))
 
 
 # ---------------------------------------------------------------------------
-# The problem's callables: one set for every model. ``LinearTracking.problem`` binds them to its model (``_bind``:
-# constants, so that a closed loop's per-step params carry only the step's data); ``solve`` passes the model in
-# the params (a new A, B, Q or lambda_u of the same shapes reuses its compiled search). A child is a *class* of
-# inputs with the same effect B u on the plant (the inverter's switch states of one voltage vector:
-# ``input_classes``); only the switching term tells its members apart, so the child keeps all R of them: state
-# z = [x (n), members' inputs U (R m), their switching costs o (R), stage cost, bound] ``[n + R (m + 1) + 2]``.
-# o[e] is the cheapest switching of the steps so far that ends on member e, less that of the cheapest member
-# (whose cost the stage cost carries), so o >= 0, and -1 marks a member that no allowed switching reaches (a
-# marker no cost can take, and finite: the searches discard non-finite states). A min-plus step per child (the
-# Viterbi recursion), so the tree branches on the C classes and never on members of one class. One affine map of
-# [x; u] per child (``child_map``) gives its state, the residual of its stage cost and that of its cost-to-go
-# (one matrix product instead of several: measured in docs/inverter.md).
+# The problem's callables: one set for every model, ``fn(z, ..., data, model)``. ``problem`` binds its model as
+# constants (``_callables(model)``: a closed loop's per-step params carry only the step's data); ``shared_problem``
+# reads it from the params (``_SHARED``: a new A, B, Q or lambda_u of the same shapes reuses its compiled search).
+# A child is a *class* of inputs with the same effect B u on the plant (the inverter's switch states of one voltage
+# vector: ``input_classes``); only the switching term tells its members apart, so the child keeps all R of them
+# (``Node``), with a min-plus step per child (the Viterbi recursion), and the tree branches on the C classes and
+# never on members of one class. One affine map of [x; u] per child (``child_map``) gives its state, the residual
+# of its stage cost and that of its cost-to-go (one matrix product instead of several: measured in
+# docs/inverter.md).
 # ---------------------------------------------------------------------------
 
-def _bind(fn, model):
-    """``fn(z, ..., p)`` with ``model`` (float64 NumPy) added to ``p`` as constants in z's dtype."""
-    def bound(z, *args):
-        *rest, p = args
-        if not isinstance(p, dict):
-            raise TypeError("LinearTracking.problem reads each decision's data from its params: pass "
-                            "params=lt.params(y_ref, d)")
-        return fn(z, *rest, {**{k: jnp.asarray(v, z.dtype) for k, v in model.items()}, **p})
+def _callables(model: Optional[TrackingModel] = None) -> dict:
+    """The ``fj.Problem`` callables, each ``(z, ..., p)``: with ``model`` (float64 NumPy) held as constants
+    (``problem``), or, for None, the model read from the params (``shared_problem``)."""
+    def reading(fn):
+        def call(z, *args):
+            *rest, p = args
+            if model is None:
+                if not isinstance(p, SharedParams):
+                    raise TypeError("LinearTracking.shared_problem reads the model from its params: pass "
+                                    f"params=lt.params(y_ref, d, with_model=True) (a SharedParams), got "
+                                    f"{type(p).__name__}")
+                data, held = p.data, p.model
+            else:
+                data, held = _tracking_params(p), model
+            return fn(z, *rest, data, _in_dtype(held, z.dtype))
 
-    return bound
+        return call
+
+    return {"dynamics": reading(_dynamics), "stage_cost": reading(_stage_cost),
+            "lower_bound": reading(_lower_bound), "constraint": reading(_constraint),
+            "first_input_of": reading(_first_input)}
 
 
-def _sizes(z, u, prm):
-    R, m = prm["members"].shape[-2:]
-    n = z.shape[0] - R * (m + 1) - 2
-    return n, m, R, prm["M"].shape[1] - 2 * n - m  # n, m, R, p
+def _tracking_params(p) -> TrackingParams:
+    """``problem``'s params: a ``TrackingParams``, or a mapping of its fields (``python -m firhc_jax batch
+    --params`` reads an ``.npz`` of ``lt.params(Y)._asdict()`` as one); else a ``TypeError``."""
+    if isinstance(p, Mapping) and set(p) == set(TrackingParams._fields):
+        p = TrackingParams(**p)
+    if not isinstance(p, TrackingParams):
+        hint = " (lt.shared_problem takes the params with the model)" if isinstance(p, SharedParams) else ""
+        raise TypeError("LinearTracking.problem reads each decision's data from its params: pass "
+                        f"params=lt.params(y_ref, d) (a TrackingParams){hint}, got {type(p).__name__}")
+    return p
 
 
-def _entries(z, n, m, R):
-    """The node's members ``[R, m]`` and their switching costs ``[R]`` (-1: not reached)."""
-    return z[n:n + R * m].reshape(R, m), z[n + R * m:n + R * (m + 1)]
+def _in_dtype(tree, dtype):
+    """Every array of ``tree`` in ``dtype`` (NumPy constants become arrays of the trace)."""
+    return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), tree)
 
 
-def _switch(u_from, o_from, u_to, ok_to, prm):
+def _node(z, model: TrackingModel) -> Node:
+    return Node.unpack(z, *model.members.shape[-2:])
+
+
+def _switch(u_from, o_from, u_to, ok_to, model: TrackingModel):
     """One min-plus step of the switching costs: for each member ``u_to`` ``[R', m]`` the cheapest
     o_from[e] + lambda_u ||u_to - u_from[e]||^2 over the allowed predecessors e (``[R', R]``; +inf where there
     is none), and the argmin."""
     du = u_to[:, None, :] - u_from[None, :, :]
     allowed = ok_to[:, None] & (o_from[None, :] >= 0)
-    if "max_step" in prm:
-        allowed &= jnp.all(jnp.abs(du) <= prm["max_step"], axis=-1)
-    S = jnp.where(allowed, o_from[None, :] + prm["lambda_u"] * jnp.sum(du * du, axis=-1), jnp.inf)
+    if model.max_step is not None:
+        allowed &= jnp.all(jnp.abs(du) <= model.max_step, axis=-1)
+    S = jnp.where(allowed, o_from[None, :] + model.lambda_u * jnp.sum(du * du, axis=-1), jnp.inf)
     return jnp.min(S, axis=1), jnp.argmin(S, axis=1)
 
 
-def _class(u, prm):
+def _class(u, model: TrackingModel):
     """``(class, found)``: the first class whose members include input ``u`` ``[m]``, and whether one does."""
-    hit = jnp.any(jnp.all(prm["members"] == u.astype(prm["members"].dtype), axis=-1) & (prm["member_ok"] > 0), axis=-1)
+    hit = jnp.any(jnp.all(model.members == u.astype(model.members.dtype), axis=-1) & (model.member_ok > 0),
+                  axis=-1)
     C = hit.shape[0]
     return jnp.minimum(jnp.min(jnp.where(hit, jnp.arange(C), C)), C - 1), jnp.any(hit)
 
 
-def _dynamics(z, u, k, prm):
-    n, m, R, p = _sizes(z, u, prm)
-    j, found = _class(u, prm)  # an input of no class (not a control) has no child
-    U, ok = prm["members"][j].astype(z.dtype), (prm["member_ok"][j] > 0) & found  # [R, m], [R]
-    xu = jnp.concatenate([z[:n], U[0]])
-    out = prm["M"][k] @ xu + prm["off"][k]  # [x(k+1) (n), sqrt(Q) (y_ref[k] - C x(k+1)) (p), W's residual v (n + m)]
+def _dynamics(z, u, k, data: TrackingParams, model: TrackingModel):
+    node = _node(z, model)
+    n, m = node.x.shape[0], node.U.shape[1]
+    p = model.M.shape[1] - 2 * n - m
+    j, found = _class(u, model)  # an input of no class (not a control) has no child
+    U, ok = model.members[j].astype(z.dtype), (model.member_ok[j] > 0) & found  # [R, m], [R]
+    xu = jnp.concatenate([node.x, U[0]])
+    out = model.M[k] @ xu + data.off[k]  # [x(k+1) (n), sqrt(Q) (y_ref[k] - C x(k+1)) (p), W's residual v (n + m)]
     dU = U - U[0]
-    v = out[n + p:] + dU @ prm["Tu"][k].T  # [R, n + m] the residual of W_{k+1}(x(k+1), member)
+    v = out[n + p:] + dU @ model.Tu[k].T  # [R, n + m] the residual of W_{k+1}(x(k+1), member)
     # W = ||v||^2 + s, rounded down by a bound on the rounding of v (its terms nearly cancel, and W must stay
     # admissible): ||v_true|| >= ||v|| - ||v - v_true||, with ||v - v_true|| <= gamma (||M_v|| ||[x; u]|| + ||off_v||
     # + ||Tu|| ||du||) + the rounding of off_v.
-    off_v = prm["off"][k][n + p:]
+    off_v = data.off[k][n + p:]
     g = _gamma(z.dtype, n + 2 * m)
-    err = g * (prm["M_norm"][k] * jnp.sqrt(xu @ xu) + jnp.sqrt(off_v @ off_v)
-               + prm["Tu_norm"][k] * jnp.sqrt(jnp.sum(dU * dU, axis=1))) + prm["off_err"][k]
-    W = jnp.maximum(jnp.sqrt(jnp.sum(v * v, axis=1)) - err, 0) ** 2 * (1 - g) + prm["s"][k]
+    err = g * (model.M_norm[k] * jnp.sqrt(xu @ xu) + jnp.sqrt(off_v @ off_v)
+               + model.Tu_norm[k] * jnp.sqrt(jnp.sum(dU * dU, axis=1))) + data.off_err[k]
+    W = jnp.maximum(jnp.sqrt(jnp.sum(v * v, axis=1)) - err, 0) ** 2 * (1 - g) + data.s[k]
     # and by the factorisation's own error (``cost_to_go``): sqrt(W) is off by at most
     # err_s ||[x(k+1); u]|| + g_err
     x_next = out[:n]
-    off_by = prm["err_s"][k] * jnp.sqrt(x_next @ x_next + jnp.sum(U * U, axis=1)) + prm["g_err"][k]
+    off_by = model.err_s[k] * jnp.sqrt(x_next @ x_next + jnp.sum(U * U, axis=1)) + data.g_err[k]
     W = jnp.maximum(jnp.sqrt(W) - off_by, 0) ** 2 * (1 - g)
-    cost, _ = _switch(*_entries(z, n, m, R), U, ok, prm)
+    cost, _ = _switch(node.U, node.o, U, ok, model)
     reached = jnp.isfinite(cost)
     switching = jnp.min(cost)  # +inf where no member is reached: the constraint discards that child
     o = jnp.where(reached, cost - switching, -1)
     # o + W: one more rounding of each sum, taken off the bound too
     bound = jnp.min(jnp.where(reached, (o + W) * (1 - g), jnp.inf))
     e = out[n:n + p]
-    return jnp.concatenate([x_next, U.reshape(-1), o, (e @ e + switching)[None], bound[None]])
+    return Node(x_next, U, o, e @ e + switching, bound).pack()
 
 
-def _stage_cost(z, u, k, prm):
-    return z[-2]
+def _stage_cost(z, u, k, data, model):
+    return _node(z, model).stage
 
 
-def _lower_bound(z, steps_left, prm):
-    return z[-1]
+def _lower_bound(z, steps_left, data, model):
+    return _node(z, model).W
 
 
-def _constraint(z, u, k, prm):
+def _constraint(z, u, k, data, model):
     """Some member of the class can follow the node's (max_step). Decided on the switching costs alone, so a
     NaN state or reference reaches the searches' own check of non-finite nodes (``nan_encountered``)."""
-    n, m, R, _ = _sizes(z, u, prm)
-    return jnp.any(_entries(z, n, m, R)[1] >= 0)
+    return jnp.any(_node(z, model).o >= 0)
 
 
-def _members(z0, classes, prm):
+def _members(z0, classes, model: TrackingModel):
     """``[N]`` the member (0 .. R-1) of each class of ``classes`` on the cheapest switching path from the
     root ``z0``: the min-plus recursion of ``_dynamics`` forward, then its argmins backward."""
-    R, m = prm["members"].shape[-2:]
-    n = z0.shape[0] - R * (m + 1) - 2
+    root = _node(z0, model)
     j = jnp.maximum(classes, 0)
 
     def forward(carry, jk):
         U_from, o_from = carry
-        U, ok = prm["members"][jk].astype(z0.dtype), prm["member_ok"][jk] > 0
-        cost, came_from = _switch(U_from, o_from, U, ok, prm)
+        U, ok = model.members[jk].astype(z0.dtype), model.member_ok[jk] > 0
+        cost, came_from = _switch(U_from, o_from, U, ok, model)
         return (U, cost), came_from
 
-    (_, last), came_from = jax.lax.scan(forward, _entries(z0, n, m, R), j)  # came_from [N, R]
+    (_, last), came_from = jax.lax.scan(forward, (root.U, root.o), j)  # came_from [N, R]
 
     def backward(e, came):
         return came[e], e
@@ -396,34 +515,36 @@ def _members(z0, classes, prm):
 
 
 @jax.jit
-def _sequence(z0, classes, prm):
-    picked = _members(z0, classes, prm)
-    return jnp.where(classes >= 0, prm["member_index"][jnp.maximum(classes, 0), picked].astype(jnp.int32), -1)
+def _sequence(z0, classes, model: TrackingModel):
+    picked = _members(z0, classes, model)
+    return jnp.where(classes >= 0, model.member_index[jnp.maximum(classes, 0), picked].astype(jnp.int32), -1)
 
 
-def _first_input(z0, classes, prm):
+def _first_input(z0, classes, data, model: TrackingModel):
     """``first_input_of``: the first member on the cheapest switching path of ``classes`` from ``z0``.
 
     This runs in every decision, so without a loop: the switching costs between the members of consecutive
     classes are R x R matrices, all built at once, and their min-plus product (associative) is reduced
     pairwise, log2(N) vectorised levels (a scan costs several microseconds a step on XLA:CPU, and an
     unrolled recursion made the work pool's compile time grow steeply with N: 340 s at N = 10)."""
-    R, m = prm["members"].shape[-2:]
-    n = z0.shape[0] - R * (m + 1) - 2
+    root = _node(z0, model)
     j = jnp.maximum(classes, 0)
-    U, ok = prm["members"][j].astype(z0.dtype), prm["member_ok"][j] > 0  # [N, R, m], [N, R]
-    first, _ = _switch(*_entries(z0, n, m, R), U[0], ok[0], prm)  # [R] the root to each first member
+    U, ok = model.members[j].astype(z0.dtype), model.member_ok[j] > 0  # [N, R, m], [N, R]
+    first, _ = _switch(root.U, root.o, U[0], ok[0], model)  # [R] the root to each first member
     du = U[1:, None, :, :] - U[:-1, :, None, :]  # [N-1, R (from), R (to), m]
     allowed = ok[:-1, :, None] & ok[1:, None, :]
-    if "max_step" in prm:
-        allowed &= jnp.all(jnp.abs(du) <= prm["max_step"], axis=-1)
-    chain = jnp.where(allowed, prm["lambda_u"] * jnp.sum(du * du, axis=-1), jnp.inf)  # [N-1, R, R]
+    if model.max_step is not None:
+        allowed &= jnp.all(jnp.abs(du) <= model.max_step, axis=-1)
+    chain = jnp.where(allowed, model.lambda_u * jnp.sum(du * du, axis=-1), jnp.inf)  # [N-1, R, R]
     while chain.shape[0] > 1:  # min-plus products of neighbours; an odd one out waits a level
         pairs = chain.shape[0] // 2 * 2
         product = jnp.min(chain[:pairs:2, :, :, None] + chain[1:pairs:2, None, :, :], axis=2)
         chain = jnp.concatenate([product, chain[pairs:]])
-    rest = jnp.min(chain[0], axis=1) if chain.shape[0] else jnp.zeros((R,), z0.dtype)
+    rest = jnp.min(chain[0], axis=1) if chain.shape[0] else jnp.zeros(U.shape[1:2], z0.dtype)
     return U[0][jnp.argmin(first + rest)]
+
+
+_SHARED = _callables()  # shared_problem's: one set of callables, so trackers of equal shapes share its searches
 
 
 _OBSERVERS = {}
@@ -434,43 +555,21 @@ def _observer(R: int):
     equal shapes share their compiled loop."""
     if R not in _OBSERVERS:
         def observe(x, u_prev, p=None):
-            """The search state ``[x, u_prev (R times), o = [0, -1, ...], 0, 0]`` ``[n + R (m + 1) + 2]``
-            from the plant state ``x`` ``[n]`` and the input applied last ``u_prev`` ``[m]``. The signature
-            of ``fj.FIRHC``'s ``observe`` (``p`` unused)."""
+            """The search state, the root ``Node`` packed ``[n + R (m + 1) + 2]``: plant state ``x`` ``[n]``
+            after the input applied last ``u_prev`` ``[m]`` (every member, switching costs [0, -1, ...],
+            stage cost and bound 0). The signature of ``fj.FIRHC``'s ``observe`` (``p`` unused)."""
             x = jnp.asarray(x)
             u_prev = jnp.asarray(u_prev, x.dtype)
+            zero = jnp.zeros((), x.dtype)
             o = jnp.full((R,), -1, x.dtype).at[0].set(0)
-            return jnp.concatenate([x, jnp.tile(u_prev, R), o, jnp.zeros(2, x.dtype)])
+            return Node(x, jnp.broadcast_to(u_prev, (R,) + u_prev.shape), o, zero, zero).pack()
 
         _OBSERVERS[R] = observe
     return _OBSERVERS[R]
 
 
-def input_classes(B, controls) -> np.ndarray:
-    """``[C, R]`` indices into ``controls`` ``[M, m]`` grouped by their effect
-    B u on the plant, classes in the order of their first input, padded with -1.
-
-    Effects are equal up to rounding: per state component, 64 eps of the
-    largest sum of |B_ij u_j| over the inputs, the scale of that component's
-    own rounding (so the grouping does not depend on the units of B)."""
-    effect = controls @ B.T  # [M, n]
-    tol = 64 * np.finfo(float).eps * np.max(np.abs(controls) @ np.abs(B).T, axis=0, initial=0.0)  # [n]
-    classes = []
-    for i in range(len(controls)):
-        for c in classes:
-            if np.all(np.abs(effect[i] - effect[c[0]]) <= tol):
-                c.append(i)
-                break
-        else:
-            classes.append([i])
-    out = np.full((len(classes), max(len(c) for c in classes)), -1)
-    for j, c in enumerate(classes):
-        out[j, :len(c)] = c
-    return out
-
-
 @jax.jit
-def _params(maps, y_ref, d):
+def _params(maps: _DataMaps, y_ref, d) -> TrackingParams:
     dtype = y_ref.dtype
     lead = y_ref.shape[:-2]
     data = jnp.concatenate([y_ref.reshape(lead + (-1,)), d.reshape(lead + (-1,))], axis=-1)  # [..., N(p + n)]
@@ -480,141 +579,13 @@ def _params(maps, y_ref, d):
         return (jnp.einsum("kid,...d->...ki", M, data),
                 gamma * jnp.einsum("kid,...d->...ki", jnp.abs(M), jnp.abs(data)))
 
-    off, off_err = apply(maps["M_data"])
-    e, e_err = apply(maps["Ms"])
+    off, off_err = apply(maps.M_data)
+    e, e_err = apply(maps.Ms)
     n_w = off.shape[-1] - d.shape[-1] - y_ref.shape[-1]  # n + m rows of W's residual, the last of off
     data_norm = jnp.sqrt(jnp.sum(data * data, axis=-1))
-    return {"off": off, "off_err": jnp.sqrt(jnp.sum(off_err[..., -n_w:] ** 2, axis=-1)),
-            "s": _norm2_below(e, e_err), "g_err": maps["err_d"] * (data_norm * (1 + gamma))[..., None],
-            "y_ref": y_ref, "d": d}
-
-
-# ---------------------------------------------------------------------------
-# The static factorisation (NumPy, float64).
-# ---------------------------------------------------------------------------
-
-def factor_memory(n: int, m: int, p: int, N: int) -> int:
-    """Bytes that ``LinearTracking`` holds for its factorisation at its peak, about: the data-only factor
-    ``Ms`` ``[N, N(p + m), N(p + n)]`` (float64) four times over (per step, stacked, shifted, on the device),
-    the decomposition of the longest stacked problem and the child maps. It grows as N^3."""
-    rows, data = N * (p + m), N * (p + n)
-    return 8 * (4 * N * rows * data + 2 * rows * rows + 2 * N * (2 * n + p + m) * data)
-
-
-def cost_to_go(A, B, C, sqrt_q, lambda_u, N):
-    """Factors of the unconstrained cost-to-go of the last N - k steps, k = 0 .. N-1.
-
-    W_k(x, u_prev) = min over real u(k .. N-1) of the cost of those steps from
-    x(k) = x after input u_prev; with s = [x; u_prev] and data = [vec(y_ref);
-    vec(d)]: W_k = ||T[k] s + Mw[k] data||^2 + ||Ms[k] data||^2.
-
-    Returns ``T`` ``[N, n+m, n+m]``, ``Mw`` ``[N, n+m, N(p+n)]``, ``Ms``
-    ``[N, N(p+m), N(p+n)]`` (rows padded with zeros), ``err_s``, ``err_d``
-    ``[N]``. W_k = ||P (G_s s + G_d data)||^2 where F U - (G_s s + G_d data) is
-    the stacked residual of the steps left and P projects onto the complement
-    of F's range (from its SVD); a QR factorisation of P G_s splits it into
-    the square part T and the rest. The computed P is off by at most delta
-    (Wedin: the SVD's backward error over the smallest singular value kept),
-    so sqrt(W_k) is off by at most ``err_s[k] ||s|| + err_d[k] ||data||``
-    (delta ||G_s||_F, delta ||G_d||_F): the search takes that off to keep W a lower
-    bound at any conditioning of Q (delta >= 1 leaves no bound).
-    """
-    n, m = B.shape
-    p = sqrt_q.shape[0]
-    eps = np.finfo(float).eps
-    powers = [np.eye(n)]
-    for _ in range(N):
-        powers.append(A @ powers[-1])
-    q_c = sqrt_q @ C
-    nd, ns = N * (p + n), n + m
-    T, Mw, rests = np.zeros((N, ns, ns)), np.zeros((N, ns, nd)), []
-    err_s, err_d = np.zeros(N), np.zeros(N)
-    for k in range(N):
-        S = N - k
-        F = np.zeros((S * (p + m), S * m))
-        Gs, Gd = np.zeros((S * (p + m), ns)), np.zeros((S * (p + m), nd))
-        for j in range(S):  # step k + j: tracking rows, then switching rows
-            r = slice(j * p, (j + 1) * p)
-            for i in range(j + 1):
-                F[r, i * m:(i + 1) * m] = q_c @ powers[j - i] @ B
-                Gd[r, N * p + (k + i) * n:N * p + (k + i + 1) * n] = -q_c @ powers[j - i]
-            Gs[r, :n] = -q_c @ powers[j + 1]
-            Gd[r, (k + j) * p:(k + j + 1) * p] = sqrt_q
-            r = slice(S * p + j * m, S * p + (j + 1) * m)
-            F[r, j * m:(j + 1) * m] = np.sqrt(lambda_u) * np.eye(m)
-            if j:
-                F[r, (j - 1) * m:j * m] = -np.sqrt(lambda_u) * np.eye(m)
-            else:
-                Gs[r, n:] = np.sqrt(lambda_u) * np.eye(m)
-        U, sv, _ = np.linalg.svd(F)
-        rank = _rank(F)
-        perp = U[:, rank:].T  # [R - rank, R]
-        Ue, Te = np.linalg.qr(perp @ Gs, mode="complete")
-        rows = min(ns, Te.shape[0])
-        T[k, :rows] = Te[:rows]
-        Mw[k, :rows] = Ue[:, :rows].T @ perp @ Gd
-        rests.append(Ue[:, rows:].T @ perp @ Gd)
-        # delta >= 1 already leaves no bound (||P g|| <= ||g||): capped there, so that it stays finite
-        ratio = sv[0] / sv[rank - 1] if rank and sv[rank - 1] > 0 else (np.inf if rank else 0.0)
-        delta = min(8 * eps * (max(F.shape) + ns) * (1 + ratio), 2.0)
-        err_s[k], err_d[k] = delta * np.linalg.norm(Gs), delta * np.linalg.norm(Gd)  # Frobenius >= spectral
-    Ms = np.zeros((N, N * (p + m), nd))  # rows for every rank: a new model of the same sizes has the same shapes
-    for k, rest in enumerate(rests):
-        Ms[k, :rest.shape[0]] = rest
-    return T, Mw, Ms, err_s, err_d
-
-
-def _rank(F) -> int:
-    """The number of directions of F's range that inputs reach, decided on F with its rows and columns scaled
-    to unit norm (zero ones dropped): the same rank in exact arithmetic, whatever the weights Q and lambda_u
-    and the inputs' units do to the scale of F's rows and columns. (A tolerance relative to F's own largest
-    singular value would count a light output's directions under a heavy one, Q = diag(1e30, 1), as out of
-    reach, and W would exceed the cost-to-go.) The rest, at the rounding level of the scaled F, are
-    unreachable: the usual numerical rank."""
-    rows = np.linalg.norm(F, axis=1)
-    G = F[rows > 0] / rows[rows > 0, None]
-    cols = np.linalg.norm(G, axis=0)
-    G = G[:, cols > 0] / cols[cols > 0]
-    if G.size == 0:
-        return 0
-    sv = np.linalg.svd(G, compute_uv=False)
-    return int(np.sum(sv > np.finfo(float).eps * max(G.shape) * sv[0]))
-
-
-def child_map(A, B, C, sqrt_q, lambda_u, N):
-    """The affine map from a node to a child, per input index k.
-
-    For the child of input u(k) from state x(k) after u(k-1):
-    ``M[k] [x; u] + M_data[k] data`` = [x(k+1); sqrt(Q) (y_ref[k] - C x(k+1));
-    T_{k+1} [x(k+1); u] + w_{k+1}], whose last part's squared norm plus
-    ``||Ms[k] data||^2`` is W_{k+1}(x(k+1), u(k)) (``cost_to_go``; 0 at k = N-1).
-
-    Returns ``M`` ``[N, n + p + n + m, n + m]``, ``M_data``
-    ``[N, n + p + n + m, N(p + n)]``, ``Ms`` ``[N, N(p + m), N(p + n)]``,
-    ``Tu`` ``[N, n + m, m]``, the columns of u(k) in T_{k+1} (0 at k = N-1):
-    how W's residual moves with the child's input, for the other members
-    of its class, and ``err_s``, ``err_d`` ``[N]``: those of W_{k+1}
-    (``cost_to_go``; 0 at k = N-1)."""
-    n, m = B.shape
-    p = sqrt_q.shape[0]
-    T, Mw, Ms, err_s, err_d = cost_to_go(A, B, C, sqrt_q, lambda_u, N)
-    nd, q_c = N * (p + n), sqrt_q @ C
-    M, M_data = np.zeros((N, 2 * n + p + m, n + m)), np.zeros((N, 2 * n + p + m, nd))
-    for k in range(N):
-        d_k = np.zeros((n, nd))
-        d_k[:, N * p + k * n:N * p + (k + 1) * n] = np.eye(n)  # selects d[k] from data
-        M[k, :n] = np.hstack([A, B])
-        M_data[k, :n] = d_k
-        M[k, n:n + p] = -q_c @ M[k, :n]
-        M_data[k, n:n + p] = -q_c @ d_k
-        M_data[k, n:n + p, k * p:(k + 1) * p] += sqrt_q  # y_ref[k]
-        if k + 1 < N:
-            Tx, Tu = T[k + 1][:, :n], T[k + 1][:, n:]
-            M[k, n + p:] = Tx @ M[k, :n] + np.hstack([np.zeros((n + m, n)), Tu])
-            M_data[k, n + p:] = Tx @ d_k + Mw[k + 1]
-    Ms_next = np.concatenate([Ms[1:], np.zeros_like(Ms[:1])])
-    Tu = np.concatenate([T[1:, :, n:], np.zeros((1, n + m, m))])
-    return M, M_data, Ms_next, Tu, np.append(err_s[1:], 0.0), np.append(err_d[1:], 0.0)
+    return TrackingParams(off=off, off_err=jnp.sqrt(jnp.sum(off_err[..., -n_w:] ** 2, axis=-1)),
+                          s=_norm2_below(e, e_err), g_err=maps.err_d * (data_norm * (1 + gamma))[..., None],
+                          y_ref=y_ref, d=d)
 
 
 def _gamma(dtype, terms: int):
@@ -628,31 +599,6 @@ def _norm2_below(v, err):
     cancel, so their rounding matters in float32)."""
     sq = jnp.sum(jnp.maximum(jnp.abs(v) - err, 0) ** 2, axis=-1)
     return sq * (1 - _gamma(v.dtype, v.shape[-1]))
-
-
-def psd_factor(name: str, Q) -> np.ndarray:
-    """``L`` ``[p, p]`` with L^T L = Q, for a symmetric positive semidefinite
-    ``Q`` (checked by ``fj.problem.weight``: else a ``ValueError`` naming ``name``)."""
-    w, vecs = np.linalg.eigh(weight(name, Q))
-    return np.sqrt(np.clip(w, 0, None))[:, None] * vecs.T
-
-
-def _matrix(name, a) -> np.ndarray:
-    if is_tracer(a):
-        raise TypeError(f"{name} must be concrete values, not a traced array: the model is factorised once, "
-                        "in NumPy, when LinearTracking is built")
-    try:
-        given = np.asarray(a)
-        if given.dtype.kind == "c":
-            raise TypeError(f"{name} must be real, got complex dtype {given.dtype}")
-        arr = given.astype(float)
-    except ValueError as e:
-        raise TypeError(f"{name} must be a real 2-D array: {e}") from None
-    if arr.ndim != 2 or 0 in arr.shape:
-        raise ValueError(f"{name} must be a non-empty 2-D array, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or inf")
-    return arr
 
 
 def _scalar(name, value) -> float:

@@ -12,6 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import firhc_jax as fj
+from firhc_jax.linear_tracking import Node
 from firhc_jax.models import thermal, three_level
 from reference import same_cost
 
@@ -190,12 +191,13 @@ def test_an_infeasible_warm_start_under_max_step_is_ignored():
 
 
 @contextlib.contextmanager
-def compilations():
-    """Names of the functions XLA compiles inside the block (jax.monitoring's compile events)."""
+def compilations(kind="/jax/core/compile/backend_compile_duration"):
+    """Names of the functions XLA compiles inside the block (jax.monitoring's compile events; with
+    ``kind=TRACES``, the functions JAX traces)."""
     seen = []
 
     def listener(event, duration, **kw):
-        if event == "/jax/core/compile/backend_compile_duration":
+        if event == kind:
             seen.append(kw.get("fun_name"))
 
     jax.monitoring.register_event_duration_secs_listener(listener)
@@ -203,6 +205,9 @@ def compilations():
         yield seen
     finally:
         jax.monitoring.unregister_event_duration_listener(listener)
+
+
+TRACES = "/jax/core/compile/jaxpr_trace_duration"
 
 
 def test_new_states_references_and_disturbances_never_recompile():
@@ -225,6 +230,79 @@ def test_new_states_references_and_disturbances_never_recompile():
             # a new model of the same shapes is new params too: the same compiled search
             Case("mimo", True, int(rng.integers(100))).tracker().solve(x, u, y, d, warm_start=NONE)
     assert seen == [], seen
+
+
+@settings(SETTINGS, max_examples=3)  # each example compiles its own controller (lt_b.problem) and its plant's loop
+@given(st.integers(0, 2**32 - 1))
+def test_one_compiled_loop_decides_for_every_tracker_of_equal_shapes(seed):
+    """FIRHC(lt_a.shared_problem) with lt_b.params(..., with_model=True) decides as lt_b's own controller, for
+    trackers of one plant with other weights (Q, lambda_u); neither lt_b's params nor lt_b.shared_problem traces
+    anything again."""
+    with compilations(TRACES) as seen:  # the event is still reported under this name (else the check is void)
+        jax.jit(lambda a: a * 5)(np.arange(3.0))
+    assert seen, "no trace event observed: jax.monitoring's event name changed"
+    case = Case("common", True, seed)
+    rng = np.random.default_rng(seed)
+    lt_a = case.tracker()
+    root = rng.normal(size=(2, 2))
+    case.Q, case.lambda_u = root.T @ root, float(rng.uniform(0, 2))
+    lt_b = case.tracker()
+    steps = 5
+    Y, D = rng.normal(size=(steps,) + case.y_ref.shape), 0.3 * rng.normal(size=(steps,) + case.d.shape)
+    p_a, p_b = lt_a.params(Y, D, with_model=True), lt_b.params(Y, D, with_model=True)
+    assert jax.tree_util.tree_structure(p_a) == jax.tree_util.tree_structure(p_b)
+    assert [a.shape for a in jax.tree_util.tree_leaves(p_a)] == [b.shape for b in jax.tree_util.tree_leaves(p_b)]
+    A, B = jnp.asarray(case.A), jnp.asarray(case.B)
+
+    def shared_plant(x, u, p):
+        return A @ x + B @ u + p.data.d[0]
+
+    def own_plant(x, u, p):
+        return A @ x + B @ u + p.d[0]
+
+    u0 = case.controls[0]
+    shared = fj.FIRHC(lt_a.shared_problem, observe=lt_a.observe, warm_start=True)
+    run_a = shared.simulate(case.x, steps, shared_plant, params=p_a, u0=u0)
+    with compilations(TRACES) as seen:
+        run_b = shared.simulate(case.x, steps, shared_plant, params=p_b, u0=u0)
+        again = fj.FIRHC(lt_b.shared_problem, observe=lt_b.observe, warm_start=True).simulate(
+            case.x, steps, shared_plant, params=p_b, u0=u0)
+    assert seen == [], seen
+    own = fj.FIRHC(lt_b.problem, observe=lt_b.observe, warm_start=True).simulate(
+        case.x, steps, own_plant, params=lt_b.params(Y, D), u0=u0)
+    assert not np.allclose(np.asarray(run_a.predicted_costs), np.asarray(run_b.predicted_costs))  # lt_b's weights
+    for field in ("inputs", "plans", "states", "predicted_costs"):
+        np.testing.assert_array_equal(np.asarray(getattr(again, field)), np.asarray(getattr(run_b, field)))
+    np.testing.assert_array_equal(np.asarray(run_b.inputs), np.asarray(own.inputs))
+    for k in range(steps):
+        assert same_cost(float(run_b.predicted_costs[k]), float(own.predicted_costs[k])), k
+
+
+@settings(SETTINGS, max_examples=3)
+@given(st.integers(0, 2**32 - 1))
+def test_rows_of_different_trackers_in_one_batch(seed):
+    """fj.solve_batch on lt.shared_problem with each row's params from another tracker (its own Q and
+    lambda_u, stacked): row b is the brute-force minimum of tracker b's J."""
+    case = Case("mimo", True, seed)
+    rng = np.random.default_rng(seed)
+    weights, trackers, rows = [], [], []
+    for _ in range(3):
+        root = rng.normal(size=(2, 2))
+        case.Q, case.lambda_u = root.T @ root, float(rng.uniform(0, 2))
+        weights.append((case.Q, case.lambda_u))
+        trackers.append(case.tracker())
+        rows.append((rng.normal(size=case.x.shape), case.controls[rng.integers(27)], rng.normal(size=case.y_ref.shape)))
+    X, U, Y = (np.stack(a) for a in zip(*rows, strict=True))
+    params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *(t.params(y, with_model=True)
+                                                              for t, y in zip(trackers, Y, strict=True)))
+    out = fj.solve_batch(trackers[0].shared_problem, jax.vmap(trackers[0].observe)(X, U), params=params)
+    for b in range(3):
+        (case.Q, case.lambda_u), case.x, case.u_prev, case.y_ref = weights[b], X[b], U[b], Y[b]
+        case.d = np.zeros_like(case.d)
+        best = case.brute_force()
+        assert same_cost(float(out.cost[b]), best) and bool(out.feasible[b]) == np.isfinite(best), b
+        if np.isfinite(best):
+            assert same_cost(best_starting_with(case, out.first_input[b]), best), b
 
 
 def test_float32_search_stays_float32_and_exact_to_its_precision():
@@ -486,3 +564,62 @@ def test_an_input_outside_the_controls_has_no_child():
     assert not bool(lt.problem.allowed(lt.problem.next_state(z, stray, 0, p), stray, 0, p))
     rep = lt.problem.controls[0]
     assert bool(lt.problem.allowed(lt.problem.next_state(z, rep, 0, p), rep, 0, p))
+
+
+def test_the_search_state_is_a_packed_node():
+    """observe packs the root Node; a child's x is the plant's next state and its stage cost is the tracking
+    error plus the cheapest switching onto a member of its class (three-level inverter: C = Q = I, max_step 1)."""
+    lt = three_level.make_problem(2, lambda_u=0.3)
+    A, B = three_level.model()
+    x, u_prev = np.array([1.0, -2.0]), np.array([1.0, 0.0, -1.0])
+    z = lt.observe(x, u_prev)
+    root = Node.unpack(z, lt.class_size, lt.m)
+    assert z.shape == (2 + 3 * (3 + 1) + 2,)
+    np.testing.assert_array_equal(root.x, x)
+    np.testing.assert_array_equal(root.U, np.tile(u_prev, (3, 1)))
+    np.testing.assert_array_equal(root.o, [0.0, -1.0, -1.0])
+    assert float(root.stage) == 0.0 and float(root.W) == 0.0
+    np.testing.assert_array_equal(root.pack(), z)
+    y_ref = np.array([[3.0, 1.0], [0.0, 0.0]])
+    params = lt.params(y_ref)
+    for j, rep in enumerate(lt.problem.controls):
+        child = Node.unpack(lt.problem.next_state(z, rep, 0, params), lt.class_size, lt.m)
+        x_next = A @ x + B @ rep
+        np.testing.assert_allclose(child.x, x_next, rtol=1e-12, atol=1e-12)
+        members = lt.controls[lt.class_of == j]
+        steps = np.abs(members - u_prev)
+        switching = np.where(np.all(steps <= 1, axis=1), 0.3 * np.sum(steps**2, axis=1), np.inf)
+        if np.isfinite(switching.min()):
+            expected = np.sum((y_ref[0] - x_next) ** 2) + switching.min()
+            np.testing.assert_allclose(float(child.stage), expected, rtol=1e-12)
+        reached = np.zeros(lt.class_size, bool)  # padding (classes of fewer members) is never reached
+        reached[:len(members)] = np.isfinite(switching)
+        np.testing.assert_array_equal(np.asarray(child.o) >= 0, reached)
+
+
+def test_params_of_the_other_problem_are_refused_by_name():
+    """lt.problem takes lt.params(...) (or a mapping of its fields, as an .npz reads back), lt.shared_problem
+    lt.params(..., with_model=True): the same child either way; the wrong one is a TypeError that names the
+    right one. p["d"] still reads p.d, with a DeprecationWarning."""
+    lt = three_level.make_problem(2)
+    z, rep = lt.observe(np.array([1.0, -2.0]), np.zeros(3)), lt.problem.controls[4]
+    y_ref = np.array([[3.0, 1.0], [0.0, 0.0]])
+    data, shared = lt.params(y_ref), lt.params(y_ref, with_model=True)
+    child = np.asarray(lt.problem.next_state(z, rep, 0, data))
+    np.testing.assert_array_equal(lt.shared_problem.next_state(z, rep, 0, shared), child)
+    np.testing.assert_array_equal(lt.problem.next_state(z, rep, 0, data._asdict()), child)
+    assert float(lt.problem.first_input(z, np.zeros(2, np.int32), data)[0]) == \
+        float(lt.shared_problem.first_input(z, np.zeros(2, np.int32), shared)[0])
+    with pytest.raises(TypeError, match=r"params=lt.params\(y_ref, d\) \(a TrackingParams\) \(lt.shared_problem "
+                                        r"takes the params with the model\), got SharedParams"):
+        lt.problem.next_state(z, rep, 0, shared)
+    with pytest.raises(TypeError, match=r"shared_problem reads the model from its params: pass "
+                                        r"params=lt.params\(y_ref, d, with_model=True\)"):
+        lt.shared_problem.next_state(z, rep, 0, data)
+    with pytest.raises(TypeError, match=r"problem reads each decision's data from its params"):
+        fj.sdfs(lt.problem, z)
+    with pytest.warns(DeprecationWarning, match=r'read p.d, not p\["d"\]'):
+        assert data["d"] is data.d
+    assert data[-1] is data.d
+    with pytest.raises(KeyError, match="fields"):
+        data["D"]

@@ -162,6 +162,22 @@ def test_complex_models_and_weights_are_refused(make, name):
         make()
 
 
+@pytest.mark.parametrize("make, name", [
+    (lambda a: fj.LinearTracking(a, [[1.0]], [-1.0, 1.0], 2), "A"),
+    (lambda a: fj.LinearTracking(GOOD, a, [-1.0, 1.0], 2), "B"),
+    (lambda a: fj.linear_dynamics(a, [[1.0]]), "A"),
+    (lambda a: fj.discretize(GOOD, a, 0.1), "B"),
+    (lambda a: fj.tracking_cost(C=a), "C"),
+])
+def test_model_matrices_follow_one_rule(make, name):
+    """A traced matrix and an empty one are refused by name, before any work, by LinearTracking and the linear
+    helpers alike (a traced one was a raw JAX conversion error in the helpers, an empty one was accepted)."""
+    with pytest.raises(TypeError, match=rf"{name} must be concrete values, not a traced array"):
+        jax.jit(make)(jnp.asarray(GOOD))
+    with pytest.raises(ValueError, match=rf"{name} must be a non-empty 2-D matrix, got shape \(0, 1\)"):
+        make(np.zeros((0, 1)))
+
+
 @pytest.mark.parametrize("Ts", ["a", None, [0.1, 0.2], 1j])
 def test_discretize_names_a_bad_sampling_period(Ts):
     with pytest.raises((TypeError, ValueError), match="Ts must be"):

@@ -183,7 +183,7 @@ def test_linear_tracking_loops_apply_first_input_of_as_single_loops():
     ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
 
     def lin_plant(x, u, p):
-        return jnp.asarray(case.A) @ x + jnp.asarray(case.B) @ u + p["d"][0]
+        return jnp.asarray(case.A) @ x + jnp.asarray(case.B) @ u + p.d[0]
 
     X0 = case.x + 0.5 * rng.normal(size=(B,) + case.x.shape)
     run = ctrl.simulate_batch(X0, steps, lin_plant, params=params, u0=case.controls[0])
