@@ -17,7 +17,8 @@ both, the best round of each: that call against a Python loop of
 ``ctrl.simulate`` (the same controller, so one compilation) over
 ``--python-loops`` of the loops, scaled to loops/s, and the batch again at
 each of ``--lanes`` (``fj.FIRHC(..., lanes=)``); the Python loop's
-decisions are compared with the batch's. Per loop: THD (every
+decisions are compared with the batch's, and the last loop's with its
+weight's own controller (``FIRHC(lt.problem, ...)``). Per loop: THD (every
 non-fundamental component of the three phase currents, averaged over them)
 and switching frequency per leg (unit level steps over the run, halved,
 averaged over the legs), as ``apps/inverter_three_level.summarize``. Writes a
@@ -163,6 +164,13 @@ def main() -> None:
               if b not in differ) if len(differ) < len(sub) else np.nan
     print(f"\nPython loop against the batch: {len(sub) - len(differ)} of {len(sub)} loops with the same inputs at "
           f"every step (cost rel. diff. max {rel:.1e}); differing loops: {differ}")
+    b, own = B - 1, trackers[-1]  # the last loop on its weight's own controller (the model held as constants)
+    alone = fj.FIRHC(own.problem, observe=own.observe, warm_start=True, pop_width=three_level.pop_width(N)).simulate(
+        I0[b], T, plant, params=own.params(jnp.asarray(refs[b % F])), u0=u0)
+    same = np.array_equal(np.asarray(alone.inputs), inputs[b])
+    gap = np.max(np.abs(np.asarray(alone.predicted_costs) / np.asarray(run.predicted_costs)[b] - 1))
+    print(f"loop {b} on its own tracker's controller: inputs {'equal' if same else 'DIFFERENT'} at every step, "
+          f"cost rel. diff. max {gap:.1e}")
 
     states = np.asarray(run.states)
     thd, fsw = (np.array(v).reshape(L, F) for v in zip(*(metrics(states[b], inputs[b]) for b in range(B)),
