@@ -115,6 +115,23 @@ def as_state(x0, name: str = "x0"):
     return x0
 
 
+def as_sequence(value, horizon: int, num_controls: int, name: str = "warm_start"):
+    """``value`` as ``[N]`` int32 indices into the controls (all -1: none), or None when None; a traced value
+    is checked for its shape and dtype only."""
+    if value is None:
+        return None
+    try:
+        seq = value if is_tracer(value) else np.asarray(value)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{name} must be [N] = [{horizon}] integer indices into controls: {e}") from None
+    if seq.shape != (horizon,) or not jnp.issubdtype(seq.dtype, jnp.integer):
+        raise ValueError(f"{name} must be [N] = [{horizon}] integer indices into controls, "
+                         f"got shape {tuple(seq.shape)} dtype {seq.dtype}")
+    if not is_tracer(seq) and not (np.all((seq >= 0) & (seq < num_controls)) or np.all(seq == -1)):
+        raise ValueError(f"{name} indices must lie in [0, {num_controls}) (or be all -1: none), got {seq.tolist()}")
+    return seq.astype(jnp.int32 if is_tracer(seq) else np.int32)
+
+
 def as_batch(X0, name: str = "X0"):
     """``X0`` ``[B, n]`` as a strongly typed floating array of finite states, or a clear error."""
     if isinstance(X0, jax.core.Tracer):

@@ -48,10 +48,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .cache import cached
-from .checks import as_batch, as_state, check_params
+from .checks import as_batch, as_sequence, as_state, check_params
 from .closed_loop import ClosedLoop
 from .decision import ControllerState, decide, decide_rows
-from .controller_checks import (as_inputs, as_previous, check_closed_loop, controller_options, decide_checked,
+from .controller_checks import (as_inputs, check_closed_loop, controller_options, decide_checked,
                                 no_input_message, sample_times, solve_checked)
 from .loop import batch_major, ready, run_compiled, run_python, user_plant, warn_held
 from .problem import Problem, is_tracer, positive_int
@@ -243,7 +243,8 @@ class FIRHC:
         False and ``result.first_input`` NaN.
         """
         x, params = as_state(x, "x"), check_params(params)
-        prev = as_previous(self.problem, previous_sequence) if self.warm_start else None
+        prev = as_sequence(previous_sequence, self.problem.horizon, self.problem.num_controls,
+                           "previous_sequence") if self.warm_start else None
         fn = cached(("solve", self.options.key), lambda: jax.jit(functools.partial(solve_checked, self.options)))
         result, used = fn(x, params, prev)
         return raise_on_errors(result), used

@@ -80,19 +80,6 @@ def controller_options(problem, solver, fallback, warm_start, observe, actuate, 
                 observe=observe, actuate=actuate, u_safe=u_safe)
 
 
-def as_previous(problem: Problem, previous_sequence):
-    """``previous_sequence`` ``[N]`` as int32 indices into the controls (all -1: none), or None."""
-    if previous_sequence is None:
-        return None
-    prev = np.asarray(previous_sequence)
-    N, M = problem.horizon, problem.num_controls
-    if prev.shape != (N,) or prev.dtype.kind not in "iu" or not (
-            np.all((prev >= 0) & (prev < M)) or np.all(prev == -1)):
-        raise ValueError(f"previous_sequence must be [N] = [{N}] indices in [0, {M}) (or all -1), "
-                         f"got {prev.tolist()}")
-    return prev.astype(np.int32)
-
-
 def check_search(opts, x, pspec) -> None:
     """The problems (main and fallback) on the model state ``x`` and the solver's memory."""
     for problem in (opts.problem, opts.fallback):

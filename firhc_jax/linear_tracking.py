@@ -75,7 +75,7 @@ import jax
 import jax.numpy as jnp
 
 from .cache import compiled
-from .checks import as_state
+from .checks import as_sequence, as_state
 from .linear import _matrix
 from .linear_factor import child_map, factor_memory, input_classes, psd_factor
 from .problem import Problem, _check_controls, is_tracer, positive_int
@@ -337,15 +337,7 @@ class LinearTracking:
         u_prev = _vector("u_prev", u_prev, (self.m,), x.dtype)
         y_ref = _vector("y_ref", y_ref, (self.horizon, self.p), x.dtype)
         d = None if d is None else _vector("d", d, (self.horizon, self.n), x.dtype)
-        if warm_start is not None:
-            ws = warm_start if is_tracer(warm_start) else np.asarray(warm_start)
-            if ws.shape != (self.horizon,) or not jnp.issubdtype(ws.dtype, jnp.integer):
-                raise ValueError(f"warm_start must be [N] = [{self.horizon}] integer indices into controls, "
-                                 f"got {ws.dtype} of shape {tuple(ws.shape)}")
-            M = len(self._controls)
-            if not is_tracer(ws) and not (bool(jnp.all((ws >= 0) & (ws < M))) or bool(jnp.all(ws == -1))):
-                raise ValueError(f"warm_start indices must lie in [0, {M}) (or be all -1: none), got {ws.tolist()}")
-            warm_start = ws.astype(np.int32)
+        warm_start = as_sequence(warm_start, self.horizon, len(self._controls))
         # One compiled call (observe, params, search, members), shared by trackers of equal shapes: the model
         # travels as an argument, so a new A, B, Q or lambda_u of the same shapes reuses it.
         run = compiled(_solve, self.shared_problem, observe=self.observe)

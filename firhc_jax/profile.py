@@ -24,9 +24,9 @@ from tqdm.auto import tqdm
 from .batch import solve_batch
 from .cache import cached
 from .checks import as_batch, check_params, check_state
-from .exhaustive import exhaustive
+from . import solvers
 from .problem import Problem, positive_int
-from .sdfs import sdfs
+from .sdfs import INT32_MAX
 
 POP_WIDTHS = (1, 2, 4, 8)
 LANES = (16, 64, 256)
@@ -53,6 +53,17 @@ def _timed(run: Callable[[], list], repeats: int):
         results = jax.block_until_ready(run())
         times.append(time.perf_counter() - t0)
     return statistics.median(times), first, results
+
+
+def _search(problem: Problem, solver: str, X, **options) -> Callable:
+    """The jitted one-state search of ``solver`` (the table's ``search``) with these options, from the cache;
+    refused before compiling where one search from a row of ``X`` would not fit ``max_memory``."""
+    options = solvers.check_options(solver, options)
+    solvers.check_memory(solver, options, problem, X.shape[1], max(X.dtype.itemsize, 4))
+    traced = {k: v for k, v in options.items() if k not in ("max_nodes", "max_memory")}
+    search = solvers.get(solver).search
+    return cached(("profile", solver, problem.key, tuple(sorted(traced.items()))), lambda: jax.jit(
+        lambda x, p: search(problem, x, p, None, INT32_MAX, budgeted=False, **traced)))
 
 
 def _each(search: Callable, pairs) -> Callable[[], list]:
@@ -114,15 +125,12 @@ def profile(problem: Problem, states, params=None, *, pop_widths=POP_WIDTHS, lan
 
     settings = []  # (setting, solver, how many states, the timed run, its options)
     for k in pop_widths:
-        search = cached(("profile sdfs", problem.key, k),
-                        lambda k=k: jax.jit(lambda x, p: sdfs(problem, x, params=p, pop_width=k)))
-        settings.append((f"sdfs pop_width={k}", "sdfs", S, _each(search, one), {"pop_width": k}))
+        settings.append((f"sdfs pop_width={k}", "sdfs", S, _each(_search(problem, "sdfs", X, pop_width=k), one),
+                         {"pop_width": k}))
     count = min(S, max_exhaustive_nodes // problem.tree_size())
     if count:
         some = [one[i] for i in np.unique(np.linspace(0, S - 1, count).round().astype(int))]
-        search = cached(("profile exhaustive", problem.key),
-                        lambda: jax.jit(lambda x, p: exhaustive(problem, x, params=p)))
-        settings.append(("exhaustive", "exhaustive", len(some), _each(search, some), {}))
+        settings.append(("exhaustive", "exhaustive", len(some), _each(_search(problem, "exhaustive", X), some), {}))
     for slots in lanes:
         settings.append((f"solve_batch lanes={slots}", "solve_batch", S,
                          lambda slots=slots: [solve_batch(problem, X, params=params, lanes=slots)], {"lanes": slots}))

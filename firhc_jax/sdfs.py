@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .cache import compiled
-from .checks import check_params, check_state, cost_dtype
+from .checks import as_sequence, check_params, check_state, cost_dtype
 from . import stack as stacks
 from .nodes import SearchStats, one_child, best_leaf, expand, first_min, no_stats, rollout_cost, tally
 from .problem import Problem, call, is_tracer, positive_int, refuse_differentiation
@@ -304,23 +304,6 @@ def search(problem: Problem, x0, params, warm_start, max_nodes, *, pop_width: in
     return finish(problem, out.cost, out.path, out.stats, done, x0, params)
 
 
-def _check_warm_start(problem: Problem, warm_start):
-    if warm_start is None:
-        return None
-    try:
-        ws = warm_start if is_tracer(warm_start) else jnp.asarray(np.asarray(warm_start))
-    except (TypeError, ValueError) as e:
-        raise TypeError(f"warm_start must be [N] = [{problem.horizon}] integer indices into controls: {e}") from None
-    if ws.shape != (problem.horizon,) or not jnp.issubdtype(ws.dtype, jnp.integer):
-        raise ValueError(f"warm_start must be [N] = [{problem.horizon}] integer indices into controls, "
-                         f"got shape {tuple(ws.shape)} dtype {ws.dtype}")
-    if not is_tracer(ws):
-        M = problem.num_controls
-        if not (bool(jnp.all((ws >= 0) & (ws < M))) or bool(jnp.all(ws == -1))):
-            raise ValueError(f"warm_start indices must lie in [0, {M}) (or be all -1: none), got {ws.tolist()}")
-    return ws.astype(jnp.int32)
-
-
 def _run(problem: Problem, x0, params, warm_start, max_nodes, pop_width, prune, max_memory) -> SearchResult:
     if not isinstance(problem, Problem):
         raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
@@ -333,7 +316,7 @@ def _run(problem: Problem, x0, params, warm_start, max_nodes, pop_width, prune, 
     x0 = check_state(problem, x0, params)
     check_memory(stack_memory(problem, x0.shape[0], max(x0.dtype.itemsize, 4), pop_width), max_memory,
                  f"the sDFS stack of N={problem.horizon}, M={problem.num_controls}, pop_width={pop_width}")
-    ws = _check_warm_start(problem, warm_start)
+    ws = as_sequence(warm_start, problem.horizon, problem.num_controls)
     run = compiled(search, problem, pop_width=pop_width, prune=prune, budgeted=max_nodes is not None)
     return raise_on_errors(run(x0, params, ws, node_budget(max_nodes)))
 

@@ -57,3 +57,17 @@ def output_dir(text: str) -> Path:
     except OSError as e:
         raise argparse.ArgumentTypeError(f"cannot write into {text!r}: {e.strerror or e}") from None
     return folder
+
+
+def solver_argument(parser: argparse.ArgumentParser, note: str = "") -> None:
+    """``--solver``: a name of the solver table (``firhc_jax.solvers``), default sdfs; ``note`` ends the help."""
+    from ..solvers import SOLVERS, options_help
+
+    parser.add_argument("--solver", choices=tuple(SOLVERS), default="sdfs",
+                        help=f"search (default sdfs): {options_help()}" + (f"; {note}" if note else ""))
+
+
+def horizon_argument(parser: argparse.ArgumentParser, most: int, default: int, note: str = "") -> None:
+    """``--horizon``/``-N``: the prediction horizon, an int in 1 .. ``most``; ``note`` ends the help."""
+    parser.add_argument("--horizon", "-N", type=number(int, 1, most), default=default, metavar="N",
+                        help=f"prediction horizon N (1-{most}, default {default}" + (f"; {note})" if note else ")"))

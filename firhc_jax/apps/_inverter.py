@@ -18,30 +18,14 @@ class InverterRun(NamedTuple):
     references: np.ndarray  # [T+1, 2] alpha-beta reference at the same instants, A
     compile_time: float  # s tracing and compilation of one decision (NaN: not timed)
 
-    @property
-    def currents(self) -> np.ndarray:
-        """[T+1, 2] alpha-beta load currents, A."""
-        return np.asarray(self.loop.states)
-
-    @property
-    def inputs(self) -> np.ndarray:
-        """[T, 3] applied leg states (0/1)."""
-        return np.asarray(self.loop.inputs)
-
-    @property
-    def predicted_costs(self) -> np.ndarray:
-        """[T] optimal cost of each decision, A^2."""
-        return np.asarray(self.loop.predicted_costs)
-
-    @property
-    def nodes(self) -> np.ndarray:
-        """[T] nodes per decision."""
-        return np.asarray(self.loop.nodes)
-
-    @property
-    def solve_times(self) -> np.ndarray:
-        """[T] s wall time of each decision (compiled, compilation excluded)."""
-        return np.asarray(self.loop.solve_times)
+    # The loop's records as NumPy arrays, in the inverter's terms.
+    currents = property(lambda self: np.asarray(self.loop.states), doc="[T+1, 2] alpha-beta load currents, A")
+    inputs = property(lambda self: np.asarray(self.loop.inputs), doc="[T, 3] applied leg levels")
+    predicted_costs = property(lambda self: np.asarray(self.loop.predicted_costs),
+                               doc="[T] optimal cost of each decision, A^2")
+    nodes = property(lambda self: np.asarray(self.loop.nodes), doc="[T] nodes per decision")
+    solve_times = property(lambda self: np.asarray(self.loop.solve_times),
+                           doc="[T] s wall time of each decision (compiled, compilation excluded)")
 
 
 def spectrum(signal: np.ndarray, ts: float) -> tuple[np.ndarray, np.ndarray]:
@@ -137,3 +121,12 @@ def figure(run: InverterRun, out, name: str, params: model.InverterParams, title
     path = Path(out) / name
     plot(run, path, params, title)
     return [path]
+
+
+def report(head: str, summary: dict) -> str:
+    """The line an inverter run prints after ``head``: amplitude, distortion, switching, work, time."""
+    return (f"{head}: amplitude {summary['current_amplitude']:.4f} A, rms error "
+            f"{summary['rms_tracking_error']:.4f} A, THD {summary['thd'] * 100:.2f} %, switching "
+            f"{summary['switching_frequency_hz']:.0f} Hz per leg, nodes/step {summary['nodes_mean']:,.1f} mean / "
+            f"{summary['nodes_max']:,} max, {summary['solve_time_median_s'] * 1e3:.3f} ms median / "
+            f"{summary['solve_time_max_s'] * 1e3:.2f} ms max per decision")

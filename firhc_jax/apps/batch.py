@@ -27,9 +27,8 @@ import sys
 import time
 from pathlib import Path
 
-from ._args import number
+from ._args import number, solver_argument
 from ._user_code import import_user_module, user_code
-from ..solvers import SOLVERS, options_help
 
 PLANTS = ("tanks", "synthetic")
 MAX_LANES = 4096  # pool slots per device, each with a stack of sDFS nodes
@@ -46,14 +45,16 @@ def _physical_memory() -> int:
         return 2 ** 40
 
 
+HELP = "solve a batch of states from an .npz (one process or a multi-process job)"
+DESCRIPTION = ("fj.solve_batch on the states X0 [B, n] of an .npz file, over every device of the job; "
+               "process 0 writes the results as .npz. Multi-process: --launch-local P on one machine, "
+               "or --coordinator/--num-processes/--process-id (or the JAX_COORDINATOR_ADDRESS, "
+               "JAX_NUM_PROCESSES, JAX_PROCESS_ID environment variables) on each host.")
+
+
 def register(subparsers) -> None:
     """Add the ``batch`` subcommand."""
-    p = subparsers.add_parser(
-        "batch", help="solve a batch of states from an .npz (one process or a multi-process job)",
-        description="fj.solve_batch on the states X0 [B, n] of an .npz file, over every device of the job; "
-                    "process 0 writes the results as .npz. Multi-process: --launch-local P on one machine, "
-                    "or --coordinator/--num-processes/--process-id (or the JAX_COORDINATOR_ADDRESS, "
-                    "JAX_NUM_PROCESSES, JAX_PROCESS_ID environment variables) on each host.")
+    p = subparsers.add_parser("batch", help=HELP, description=DESCRIPTION)
     p.add_argument("--states", type=Path, required=True,
                    help=".npz holding X0 [B, n]: --plant tanks takes n = 3 (the three levels, m), --plant synthetic "
                         "n = 3 (position, velocity, heading); --problem the state of its dynamics")
@@ -67,8 +68,7 @@ def register(subparsers) -> None:
     p.add_argument("--params", type=Path, default=None,
                    help=".npz of per-row parameters, every array with leading axis B (key 'a/b': leaf p['a']['b'])")
     p.add_argument("--horizon", "-N", type=number(int, 1, 10), default=4, help="horizon of --plant (default 4)")
-    p.add_argument("--solver", choices=tuple(SOLVERS), default="sdfs",
-                   help=f"solve_batch's solver (default sdfs, the work pool): {options_help()}")
+    solver_argument(p, "in a batch sdfs and pool share a work pool")
     p.add_argument("--lanes", type=number(int, 1, MAX_LANES), default=None,
                    help=f"pool slots per device (default min(rows, 64), at most {MAX_LANES})")
     p.add_argument("--pop-width", type=number(int, 1, 64), default=1, help="K (default 1, at most 64)")

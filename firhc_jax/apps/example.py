@@ -20,7 +20,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from ._args import number
+from ._args import horizon_argument, number
 from ._limits import exhaustive_run
 from ._run import App
 from ._status import stage
@@ -70,9 +70,7 @@ class Example(App):
     formatter_class = argparse.RawDescriptionHelpFormatter
 
     def add_arguments(self, p) -> None:
-        p.add_argument("--horizon", type=number(int, 1, MAX_HORIZON), default=10,
-                       help=f"prediction horizon N (1-{MAX_HORIZON}, default 10; exhaustive search: 3^N leaves a "
-                            "step)")
+        horizon_argument(p, MAX_HORIZON, 10, "exhaustive search: 3^N leaves a step")
         p.add_argument("--steps", type=number(int, 1, MAX_STEPS), default=80,
                        help=f"closed-loop steps (default 80, at most {MAX_STEPS:,}; the exhaustive check's nodes, "
                             f"steps x (3 + ... + 3^N), at most {EXHAUSTIVE_BUDGET:,.0f})")

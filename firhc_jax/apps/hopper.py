@@ -31,7 +31,8 @@ import numpy as np
 import firhc_jax as fj
 from firhc_jax.models import hopper as hm
 
-from ._args import number
+from ..solvers import SOLVERS
+from ._args import horizon_argument, number, solver_argument
 from ._hopper import controller, warm_candidate  # noqa: F401  the closed loop's controller, importable here
 from ._limits import exhaustive_run
 from ._run import App
@@ -263,9 +264,8 @@ class Hopper(App):
     description = "Simulate the pneumatic hopping robot under FIRHC, write Figs. 4-8 and summary.json."
 
     def add_arguments(self, parser) -> None:
-        parser.add_argument("--horizon", type=number(int, 1, 12), default=6, metavar="N",
-                            help="prediction horizon (default 6)")
-        parser.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs", help="search (default sdfs)")
+        horizon_argument(parser, 12, 6)
+        solver_argument(parser)
         parser.add_argument("--bound", action="store_true",
                             help="sDFS with the admissible lower bound (docs/bounds.md)")
         parser.add_argument("--warm", action="store_true",
@@ -279,8 +279,8 @@ class Hopper(App):
 
     def check(self, parser, args) -> None:
         """A run's exhaustive searches within ``EXHAUSTIVE_BUDGET`` nodes; ``--warm`` with sDFS only."""
-        if args.warm and args.solver != "sdfs":
-            parser.error("--warm needs --solver sdfs")
+        if args.warm and not SOLVERS[args.solver].warm_starts:
+            parser.error(f"--warm needs an sDFS solver, not --solver {args.solver}")
         if args.solver == "exhaustive":
             steps = max(1, int(round(args.seconds / hm.CONTROL_PERIOD)))
             exhaustive_run(parser, steps, len(hm.VALVE_B), args.horizon, EXHAUSTIVE_BUDGET,

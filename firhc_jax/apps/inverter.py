@@ -29,8 +29,8 @@ from firhc_jax.models import inverter as model
 from firhc_jax.models.three_level import MAX_HORIZON as THREE_LEVEL_MAX_HORIZON
 
 from . import inverter_three_level
-from ._args import number
-from ._inverter import InverterRun, distortion, figure, plot, spectrum, waveform_metrics  # noqa: F401  importable here
+from ._args import horizon_argument, number, solver_argument
+from ._inverter import InverterRun, distortion, figure, plot, report, spectrum, waveform_metrics  # noqa: F401
 from ._limits import exhaustive_run
 from ._run import App
 from ._timing import timed_closed_loop
@@ -122,11 +122,8 @@ class Inverter(App):
                    "(520 V, 10 ohm, 10 mH, Ts = 25 us, 10 A at 50 Hz); writes summary.json and a figure.")
 
     def add_arguments(self, p) -> None:
-        p.add_argument("--horizon", "-N", type=number(int, 1, THREE_LEVEL_MAX_HORIZON), default=3,
-                       help=f"prediction horizon N (1-{MAX_HORIZON} with --levels 2, 1-{THREE_LEVEL_MAX_HORIZON} "
-                            "with 3; default 3)")
-        p.add_argument("--solver", choices=("sdfs", "exhaustive"), default="sdfs",
-                       help="search (default sdfs); exhaustive visits 8+...+8^N nodes per step")
+        horizon_argument(p, THREE_LEVEL_MAX_HORIZON, 3, f"at most {MAX_HORIZON} with --levels 2")
+        solver_argument(p, "exhaustive visits 8+...+8^N nodes per step")
         p.add_argument("--cycles", type=number(float, 0, low_open=True, high=MAX_CYCLES), default=2.0,
                        help=f"simulated fundamental cycles of 20 ms, rounded down to whole samples (default 2, at "
                             f"most {MAX_CYCLES:g})")
@@ -174,11 +171,7 @@ class Inverter(App):
                       f"{summary['switching_frequency_hz'] / 1e3:.2f} kHz per leg")
 
     def report(self, args, summary: dict) -> str:
-        return (f"inverter N={args.horizon} {args.solver} lambda_u={_lambda_u(args):g}: rms tracking error "
-                f"{summary['rms_tracking_error']:.4f} A, amplitude {summary['current_amplitude']:.4f} A, "
-                f"THD {summary['thd'] * 100:.2f} %, switching {summary['switching_frequency_hz']:.0f} Hz per leg, "
-                f"nodes/step {summary['nodes_mean']:.1f} mean / {summary['nodes_max']} max, "
-                f"{summary['solve_time_median_s'] * 1e3:.3f} ms/step median")
+        return report(f"inverter N={args.horizon} {args.solver} lambda_u={_lambda_u(args):g}", summary)
 
 
 APP = Inverter()

@@ -26,7 +26,7 @@ import firhc_jax as fj
 from firhc_jax.models import inverter as two_level
 from firhc_jax.models import three_level
 
-from ._inverter import InverterRun, figure, waveform_metrics
+from ._inverter import InverterRun, figure, report, waveform_metrics
 from ._run import App
 from ._timing import timed_closed_loop
 
@@ -109,11 +109,7 @@ class ThreeLevel(App):
         return summarize(run, args.horizon, _lambda_u(args))
 
     def report(self, args, summary: dict) -> str:
-        return (f"inverter --levels 3 N={args.horizon} lambda_u={_lambda_u(args):g}: THD {summary['thd'] * 100:.2f} %, "
-                f"switching {summary['switching_frequency_hz']:.0f} Hz per leg, rms error "
-                f"{summary['rms_tracking_error']:.3f} A, nodes/step {summary['nodes_mean']:,.0f} mean / "
-                f"{summary['nodes_max']:,} max, {summary['solve_time_median_s'] * 1e3:.3f} ms median / "
-                f"{summary['solve_time_max_s'] * 1e3:.2f} ms max")
+        return report(f"inverter --levels 3 N={args.horizon} lambda_u={_lambda_u(args):g}", summary)
 
     def plot(self, args, run: InverterRun, summary: dict) -> list:
         return figure(run, args.out, f"inverter3_N{args.horizon}.png", three_level.PARAMS,

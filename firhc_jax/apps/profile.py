@@ -25,15 +25,17 @@ MAX_REPEATS = 100
 MAX_EXHAUSTIVE_NODES = 1_000_000_000  # once per repeat: minutes at the rates of docs/batch.md
 
 
+HELP = "time every search setting on your own problem and states; name the fastest"
+DESCRIPTION = ("fj.profile on the problem and states returned by MODULE:FUNCTION (a function without "
+               "arguments returning (problem, states) or (problem, states, params)): fj.sdfs at several "
+               "pop widths and fj.exhaustive, one state per call, and fj.solve_batch at several lane "
+               "counts, all states at once. Prints the table and the fastest setting; writes "
+               "profile.json and profile.png into --out.")
+
+
 def register(subparsers) -> None:
     """Add the ``profile`` subcommand."""
-    p = subparsers.add_parser(
-        "profile", help="time every search setting on your own problem and states; name the fastest",
-        description="fj.profile on the problem and states returned by MODULE:FUNCTION (a function without "
-                    "arguments returning (problem, states) or (problem, states, params)): fj.sdfs at several "
-                    "pop widths and fj.exhaustive, one state per call, and fj.solve_batch at several lane "
-                    "counts, all states at once. Prints the table and the fastest setting; writes "
-                    "profile.json and profile.png into --out.")
+    p = subparsers.add_parser("profile", help=HELP, description=DESCRIPTION)
     p.add_argument("case", metavar="MODULE:FUNCTION", help="function returning (problem, states[, params])")
     p.add_argument("--out", type=output_dir, default=Path("out/profile"),
                    help="output folder (default out/profile), checked before any work")

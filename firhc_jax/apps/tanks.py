@@ -24,9 +24,8 @@ import numpy as np
 
 import firhc_jax as fj
 from firhc_jax.models import tanks as model
-from firhc_jax.solvers import SOLVERS, options_help
 
-from ._args import number
+from ._args import horizon_argument, number, solver_argument
 from ._limits import exhaustive_run
 from ._run import App
 from ._timing import timed_closed_loop
@@ -159,14 +158,11 @@ class TanksRun(NamedTuple):
 class Tanks(App):
     name = "tanks"
     help = "three-tank system, 17 valve/pump modes (paper Sec. IV.2)"
-    description = ("FIRHC closed loop of the three-tank system: from {0.2, 0.18, 0.1} m to "
-                   "{0.3, 0.25, 0.15} m; writes summary.json and a figure.")
+    description = "FIRHC closed loop of the three-tank system from levels {0.2, 0.18, 0.1} m to {0.3, 0.25, 0.15} m."
 
     def add_arguments(self, p) -> None:
-        p.add_argument("--horizon", "-N", type=number(int, 1, MAX_HORIZON), default=4,
-                       help="prediction horizon N (default 4; paper: 3-6)")
-        p.add_argument("--solver", choices=tuple(SOLVERS), default="sdfs",
-                       help=f"search (default sdfs): {options_help()}; exhaustive visits 17+...+17^N nodes per step")
+        solver_argument(p, "exhaustive visits 17+...+17^N nodes per step")
+        horizon_argument(p, MAX_HORIZON, 4, "paper: 3-6")
         p.add_argument("--seconds", type=number(float, 0, low_open=True, high=MAX_SECONDS), default=200.0,
                        help=f"simulated time in s, rounded down to whole 2 s samples (default 200, at most "
                             f"{MAX_SECONDS:g})")
