@@ -17,13 +17,14 @@ from firhc_jax import cli
 from firhc_jax.apps import _run
 from firhc_jax.apps import example as example_app
 from firhc_jax.apps import hopper as hopper_app
-from firhc_jax.models import hopper, inverter, pumping, synthetic, tanks, thermal, three_level
+from firhc_jax.models import hopper, inverter, pumping, spacecraft, synthetic, tanks, thermal, three_level
 
-MODELS = (hopper, tanks, inverter, three_level, thermal, pumping, synthetic)
+MODELS = (hopper, tanks, inverter, three_level, thermal, pumping, synthetic, spacecraft)
 PARAMS = {hopper: hopper.HopperParams, tanks: tanks.TankParams, inverter: inverter.InverterParams,
           three_level: three_level.ThreeLevelParams, thermal: thermal.ThermalParams,
-          pumping: pumping.PumpingParams, synthetic: synthetic.SyntheticParams}
-PLANTS = (hopper, tanks, inverter, three_level, thermal, pumping)
+          pumping: pumping.PumpingParams, synthetic: synthetic.SyntheticParams,
+          spacecraft: spacecraft.SpacecraftParams}
+PLANTS = (hopper, tanks, inverter, three_level, thermal, pumping, spacecraft)
 
 
 def _evaluations(problem: fj.Problem, x, p):
