@@ -83,3 +83,20 @@ def test_table_row_without_exhaustive_searches_when_one_exceeds_the_budget():
     assert 0 < row["sdfs_max_ms"] and row["best_pop_width"] in (1, 2)
     text = bench.tables_markdown([{**row, "plant": "tanks", "N": 9}])
     assert "| 9 | " in text and "over budget" in text
+
+
+@pytest.mark.slow
+def test_the_monte_carlo_bench_quick_makes_the_same_decisions_every_way():
+    """``benchmarks/monte_carlo_bench.py --quick``: every way of batching closed loops runs, and each makes
+    (d) simulate_batch's decisions, which fj.exhaustive confirms."""
+    import re
+    from pathlib import Path
+
+    script = Path(__file__).parent.parent / "benchmarks" / "monte_carlo_bench.py"
+    proc = subprocess.run([sys.executable, str(script), "--quick", "--repeats", "1"], capture_output=True,
+                          text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = [line for line in proc.stdout.splitlines() if "against (d)" in line]
+    assert len(lines) == 3 and all(" 0 of " in line for line in lines), lines
+    worst = re.search(r"fj.exhaustive on \d+ decisions of \(d\): cost rel. diff. max ([0-9.e+-]+)", proc.stdout)
+    assert worst and float(worst.group(1)) < 1e-9, proc.stdout[-1500:]
