@@ -300,6 +300,7 @@ class FIRHC:
         every step the B searches run as the solver's batch (``"sdfs"``, ``"pool"``: one work pool whose
         lanes take the next loop's root or steal nodes, so a long search never holds the other loops; with
         ``max_nodes`` no loop's nodes are shared, so each is searched node for node as ``simulate`` does).
+        The loops are split into parts, one per CPU core and per local device, run side by side.
         Costs are equal; inputs too, except at exact ties (equal-cost sequences) of a pool that stole
         nodes, which may end on another optimal sequence than ``simulate``.
 
@@ -311,8 +312,7 @@ class FIRHC:
           dt: the sampling period in seconds (``times`` ``[T+1]``).
           progress: a bar counting loops x steps (compiled chunks of steps, as in ``simulate``).
 
-        Returns a ``ClosedLoop`` whose fields have a leading axis B (``states`` ``[B, T+1, n]``, ...),
-        ``times`` ``[T+1]``; ``solve_times`` are NaN (one compiled run).
+        Returns a ``ClosedLoop`` with a leading axis B on every field but ``times``; ``solve_times`` NaN.
         """
         steps = positive_int("steps", steps)
         X0 = as_batch(X0)
@@ -324,15 +324,19 @@ class FIRHC:
         plant, plant_key, default = self._plant(plant)
         check_closed_loop(self.options, plant_key, plant, state.u[0], X0[0], params, default, drop=2)
         traced = any(map(is_tracer, jax.tree_util.tree_leaves((X0, params, u0))))
-        parts = 1 if traced else min(B, default_parts(mesh_of(None)))
+        devices = jax.local_devices()
+        parts = 1 if traced else min(B, len(devices) * default_parts(mesh_of(tuple(devices))))
         runs = [(ControllerState(*s), x, None if p is None else jax.tree.map(lambda a: np.swapaxes(a, 0, 1), p))
                 for s, x, p in split_rows((tuple(state), X0, params), parts)] if parts > 1 else \
             [(state, X0, None if params is None else jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), params))]
+        if len(devices) > 1:  # part i runs on device i % D (its inputs put there), the devices side by side
+            runs = [jax.device_put(r, devices[i % len(devices)]) for i, r in enumerate(runs)]
         with Progress(B * steps, f"FIRHC[{self.solver}] x {B} loops", enabled=progress):
             outs = run_compiled(functools.partial(decide_rows, self.options), jax.vmap(user_plant(plant)), runs, steps,
                                 key=("batch", self.options.key, plant_key), progress=progress,
                                 ticks_per_step=B)
-        out = join_rows([batch_major(o) for o in outs], B) if parts > 1 else batch_major(outs[0])
+        outs = [batch_major(jax.device_put(o, devices[0]) if len(devices) > 1 else o) for o in outs]
+        out = join_rows(outs, B) if parts > 1 else outs[0]
         warn_held(out.held, steps * B, self.u_safe is not None)
         return out._replace(times=times)
 
