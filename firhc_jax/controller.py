@@ -301,8 +301,8 @@ class FIRHC:
         lanes take the next loop's root or steal nodes, so a long search never holds the other loops; with
         ``max_nodes`` no loop's nodes are shared, so each is searched node for node as ``simulate`` does).
         The loops are split into parts, one per CPU core and per local device, run side by side.
-        Costs are equal; inputs too, except at exact ties (equal-cost sequences) of a pool that stole
-        nodes, which may end on another optimal sequence than ``simulate``.
+        Costs are equal (to the last bits: XLA vectorises the batch its own way); inputs too, except at exact
+        ties, which a stolen node or a last-bit difference may tip to another optimal sequence (README).
 
         Args:
           X0: ``[B, n]`` initial plant states.
