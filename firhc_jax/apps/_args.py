@@ -67,7 +67,10 @@ def solver_argument(parser: argparse.ArgumentParser, note: str = "") -> None:
                         help=f"search (default sdfs): {options_help()}" + (f"; {note}" if note else ""))
 
 
-def horizon_argument(parser: argparse.ArgumentParser, most: int, default: int, note: str = "") -> None:
-    """``--horizon``/``-N``: the prediction horizon, an int in 1 .. ``most``; ``note`` ends the help."""
-    parser.add_argument("--horizon", "-N", type=number(int, 1, most), default=default, metavar="N",
+def horizon_argument(parser: argparse.ArgumentParser, most: int, default: int, note: str = "",
+                     short: bool = True) -> None:
+    """``--horizon`` (and ``-N`` with ``short``): the prediction horizon, an int in 1 .. ``most``; ``note``
+    ends the help."""
+    parser.add_argument("--horizon", *(["-N"] if short else []), type=number(int, 1, most), default=default,
+                        metavar="N",
                         help=f"prediction horizon N (1-{most}, default {default}" + (f"; {note})" if note else ")"))

@@ -70,7 +70,7 @@ class Example(App):
     formatter_class = argparse.RawDescriptionHelpFormatter
 
     def add_arguments(self, p) -> None:
-        horizon_argument(p, MAX_HORIZON, 10, "exhaustive search: 3^N leaves a step")
+        horizon_argument(p, MAX_HORIZON, 10, "exhaustive search: 3^N leaves a step", short=False)
         p.add_argument("--steps", type=number(int, 1, MAX_STEPS), default=80,
                        help=f"closed-loop steps (default 80, at most {MAX_STEPS:,}; the exhaustive check's nodes, "
                             f"steps x (3 + ... + 3^N), at most {EXHAUSTIVE_BUDGET:,.0f})")

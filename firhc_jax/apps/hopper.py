@@ -264,7 +264,7 @@ class Hopper(App):
     description = "Simulate the pneumatic hopping robot under FIRHC, write Figs. 4-8 and summary.json."
 
     def add_arguments(self, parser) -> None:
-        horizon_argument(parser, 12, 6)
+        horizon_argument(parser, 12, 6, short=False)
         solver_argument(parser)
         parser.add_argument("--bound", action="store_true",
                             help="sDFS with the admissible lower bound (docs/bounds.md)")
@@ -280,7 +280,8 @@ class Hopper(App):
     def check(self, parser, args) -> None:
         """A run's exhaustive searches within ``EXHAUSTIVE_BUDGET`` nodes; ``--warm`` with sDFS only."""
         if args.warm and not SOLVERS[args.solver].warm_starts:
-            parser.error(f"--warm needs an sDFS solver, not --solver {args.solver}")
+            parser.error(f"--warm needs --solver sdfs (or another solver that takes warm starts), got --solver "
+                         f"{args.solver}")
         if args.solver == "exhaustive":
             steps = max(1, int(round(args.seconds / hm.CONTROL_PERIOD)))
             exhaustive_run(parser, steps, len(hm.VALVE_B), args.horizon, EXHAUSTIVE_BUDGET,
