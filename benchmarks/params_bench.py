@@ -1,4 +1,4 @@
-"""Per-step time of a closed loop whose reference changes every step (issue 9).
+"""Per-step time of a closed loop whose reference changes every step.
 
 The three-phase inverter of ``firhc_jax.models.inverter`` (N = 3, 8 switch
 states, switching penalty), one process, two ways to give each decision its

@@ -1,4 +1,4 @@
-"""fj.LinearTracking (the sphere decoder as sDFS with the cost-to-go bound) against the plain sDFS (issue 21).
+"""fj.LinearTracking (the sphere decoder as sDFS with the cost-to-go bound) against the plain sDFS.
 
 Sections (each prints a table; every search is exact unless a row says "capped"):
 

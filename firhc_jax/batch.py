@@ -30,6 +30,7 @@ import jax.numpy as jnp
 from jax.sharding import Mesh, PartitionSpec
 
 from . import solvers
+from .solvers import DEFAULT_LANES  # noqa: F401  solve_batch's default lanes, importable here as before
 from .cache import compiled
 from .exhaustive import DEFAULT_CHUNK_NODES
 from .checks import search_inputs

@@ -50,7 +50,7 @@ import numpy as np
 from .cache import cached
 from .checks import as_batch, as_sequence, as_state, check_params
 from .closed_loop import ClosedLoop
-from .decision import ControllerState, decide, decide_rows
+from .decision import ControllerState, StepInfo, decide, decide_rows  # noqa: F401  StepInfo importable here
 from .controller_checks import (as_inputs, check_closed_loop, controller_options, decide_checked,
                                 no_input_message, sample_times, solve_checked)
 from .loop import batch_major, ready, run_compiled, run_python, user_plant, warn_held

@@ -315,7 +315,7 @@ def test_pool_matches_brute_force_per_row(shape, seed, tightness):
 # ---------------------------------------------------------------- budgets
 def test_a_budget_below_one_expansion_expands_nothing():
     """As fj.sdfs, which stops before an iteration could take the count above max_nodes: a row whose budget
-    cannot cover one expansion (K M = 5 children) gets no nodes and complete=False (issue 24: the pool expanded
+    cannot cover one expansion (K M = 5 children) gets no nodes and complete=False (the pool once expanded
     every row's root, 5 nodes per row with max_nodes=1). The shapes of the lanes test above: no compile."""
     X0 = states(8, 11, 3)
     for max_nodes in (1, 4):

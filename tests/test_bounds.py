@@ -1,4 +1,4 @@
-"""Admissible lower bounds keep every search exact and prune more (issue 11)."""
+"""Admissible lower bounds keep every search exact and prune more."""
 import functools
 import itertools
 

@@ -1,4 +1,4 @@
-"""A closed loop keeps its plans and time axis, saves, loads and plots (issue 22)."""
+"""A closed loop keeps its plans and time axis, saves, loads and plots."""
 import matplotlib
 import numpy as np
 import jax.numpy as jnp

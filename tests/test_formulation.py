@@ -1,4 +1,4 @@
-"""The MPC formulation (issue 20): step indices along the horizon, terminal cost,
+"""The MPC formulation: step indices along the horizon, terminal cost,
 hard constraints, matrix weights, in every solver, against a brute force
 written here.
 

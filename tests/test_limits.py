@@ -1,4 +1,4 @@
-"""Every search bounded, every refusal clear (issue 15)."""
+"""Every search bounded, every refusal clear."""
 import subprocess
 import sys
 

@@ -1,4 +1,4 @@
-"""Edges where a controller in the field ends up (issue 13): nothing made up,
+"""Edges where a controller in the field ends up: nothing made up,
 nothing silently rounded, no raw XLA errors, no needless recompiles."""
 import dataclasses
 import warnings
@@ -71,7 +71,7 @@ def test_simulate_never_applies_a_made_up_input():
         fj.FIRHC(prob)(jnp.zeros(1))
 
 
-# 1b. No input found (issue 24): never a NaN to the plant, whatever the fallback. Two triggers: a budget that
+# 1b. No input found: never a NaN to the plant, whatever the fallback. Two triggers: a budget that
 # stops every search before any leaf, and +inf stage costs without a terminal set (no fallback search runs).
 def _no_leaf_in_budget():
     prob = fj.Problem(lambda x, u: 0.5 * x + u, jnp.array([-1.0, 0.0, 1.0]), fj.quadratic_cost(1.0, 0.0), 5,
@@ -109,7 +109,7 @@ def test_no_input_found_holds_a_safe_input_and_says_so(trigger):
 
 
 def test_infeasible_message_names_only_what_the_problem_has():
-    """With terminal=None there is no terminal constraint to blame (issue 24, item 6)."""
+    """With terminal=None there is no terminal constraint to blame."""
     prob = fj.Problem(lambda x, u: 0.5 * x + u, jnp.array([-1.0, 1.0]), lambda x, u: jnp.inf + 0 * x[0], 2)
     with pytest.raises(fj.InfeasibleError) as e:
         fj.FIRHC(prob)(jnp.ones(1))

@@ -1,4 +1,4 @@
-"""A controller that runs for days (issue 14): rebuilt problems and long closed
+"""A controller that runs for days: rebuilt problems and long closed
 loops keep memory flat. Each soak runs in a fresh subprocess so that the
 suite's own caches do not blur the counts."""
 import json

@@ -1,4 +1,4 @@
-"""One decision at a time (issue 22): ``init``/``step`` is the closed loop's own code path, pure, cheap to call
+"""One decision at a time: ``init``/``step`` is the closed loop's own code path, pure, cheap to call
 eagerly, and within the decision's node budget."""
 import jax
 import jax.numpy as jnp
