@@ -146,6 +146,8 @@ def main() -> None:
         ways[f"(c) the same, lanes={lanes}, {parts} parts on their own streams"] = (
             lambda run=run: on_every_core(run, X0, P, parts), B, "one execution per core")
     ways["(d) ctrl.simulate_batch"] = (lambda: ctrl.simulate_batch(X0, T, plant, params=P), B, "default options")
+    ways["(d) the same, progress=True"] = (lambda: ctrl.simulate_batch(X0, T, plant, params=P, progress=True), B,
+                                           "a bar of loops x steps on stderr")
     for lanes in args.lanes:
         tuned = fj.FIRHC(problem, lanes=lanes)
         ways[f"(d) the same, lanes={lanes}"] = (lambda tuned=tuned: tuned.simulate_batch(X0, T, plant, params=P), B,
