@@ -160,9 +160,10 @@ class ClosedLoop(NamedTuple):
         t = np.arange(T + 1) if self.times is None else np.asarray(self.times)
         fig = Figure(figsize=(8, 8), layout="constrained")
         ax = fig.subplots(3, 1, sharex=True)
-        for a, values, names, x in ((ax[0], states, state_names, t), (ax[1], inputs, input_names, t[:-1])):
+        for a, values, names, x, held_over in ((ax[0], states, state_names, t, False),
+                                               (ax[1], inputs, input_names, t[:-1], True)):
             for j, name in enumerate(names):
-                _band(a, x, values[:, :, j], name, f"C{j % 10}")
+                _band(a, x, values[:, :, j], name, f"C{j % 10}", held_over)
             a.legend(loc="best", fontsize="small")
         ax[0].set_ylabel(f"states ({B} loops)")
         ax[1].set_ylabel("inputs")
@@ -171,7 +172,7 @@ class ClosedLoop(NamedTuple):
             steps = np.flatnonzero(held)
             ax[1].plot(t[steps], np.median(inputs[:, steps, 0], axis=0), "rx", label="a loop held (no input found)")
             ax[1].legend(loc="best", fontsize="small")
-        _band(ax[2], t[:-1], np.asarray(self.decision_nodes, float), "nodes per decision", "C0")
+        _band(ax[2], t[:-1], np.asarray(self.decision_nodes, float), "nodes per decision", "C0", True)
         ax[2].set_ylabel("nodes")
         ax[2].legend(loc="best", fontsize="small")
         ax[2].set_xlabel("step" if self.times is None else "time [s]")
@@ -179,13 +180,15 @@ class ClosedLoop(NamedTuple):
         return fig
 
 
-def _band(ax, x, values, name: str, color: str) -> None:
-    """The median of ``values`` ``[B, len(x)]`` over the loops, its 10-90 % band and its extremes."""
+def _band(ax, x, values, name: str, color: str, steps: bool) -> None:
+    """The median of ``values`` ``[B, len(x)]`` over the loops, its 10-90 % band and its extremes;
+    ``steps``: held over each step (inputs, nodes) rather than joined (states)."""
     low, mid, high = np.percentile(values, [10, 50, 90], axis=0)
-    ax.plot(x, mid, color=color, label=f"{name} (median)")
-    ax.fill_between(x, low, high, color=color, alpha=0.25, linewidth=0)
-    ax.plot(x, values.min(axis=0), color=color, linestyle=":", linewidth=0.8)
-    ax.plot(x, values.max(axis=0), color=color, linestyle=":", linewidth=0.8)
+    draw = {"drawstyle": "steps-post"} if steps else {}
+    ax.plot(x, mid, color=color, label=f"{name} (median)", **draw)
+    ax.fill_between(x, low, high, color=color, alpha=0.25, linewidth=0, step="post" if steps else None)
+    ax.plot(x, values.min(axis=0), color=color, linestyle=":", linewidth=0.8, **draw)
+    ax.plot(x, values.max(axis=0), color=color, linestyle=":", linewidth=0.8, **draw)
 
 
 def _names(arg: str, names, count: int, symbol: str, what: str) -> list[str]:
