@@ -70,6 +70,7 @@ def test_every_solver_decides_the_brute_force_optimum(seed, solver, lanes, termi
         np.testing.assert_allclose(float(result.cost), free.brute_force(x0)[0], rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_the_pool_as_a_decision_stays_within_its_budget_and_warm_starts():
     rp = random_problems.make(5, n=2, m=1, M=4, N=4)
     x0 = np.array([0.4, -0.3])

@@ -62,7 +62,8 @@ CONTROLLERS = {
 }
 
 
-@pytest.fixture(scope="module", params=list(CONTROLLERS))
+@pytest.fixture(scope="module", params=["full", "budget", *(pytest.param(name, marks=pytest.mark.slow)
+                                                          for name in ("lanes", "exhaustive"))])
 def ctrl(request):
     return request.param, fj.FIRHC(PROBLEM, **CONTROLLERS[request.param])
 
