@@ -318,7 +318,8 @@ class LinearTracking:
         """The model and the data maps on the device in ``dtype`` (made once per dtype)."""
         key = jnp.dtype(dtype)
         if key not in self._device:
-            self._device[key] = _in_dtype((self._model, self._maps), key)
+            with jax.ensure_compile_time_eval():  # concrete arrays even when first asked for inside a trace
+                self._device[key] = _in_dtype((self._model, self._maps), key)
         return self._device[key]
 
     def solve(self, x, u_prev, y_ref, d=None, *, warm_start=None, max_nodes=None) -> SearchResult:

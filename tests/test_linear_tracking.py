@@ -623,3 +623,15 @@ def test_params_of_the_other_problem_are_refused_by_name():
     assert data[-1] is data.d
     with pytest.raises(KeyError, match="fields"):
         data["D"]
+
+
+def test_params_first_made_inside_a_jit_serve_later_calls():
+    """The tracker keeps its model on the device per dtype: made first inside a trace, it must still be
+    concrete arrays, not the trace's values leaking into later calls."""
+    from firhc_jax.models import three_level
+
+    lt = three_level.make_problem(3)
+    y = np.zeros((3, 2))
+    assert float(jax.jit(lambda y: lt.params(y).off.sum())(y)) == 0.0
+    x, u = np.zeros(2), np.zeros(3)
+    assert float(jax.jit(lt.solve)(x, u, y).cost) == float(lt.solve(x, u, y).cost)
