@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 import firhc_jax as fj
 import random_problems
-from test_step import CONTROLS, N, PROBLEM, actuate, dynamics, observe, plant, stage_cost, terminal
+from test_step import CONTROLS, N, PROBLEM, actuate, counting_controller, observe, plant
 
 T = 8
 
@@ -122,14 +122,7 @@ def test_random_problems_batched_equal_their_single_loops(seed):
 
 def test_new_values_never_recompile():
     traces = []
-
-    def counted(z, u, p):
-        if isinstance(z, jax.core.Tracer):
-            traces.append(1)
-        return dynamics(z, u, p)
-
-    c = fj.FIRHC(fj.Problem(counted, CONTROLS, stage_cost, N, terminal=terminal), fallback="unconstrained",
-                 observe=observe, actuate=actuate)
+    c = counting_controller(traces)
     rng = np.random.default_rng(3)
     c.simulate_batch(rng.uniform(-1, 1, (4, 2)), T, plant, params=loop_params(rng, 4), u0=np.array([1.0]))
     before = len(traces)

@@ -104,18 +104,22 @@ def test_step_under_jit_vmap_and_scan(ctrl):
     np.testing.assert_array_equal(np.asarray(x_end), np.asarray(run.states[-1]))
 
 
-def test_eager_steps_never_retrace_or_recheck():
-    """Numpy, JAX and weakly typed states and parameters of one dtype share one compiled step, and checks
-    run while it compiles, not per call."""
-    traces = []
-
+def counting_controller(traces: list) -> fj.FIRHC:
+    """These tests' controller (fallback, observe, actuate), its dynamics appending to ``traces`` when traced."""
     def counted(z, u, p):
         if isinstance(z, jax.core.Tracer):
             traces.append(1)
         return dynamics(z, u, p)
 
-    ctrl = fj.FIRHC(fj.Problem(counted, CONTROLS, stage_cost, N, terminal=terminal), fallback="unconstrained",
+    return fj.FIRHC(fj.Problem(counted, CONTROLS, stage_cost, N, terminal=terminal), fallback="unconstrained",
                     observe=observe, actuate=actuate)
+
+
+def test_eager_steps_never_retrace_or_recheck():
+    """Numpy, JAX and weakly typed states and parameters of one dtype share one compiled step, and checks
+    run while it compiles, not per call."""
+    traces = []
+    ctrl = counting_controller(traces)
     p = {"ref": np.float64(0.2), "gain": jnp.asarray(1.0, jnp.float64), "band": np.asarray(0.5)}
     state = ctrl.init(np.array([0.5, 0.0]))
     u, state, _ = ctrl.step(state, np.array([0.5, 0.0]), p)
