@@ -44,7 +44,6 @@ import functools
 from typing import Any, Callable, Mapping, Optional
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .cache import cached
@@ -53,11 +52,10 @@ from .closed_loop import ClosedLoop
 from .decision import ControllerState, StepInfo, decide, decide_rows  # noqa: F401  StepInfo importable here
 from .controller_checks import (as_inputs, check_closed_loop, controller_options, decide_checked,
                                 no_input_message, sample_times, solve_checked)
-from .loop import batch_major, ready, run_compiled, run_python, user_plant, warn_held
+from .loop import ready, run_compiled, run_loops, run_python, user_plant, warn_held
 from .problem import Problem, is_tracer, positive_int
 from .progress import Progress
 from .result import SearchResult, raise_on_errors
-from .sharding import mesh_of, default_parts, join_rows, split_rows
 
 class InfeasibleError(RuntimeError):
     """A one-shot decision (``FIRHC.__call__``) found no input to apply."""
@@ -300,7 +298,8 @@ class FIRHC:
         every step the B searches run as the solver's batch (``"sdfs"``, ``"pool"``: one work pool whose
         lanes take the next loop's root or steal nodes, so a long search never holds the other loops; with
         ``max_nodes`` no loop's nodes are shared, so each is searched node for node as ``simulate`` does).
-        The loops are split into parts, one per CPU core and per local device, run side by side.
+        The loops are split into parts, one per CPU core and per local device, run side by side; in a job of
+        several processes (``jax.distributed``) each runs its share and every process gets every loop.
         Costs are equal (to the last bits: XLA vectorises the batch its own way); inputs too, except at exact
         ties, which a stolen node or a last-bit difference may tip to another optimal sequence (README).
 
@@ -323,20 +322,9 @@ class FIRHC:
         times = sample_times(dt, steps)
         plant, plant_key, default = self._plant(plant)
         check_closed_loop(self.options, plant_key, plant, state.u[0], X0[0], params, default, drop=2)
-        traced = any(map(is_tracer, jax.tree_util.tree_leaves((X0, params, u0))))
-        devices = jax.local_devices()
-        parts = 1 if traced else min(B, len(devices) * default_parts(mesh_of(tuple(devices))))
-        runs = [(ControllerState(*s), x, None if p is None else jax.tree.map(lambda a: np.swapaxes(a, 0, 1), p))
-                for s, x, p in split_rows((tuple(state), X0, params), parts)] if parts > 1 else \
-            [(state, X0, None if params is None else jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), params))]
-        if len(devices) > 1:  # part i runs on device i % D (its inputs put there), the devices side by side
-            runs = [jax.device_put(r, devices[i % len(devices)]) for i, r in enumerate(runs)]
         with Progress(B * steps, f"FIRHC[{self.solver}] x {B} loops", enabled=progress):
-            outs = run_compiled(functools.partial(decide_rows, self.options), jax.vmap(user_plant(plant)), runs, steps,
-                                key=("batch", self.options.key, plant_key), progress=progress,
-                                ticks_per_step=B)
-        outs = [batch_major(jax.device_put(o, devices[0]) if len(devices) > 1 else o) for o in outs]
-        out = join_rows(outs, B) if parts > 1 else outs[0]
+            out = run_loops(functools.partial(decide_rows, self.options), jax.vmap(user_plant(plant)), state, X0,
+                            params, steps, key=("batch", self.options.key, plant_key), progress=progress)
         warn_held(out.held, steps * B, self.u_safe is not None)
         return out._replace(times=times)
 

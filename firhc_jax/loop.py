@@ -23,13 +23,14 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import multihost_utils
 
 from .cache import cached
 from .closed_loop import ClosedLoop
 from .decision import StepInfo
 from .problem import call, is_tracer
 from .progress import due, interval, tick_python
-from .sharding import on_stream
+from .sharding import default_parts, join_rows, mesh_of, on_stream, split_rows
 
 
 def run_compiled(decide: Callable, plant: Callable, runs: list, steps: int, *, key, progress: bool,
@@ -64,6 +65,33 @@ def run_compiled(decide: Callable, plant: Callable, runs: list, steps: int, *, k
     _report(*last)
     join = cached(("closed loop join", steps, length), lambda: jax.jit(functools.partial(_join, steps=steps)))
     return [join(x0, r) for (_, x0, _), r in zip(runs, recs, strict=True)]
+
+
+def run_loops(decide: Callable, plant: Callable, state, X0, params, steps: int, *, key, progress: bool
+              ) -> ClosedLoop:
+    """``steps`` steps of B loops (``state``, ``X0`` and ``params`` leaves with leading axis B, params
+    ``[B, steps, ...]``; ``decide`` and ``plant`` batched), loop-major (``[B, ...]`` fields). Process i of a
+    job of P runs loops i, i + P, ... and every process gets all of them; within a process the loops run in
+    parts, one per CPU core and per local device (part j on device j % D), side by side."""
+    B = X0.shape[0]
+    traced = any(map(is_tracer, jax.tree_util.tree_leaves((state, X0, params))))
+    processes = 1 if traced else jax.process_count()
+    if processes > 1:
+        state, X0, params = split_rows((state, X0, params), processes)[jax.process_index()]
+    devices = jax.local_devices()
+    mine = X0.shape[0]
+    parts = 1 if traced else min(mine, len(devices) * default_parts(mesh_of(tuple(devices))))
+    shares = split_rows((state, X0, params), parts) if parts > 1 else [(state, X0, params)]
+    runs = [(s, x, None if p is None else jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), p)) for s, x, p in shares]
+    if len(devices) > 1:  # part j runs on device j % D (its inputs put there), the devices side by side
+        runs = [jax.device_put(r, devices[j % len(devices)]) for j, r in enumerate(runs)]
+    outs = run_compiled(decide, plant, runs, steps, key=key, progress=progress, ticks_per_step=mine)
+    outs = [batch_major(jax.device_put(o, devices[0]) if len(devices) > 1 else o) for o in outs]
+    out = join_rows(outs, mine) if parts > 1 else outs[0]
+    if processes == 1:
+        return out
+    every = multihost_utils.process_allgather(out)  # [P, loops of a process, ...] fields
+    return join_rows([jax.tree.map(lambda a, i=i: a[i], every) for i in range(processes)], B)
 
 
 def _dispatch(i: int, parts: int, fn: Callable, *args):

@@ -50,6 +50,28 @@ def cases():
     yield "params", lambda: fj.solve_batch(param_problem(), Xp, params=params)
 
 
+def closed_loops(ran: list | None = None) -> fj.ClosedLoop:
+    """7 closed loops of the parameter problem in one simulate_batch (loops shared out over the processes);
+    ``ran`` gets the number of loops this process ran itself."""
+    from firhc_jax import loop
+
+    rng = np.random.default_rng(5)
+    P = {"r": rng.uniform(-0.5, 0.5, (7, 6, 2)), "w": rng.uniform(0.0, 0.2, (7, 6))}
+    ctrl = fj.FIRHC(param_problem(), warm_start=True)
+    original = loop.run_compiled
+
+    def counting(decide, plant, runs, steps, **options):
+        if ran is not None:
+            ran.append(sum(r[1].shape[0] for r in runs))
+        return original(decide, plant, runs, steps, **options)
+
+    loop.run_compiled = counting
+    try:
+        return ctrl.simulate_batch(rng.uniform(-1, 1, (7, 2)), 6, params=P)
+    finally:
+        loop.run_compiled = original
+
+
 def main(path):
     out = {}
     for name, solve in cases():
@@ -60,6 +82,11 @@ def main(path):
         assert len(res.cost.sharding.device_set) == jax.device_count(), (name, res.cost.sharding)
         for field in fj.SearchResult._fields:
             out[f"{name}.{field}"] = np.asarray(getattr(res, field))  # readable on every process
+    ran = []
+    for field, value in closed_loops(ran)._asdict().items():
+        if value is not None:
+            out[f"loops.{field}"] = np.asarray(value)
+    out["loops_ran"] = np.array(ran)
     out["devices"] = np.array([jax.device_count(), jax.process_count()])
     if jax.process_count() > 1:  # a batch that differs between processes is refused on every process
         rp = make(7, 3, 1, 5, 4, "loose")

@@ -67,7 +67,8 @@ def run_all(commands, tmp_path, timeout=TIMEOUT):
 @pytest.mark.slow
 def test_two_processes_give_the_single_process_result(tmp_path):
     """2 processes x 1 device: every process gets the whole batch's result, identical (costs, sequences, node
-    counts) to 1 process x 2 devices; costs and sequences also match 1 process x 1 device."""
+    counts) to 1 process x 2 devices; costs and sequences also match 1 process x 1 device. The same for the
+    closed loops of simulate_batch."""
     port = distributed.free_port()
     script = str(TESTS / "_distributed_worker.py")
     run_all([([script, tmp_path / "p0.npz", f"127.0.0.1:{port}", "2", "0"], child_env(1)),
@@ -92,6 +93,17 @@ def test_two_processes_give_the_single_process_result(tmp_path):
         elif field not in ("nodes", "iterations") or name in ("sdfs-vmap", "exhaustive"):
             np.testing.assert_array_equal(p0[key], one[key], err_msg=key)
     assert np.any(p0["sdfs.feasible"]) and not np.all(p0["sdfs.nodes"] == 0)
+    # simulate_batch: each process ran its share of the loops (4 of 7, one padded), and got every loop; one
+    # process of 2 devices runs 2 parts of 4 (7 padded to 8).
+    assert list(p0["loops_ran"]) == [4] and list(p1["loops_ran"]) == [4] and list(ref["loops_ran"]) == [8]
+    loops = worker.closed_loops()
+    for field, value in loops._asdict().items():
+        if value is None:
+            continue
+        key = f"loops.{field}"
+        np.testing.assert_array_equal(p0[key], p1[key], err_msg=key)
+        np.testing.assert_allclose(p0[key], np.asarray(value), rtol=1e-12, atol=1e-15, err_msg=key)
+        np.testing.assert_allclose(ref[key], np.asarray(value), rtol=1e-12, atol=1e-15, err_msg=key)
 
 
 @pytest.mark.slow
