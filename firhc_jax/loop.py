@@ -30,7 +30,7 @@ from .closed_loop import ClosedLoop
 from .decision import StepInfo
 from .problem import call, is_tracer
 from .progress import due, interval, tick_python
-from .sharding import default_parts, join_rows, mesh_of, on_stream, split_rows
+from .sharding import default_parts, join_rows, mesh_of, on_stream, same_on_every_process, split_rows
 
 
 def run_compiled(decide: Callable, plant: Callable, runs: list, steps: int, *, key, progress: bool,
@@ -77,6 +77,7 @@ def run_loops(decide: Callable, plant: Callable, state, X0, params, steps: int, 
     traced = any(map(is_tracer, jax.tree_util.tree_leaves((state, X0, params))))
     processes = 1 if traced else jax.process_count()
     if processes > 1:
+        same_on_every_process((state, X0, params), "the loops' X0, u0 or params")
         state, X0, params = split_rows((state, X0, params), processes)[jax.process_index()]
     devices = jax.local_devices()
     mine = X0.shape[0]

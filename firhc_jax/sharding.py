@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.experimental import multihost_utils
 from jaxlib import xla_client
 
 AXIS = "rows"
@@ -60,23 +61,30 @@ def global_rows(X, mesh: Mesh):
     """Multi-process mesh: every process's ``X`` (the same rows everywhere) as
     one global array over ``mesh``; a fingerprint of the rows is
     compared across processes first, so that differing ``X0`` fail loudly."""
-    from jax.experimental import multihost_utils
-
     if isinstance(X, jax.Array) and not X.is_fully_addressable and not X.is_fully_replicated:
         raise ValueError("X0 is a jax.Array sharded over several processes; pass the same host (NumPy) array "
                          "[B, n] on every process")
     host = np.asarray(X)
-    digest = np.frombuffer(hashlib.sha256(host.tobytes()).digest(), np.uint8)
-    fingerprint = np.concatenate([np.array(host.shape, np.int64).view(np.uint8), digest])
-    every = np.asarray(multihost_utils.process_allgather(fingerprint))  # [processes, 48]
-    if not np.all(every == every[0]):
-        differ = np.flatnonzero(np.any(every != every[0], axis=1)).tolist()
-        raise ValueError(f"X0 differs between processes (processes {differ} differ from process 0): every "
-                         "process must pass the same batch (X0 and params)")
+    same_on_every_process(host, "X0")
     # The layout a single process's jit picks for the same call (rows split when they divide evenly, else
     # replicated and padded inside): the same partitioned program, hence bit-identical results.
     spec = PartitionSpec(AXIS) if host.shape[0] % mesh.devices.size == 0 else PartitionSpec()
     return jax.make_array_from_callback(host.shape, NamedSharding(mesh, spec), lambda i: host[i])
+
+
+def same_on_every_process(tree, what: str) -> None:
+    """A ``ValueError`` on every process of the job unless every process holds the same ``tree`` (its
+    arrays' shapes and bytes, compared by a fingerprint gathered from each)."""
+    digest = hashlib.sha256()
+    for leaf in jax.tree_util.tree_leaves(tree):
+        host = np.asarray(leaf)
+        digest.update(np.array(host.shape, np.int64).tobytes() + host.tobytes())
+    fingerprint = np.frombuffer(digest.digest(), np.uint8)
+    every = np.asarray(multihost_utils.process_allgather(fingerprint))  # [processes, 32]
+    if not np.all(every == every[0]):
+        differ = np.flatnonzero(np.any(every != every[0], axis=1)).tolist()
+        raise ValueError(f"{what} differs between processes (processes {differ} differ from process 0): every "
+                         "process must pass the same batch (X0 and params)")
 
 
 @functools.partial(jax.jit, static_argnames="mesh")

@@ -95,6 +95,11 @@ def main(path):
         except ValueError as e:
             assert "X0 differs between processes" in str(e), e
             out["refused"] = np.array(True)
+        try:  # the same for closed loops
+            fj.FIRHC(rp.problem()).simulate_batch(np.full((4, 3), 0.1 * jax.process_index()), 2)
+        except ValueError as e:
+            assert "differs between processes" in str(e), e
+            out["loops_refused"] = np.array(True)
     np.savez(path, **out)
     print("worker done", jax.process_index(), flush=True)
 

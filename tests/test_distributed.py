@@ -78,6 +78,7 @@ def test_two_processes_give_the_single_process_result(tmp_path):
     np.testing.assert_array_equal(p0["devices"], [2, 2])
     np.testing.assert_array_equal(ref["devices"], [2, 1])
     assert p0["refused"] and p1["refused"]  # different X0 on the two processes: a ValueError on both
+    assert p0["loops_refused"] and p1["loops_refused"]  # simulate_batch too
     one = {}
     for name, solve in worker.cases():  # this process: 1 device
         res = solve()
