@@ -62,8 +62,8 @@ CONTROLLERS = {
 }
 
 
-@pytest.fixture(scope="module", params=["full", "budget", *(pytest.param(name, marks=pytest.mark.slow)
-                                                          for name in ("lanes", "exhaustive"))])
+@pytest.fixture(scope="module", params=["full", *(pytest.param(name, marks=pytest.mark.slow)
+                                                  for name in ("budget", "lanes", "exhaustive"))])
 def ctrl(request):
     return request.param, fj.FIRHC(PROBLEM, **CONTROLLERS[request.param])
 
@@ -181,6 +181,7 @@ def test_float32_loops_equal_their_single_loops():
         np.testing.assert_allclose(np.asarray(run.predicted_costs[b]), np.asarray(one.predicted_costs), rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_linear_tracking_loops_apply_first_input_of_as_single_loops():
     """A LinearTracking problem (classes of inputs, first_input_of picking the member) batched over loops
     with per-loop references and disturbances."""
