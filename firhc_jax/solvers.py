@@ -33,6 +33,7 @@ from .pool import pool_memory, pool_row_memory, pool_search
 from .problem import Problem, positive_int
 from .result import SearchResult
 from .sdfs import DEFAULT_MAX_MEMORY, INT32_MAX
+from .sdfs import check_memory as check_max_memory
 from .sdfs import search as sdfs_search
 from .sdfs import stack_memory
 
@@ -173,10 +174,7 @@ def check_memory(name: str, options: Mapping[str, Any], problem: Problem, n: int
         raise ValueError(f"exhaustive search of M={problem.num_controls}, N={problem.horizon} has "
                          f"{problem.tree_size():,} nodes, more than the int32 node counter holds")
     need = solver.memory(problem, n, itemsize, **options)
-    if need > options["max_memory"]:
-        raise ValueError(f"solver={name!r} on N={problem.horizon}, M={problem.num_controls} needs about {need:,} "
-                         f"bytes, more than max_memory={options['max_memory']:,}; shorten the horizon, lower "
-                         "pop_width (or lanes, chunk_nodes), or raise max_memory")
+    check_max_memory(need, options["max_memory"], f"solver={name!r} on N={problem.horizon}, M={problem.num_controls}")
     return need
 
 
