@@ -76,6 +76,11 @@ def merged(first: SearchResult, relaxed: SearchResult) -> SearchResult:
                             overflow=first.overflow | relaxed.overflow, complete=first.complete & relaxed.complete)
 
 
+def _left(opts, max_nodes, spent):
+    """The fallback's budget: what the first search left of the decision's (no budget: none)."""
+    return jnp.maximum(max_nodes - spent, 0) if opts.budgeted else max_nodes
+
+
 def solve(opts, x, params, previous):
     """The searches of one decision at model state ``x``: ``(deciding result, nodes of the constrained
     search, used_fallback)``; the fallback searches only when needed, within what the first search left."""
@@ -85,7 +90,7 @@ def solve(opts, x, params, previous):
         return result, result.nodes, jnp.zeros((), bool)
 
     def fall_back(_):
-        left = jnp.maximum(max_nodes - result.nodes, 0) if opts.budgeted else max_nodes
+        left = _left(opts, max_nodes, result.nodes)
         return merged(result, _search(opts, opts.relaxed, x, params, previous, left)), jnp.ones((), bool)
 
     chosen, used = jax.lax.cond(result.feasible, lambda _: (result, jnp.zeros((), bool)), fall_back, None)
@@ -115,7 +120,7 @@ def solve_rows(opts, X, params, previous):
         order = jnp.argsort(~used, stable=True)
         back = jnp.argsort(order)
         rows = lambda a: a[order]  # noqa: E731
-        left = jnp.where(used, jnp.maximum(max_nodes - result.nodes, 0) if opts.budgeted else max_nodes, 0)
+        left = jnp.where(used, _left(opts, max_nodes, result.nodes), 0)
         relaxed = search(opts.relaxed, X[order], jax.tree_util.tree_map(rows, params), previous[order],
                          left[order], jnp.sum(used, dtype=jnp.int32))
         relaxed = jax.tree_util.tree_map(lambda a: a[back], relaxed)
