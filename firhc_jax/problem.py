@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import dataclasses
 import operator
+import weakref
 from typing import Any, Callable, Optional
 
 import jax
@@ -384,5 +385,23 @@ def weighted_square(w: np.ndarray, v):
 
 
 def call(fn: Callable, params, *args):
-    """``fn(*args)`` without parameters, ``fn(*args, params)`` with them."""
-    return fn(*args) if params is None else fn(*args, params)
+    """``fn(*args)`` without parameters, ``fn(*args, params)`` with them.
+
+    Inside a trace the call goes through ``jax.jit(fn, inline=True)``: JAX
+    keeps ``fn``'s jaxpr per argument signature (and its ``vmap`` per batch
+    axis), so a decision's checks, search and fallback trace a user's
+    callable once instead of once each; the program is the same, inlined.
+    Outside a trace (a plant in a Python loop) ``fn`` runs as it is."""
+    args = args if params is None else (*args, params)
+    if _traceable(fn) and any(map(is_tracer, jax.tree_util.tree_leaves(args))):
+        return jax.jit(fn, inline=True)(*args)
+    return fn(*args)
+
+
+def _traceable(fn) -> bool:
+    """Whether JAX can keep ``fn``'s traces (its cache holds functions by weak reference)."""
+    try:
+        weakref.ref(fn)
+    except TypeError:
+        return False
+    return True

@@ -1,10 +1,12 @@
 """How the suite runs: three commands (README, "Tests"; .ci/run runs all three).
 
 * ``pytest`` (the quick suite): every test not marked ``slow``, float64 (x64 enabled here explicitly; the
-  library never flips it), with XLA's optimizations off (``jax_disable_most_optimizations``): compiling is
-  most of the suite's time and takes about half as long without them.
+  library never flips it), with XLA's optimizations off (``jax_disable_most_optimizations``) and XLA:CPU's
+  older fusion emitters (``--xla_cpu_use_fusion_emitters=false``, added to ``XLA_FLAGS``, which the tests'
+  subprocesses inherit): compiling is most of the suite's time, and each of the two roughly halves it
+  (docs/cache.md).
 * ``pytest --float32``: only the tests marked ``float32``, with x64 left off (the library's default float32
-  path), optimizations off as above.
+  path), compiled as the quick suite.
 * ``pytest --full``: every test, ``slow`` ones too (subprocesses, soaks, multi-process runs, sweeps, the
   applications' summaries), compiled as users compile (optimizations on). The tests marked ``optimized``
   (two compiled programs equal bit for bit, which rests on XLA's optimizations making them the same code) run
@@ -28,11 +30,16 @@ def pytest_addoption(parser):
                      help="the full suite: the slow tests too, compiled with XLA's optimizations on")
 
 
+QUICK_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false"
+
+
 def pytest_configure(config):
     if not config.getoption("--float32"):
         jax.config.update("jax_enable_x64", True)
     if not config.getoption("--full"):
         jax.config.update("jax_disable_most_optimizations", True)
+        if QUICK_XLA_FLAGS not in os.environ.get("XLA_FLAGS", ""):  # XLA reads it as the CPU backend starts
+            os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {QUICK_XLA_FLAGS}".strip()
     folder = os.environ.get("FIRHC_JAX_TEST_CACHE", str(Path(config.rootpath) / ".jax_cache"))
     if folder != "off":
         import firhc_jax as fj

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import firhc_jax as fj
+from compiles import compile_count
 from random_problems import make
 from reference import same_cost
 
@@ -157,19 +158,21 @@ def test_same_problem_twice_does_not_retrace():
         return dyn(x, u)
 
     p = problem(dynamics=counting_dyn)
+    # NumPy, JAX and weakly typed JAX states of one dtype share one search (eager calls keep NumPy states NumPy).
+    states = (X0 + 0.5, np.asarray(X0), jnp.asarray(X0), jnp.full(np.shape(X0), 0.3), list(np.asarray(X0)))
     for solve in (fj.sdfs, fj.exhaustive, lambda p, x: fj.sdfs(p, x, pop_width=2)):
         solve(p, X0)
-        before = len(traces)
-        solve(p, X0 + 0.5)
+        before, compiled = len(traces), compile_count()
         # A rebuilt Problem with the same callables and control values reuses the compiled search too.
         solve(fj.Problem(counting_dyn, np.asarray(CONTROLS), COST, 4), X0)
-        # NumPy, JAX and weakly typed JAX states of one dtype share it (eager calls keep NumPy states NumPy).
-        for x in (np.asarray(X0), jnp.asarray(X0), jnp.full(np.shape(X0), 0.3), list(np.asarray(X0))):
+        for x in states:
             solve(p, x)
         assert len(traces) == before, "the second solve re-traced dynamics"
-    # Other control values are compiled in as constants: that is a new search.
+        assert compile_count() == compiled, "the second solve compiled again"
+    # Other control values are compiled in as constants: that is a new search (dynamics, whose arguments have
+    # the same shapes, is not traced again).
     fj.sdfs(fj.Problem(counting_dyn, CONTROLS * 2, COST, 4), X0)
-    assert len(traces) > before
+    assert compile_count() > compiled
 
 
 def test_closed_loop_does_not_retrace():
@@ -181,9 +184,10 @@ def test_closed_loop_does_not_retrace():
 
     ctrl = fj.FIRHC(problem(dynamics=counting_dyn))
     ctrl.simulate(X0, 5)
-    before = len(traces)
-    ctrl.simulate(X0 * 0.5, 5)
-    assert len(traces) == before
+    x0 = X0 * 0.5
+    before, compiled = len(traces), compile_count()
+    ctrl.simulate(x0, 5)
+    assert len(traces) == before and compile_count() == compiled
 
 
 # ---------------------------------------------------------------- controller

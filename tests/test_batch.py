@@ -17,6 +17,7 @@ from firhc_jax import batch as batch_module
 from firhc_jax.batch import row_memory, solve_batch
 from firhc_jax.pool import pool_memory, pool_row_memory
 from firhc_jax.sharding import usable_cores
+from compiles import compile_count
 from random_problems import make
 from reference import brute_force, same_cost
 
@@ -133,9 +134,9 @@ def test_params_compile_once_for_any_values():
         return solve_batch(counted, jnp.asarray(rng.uniform(-1, 1, (B, 2))), params=params)
 
     run(5)
-    after_first = len(traces)
+    after_first, compiled = len(traces), compile_count()
     run(5)
-    assert len(traces) == after_first  # new states and parameter values: no retrace
+    assert len(traces) == after_first and compile_count() == compiled  # new states and parameter values
 
 
 def test_no_retrace_on_second_call():
@@ -145,9 +146,9 @@ def test_no_retrace_on_second_call():
                    lambda x, u: rp.stage_cost(x, u), rp.N, lambda x: rp.terminal(x))
     for solver in SOLVERS:
         solve_batch(p, states(0, 6, 2), solver=solver)
-        after_first = len(traces)
+        after_first, compiled = len(traces), compile_count()
         second = solve_batch(p, states(1, 6, 2), solver=solver)
-        assert len(traces) == after_first, solver
+        assert len(traces) == after_first and compile_count() == compiled, solver
         assert second.cost.shape == (6,)
 
 

@@ -19,6 +19,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import firhc_jax as fj
+
+from compiles import compile_count
 import reference
 
 N, M, n = 3, 3, 2
@@ -253,8 +255,8 @@ def test_new_reference_values_never_retrace():
              "radius": FAR, "g": 1.0}
         fj.sdfs(problem, x0 + i, params=p)
         if i == 0:
-            after_first = traces["n"]
-    assert traces["n"] == after_first > 0
+            after_first, compiled = traces["n"], compile_count()
+    assert traces["n"] == after_first > 0 and compile_count() == compiled
 
 
 def test_closed_loop_with_references_along_the_horizon():

@@ -8,6 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import firhc_jax as fj
+from compiles import compile_count
 from param_problems import SHAPES, as_jax, cases, check_optimal, draw_params, problem
 from reference import brute_force, same_cost
 
@@ -74,11 +75,12 @@ def test_new_param_values_never_retrace(solve):
     rng = np.random.default_rng(0)
     x0 = jnp.asarray(rng.uniform(-1, 1, shape[0]))
     solve(p, x0, as_jax(draw_params(rng, shape)))
-    before = len(traces)
+    calls = [(x0 * 0.3, as_jax(draw_params(rng, shape))) for _ in range(3)]
+    before, compiled = len(traces), compile_count()
     assert before > 0
-    for _ in range(3):
-        solve(p, x0 * 0.3, as_jax(draw_params(rng, shape)))
-    assert len(traces) == before
+    for x, prm in calls:
+        solve(p, x, prm)
+    assert len(traces) == before and compile_count() == compiled
 
 
 def test_simulate_with_new_params_does_not_retrace():
@@ -94,11 +96,12 @@ def test_simulate_with_new_params_does_not_retrace():
 
     for compiled in (True, False):
         ctrl.simulate(jnp.zeros(shape[0]), steps, params=params(), compiled=compiled)
-        before = len(traces)
-        ctrl.simulate(jnp.full(shape[0], 0.2), steps, params=params(), compiled=compiled)
-        fj.FIRHC(p, fallback="unconstrained").simulate(jnp.zeros(shape[0]), steps, params=params(),
+        x0, x1, p1, p2 = jnp.full(shape[0], 0.2, jnp.float64), jnp.zeros(shape[0]), params(), params()
+        before, count = len(traces), compile_count()
+        ctrl.simulate(x0, steps, params=p1, compiled=compiled)
+        fj.FIRHC(p, fallback="unconstrained").simulate(x1, steps, params=p2,
                                                        compiled=compiled)  # a second controller, same problem
-        assert len(traces) == before, compiled
+        assert len(traces) == before and compile_count() == count, compiled
 
 
 # ----------------------------------------------------------------- closed loop with a moving reference

@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 import firhc_jax as fj
 import random_problems
+from compiles import compile_count
 from test_step import CONTROLS, N, PROBLEM, actuate, counting_controller, observe, plant
 
 T = 8
@@ -125,11 +126,11 @@ def test_new_values_never_recompile():
     c = counting_controller(traces)
     rng = np.random.default_rng(3)
     c.simulate_batch(rng.uniform(-1, 1, (4, 2)), T, plant, params=loop_params(rng, 4), u0=np.array([1.0]))
-    before = len(traces)
+    before, compiled = len(traces), compile_count()
     for _ in range(2):
         c.simulate_batch(rng.uniform(-1, 1, (4, 2)), T, plant, params=loop_params(rng, 4),
                          u0=rng.choice(CONTROLS, (4, 1)))
-    assert before > 0 and len(traces) == before
+    assert before > 0 and len(traces) == before and compile_count() == compiled
 
 
 def test_bad_batches_are_refused_before_any_work():

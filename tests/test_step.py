@@ -7,6 +7,8 @@ import pytest
 
 import firhc_jax as fj
 
+from compiles import compile_count
+
 # A plant that is not the model: a cart with friction the model ignores, driven through a gain, with a
 # second plant input set by a fixed law (actuate). The model state carries the input applied last (observe),
 # whose change is charged. The terminal band comes from the parameters: some steps it is out of reach and the
@@ -123,12 +125,13 @@ def test_eager_steps_never_retrace_or_recheck():
     p = {"ref": np.float64(0.2), "gain": jnp.asarray(1.0, jnp.float64), "band": np.asarray(0.5)}
     state = ctrl.init(np.array([0.5, 0.0]))
     u, state, _ = ctrl.step(state, np.array([0.5, 0.0]), p)
-    before = len(traces)
-    for x, q in ((jnp.array([0.4, 0.1]), {"ref": 0.1, "gain": 1.0, "band": 0.5}),  # Python floats: weak
-                 (jnp.full(2, 0.3), dict(p, ref=jnp.asarray(0.3))),  # weakly typed JAX arrays
-                 ([0.2, 0.1], p)):
+    calls = ((jnp.array([0.4, 0.1]), {"ref": 0.1, "gain": 1.0, "band": 0.5}),  # Python floats: weak
+             (jnp.full(2, 0.3), dict(p, ref=jnp.asarray(0.3))),  # weakly typed JAX arrays
+             ([0.2, 0.1], p))
+    before, compiled = len(traces), compile_count()
+    for x, q in calls:
         u, state, info = ctrl.step(state, x, q)
-    assert len(traces) == before
+    assert len(traces) == before and compile_count() == compiled
     with pytest.raises(TypeError, match="ControllerState"):
         ctrl.step((state.u, state.plan), np.zeros(2), p)
     with pytest.raises(ValueError, match="x0 .*shape|shape.*x0|observe"):
