@@ -235,3 +235,29 @@ def test_every_entry_refuses_each_kind_of_bad_value(name):
 @given(st.sampled_from(sorted(ENTRY)), BAD)
 def test_bad_arguments_get_a_value_or_type_error_naming_the_argument(name, value):
     _check_entry(name, value)
+
+
+class _Slotted:
+    """A callable object JAX cannot hold by weak reference (``__slots__`` without ``__weakref__``)."""
+
+    __slots__ = ()
+
+    def __call__(self, x, u):
+        return 0.5 * x + u
+
+
+def test_callables_made_inside_a_jit_or_without_weak_references_are_traced_as_they_are():
+    """A user's callable is traced once per signature and kept (``problem.call``): one that closes over a
+    tracer of the user's own ``jit`` must still see each call's value, and one that cannot be held weakly is
+    called directly."""
+    controls, cost = np.array([-1.0, 0.0, 1.0]), fj.quadratic_cost(1.0, 0.0)
+
+    def solve(gain, x):
+        return fj.sdfs(fj.Problem(lambda x, u: gain * x + u, controls, cost, 3), x).cost
+
+    jitted = jax.jit(solve)
+    for n, (gain, x) in enumerate(((0.5, 1.0), (0.9, -0.7), (1.3, 0.4)), start=1):  # n: a new trace each
+        assert same_cost(jitted(gain, jnp.full(n, x)), solve(gain, np.full(n, x)))
+    x0 = jnp.full(1, 0.8)
+    slotted = fj.sdfs(fj.Problem(_Slotted(), controls, cost, 3), x0)
+    assert same_cost(slotted.cost, fj.sdfs(fj.Problem(lambda x, u: 0.5 * x + u, controls, cost, 3), x0).cost)
