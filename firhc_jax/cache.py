@@ -23,7 +23,7 @@ from typing import Any, Callable, Hashable
 import jax
 
 DEFAULT_MAX_SIZE = 64
-# At least the most entries one call uses (10: a closed loop with a fallback on the exhaustive solver and a
+# At least the most entries one call uses (12: a closed loop with a fallback on the exhaustive solver and a
 # progress bar, while it compiles; docs/cache.md), with room for a few more: LRU at this size keeps them all, so a
 # repeated call finds every one; below it, a call can evict its own and recompile every time. tests/test_soak.py
 # checks every kind of call.

@@ -6,7 +6,8 @@ leading axis B (the runner does not care). ``run_compiled`` drives them as
 one compiled ``lax.scan`` (or, with a progress bar, as one compiled chunk of
 steps dispatched again and again from Python, the bar moved between chunks:
 a host callback inside the scan costs more than cheap steps,
-docs/xla_notes.md). ``run_python`` drives an already compiled decision from a
+docs/xla_notes.md; each chunk writes its steps into the run's records, which
+it updates in place). ``run_python`` drives an already compiled decision from a
 Python loop, timing each decision, for plants that cannot be traced. Both
 return a time-major ``ClosedLoop`` (``states`` ``[T+1, ...]``).
 
@@ -51,20 +52,25 @@ def run_compiled(decide: Callable, plant: Callable, runs: list, steps: int, *, k
             return params
         return jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], chunks * length - steps, 0)]), params)
 
+    # One trace of the chunk's steps serves the records' shapes and the chunk (jit keeps it per signature).
+    scan = cached(("closed loop steps", key, length),
+                  lambda: jax.jit(functools.partial(_scan, decide, plant, length=length), inline=True))
     run = cached(("closed loop chunk", key, length),
-                 lambda: jax.jit(lambda c, p, start: _scan(decide, plant, c, p, start, length)))
+                 lambda: jax.jit(functools.partial(_chunk_into, scan), donate_argnums=1))
+    empty = cached(("closed loop records", key, length, chunks),
+                   lambda: jax.jit(functools.partial(_records, scan, chunks=chunks)))
+    finish = cached(("closed loop finish", steps), lambda: jax.jit(functools.partial(_finish, steps=steps)))
     carries, params = [(s, x) for s, x, _ in runs], [padded(p) for _, _, p in runs]
-    recs, last = [[] for _ in runs], None
+    recs = [_dispatch(i, len(runs), empty, c, p) for i, (c, p) in enumerate(zip(carries, params, strict=True))]
+    last = None
     for start in range(0, steps, length):
         for i, (carry, p) in enumerate(zip(carries, params, strict=True)):
-            carries[i], rec = _dispatch(i, len(runs), run, carry, p, np.int32(start))
-            recs[i].append(rec)
+            carries[i], recs[i] = _dispatch(i, len(runs), run, carry, recs[i], p, np.int32(start))
         if last is not None:  # the chunk before this one is done (or nearly): move the bar
             _report(*last)
         last = min(start + length, steps) * ticks_per_step - 1, [c[1] for c in carries]
     _report(*last)
-    join = cached(("closed loop join", steps, length), lambda: jax.jit(functools.partial(_join, steps=steps)))
-    return [join(x0, r) for (_, x0, _), r in zip(runs, recs, strict=True)]
+    return [finish(x0, r) for (_, x0, _), r in zip(runs, recs, strict=True)]
 
 
 def run_loops(decide: Callable, plant: Callable, state, X0, params, steps: int, *, key, progress: bool
@@ -193,10 +199,23 @@ def _report(tick: int, x) -> None:
     tick_python(tick)
 
 
-def _join(x0, chunks, steps: int) -> ClosedLoop:
-    """The run of ``steps`` steps from the ``ClosedLoop`` of each chunk (one compiled call: eager
-    concatenations of many arrays cost more than the chunks' own dispatch)."""
-    loop = jax.tree.map(lambda *a: jnp.concatenate(a)[:steps], *chunks)
+def _records(scan, carry, params, chunks: int) -> ClosedLoop:
+    """Zeroed records of ``chunks`` runs of ``scan`` (a chunk of steps), which the chunks write in place."""
+    one = jax.eval_shape(scan, carry, params, np.int32(0))[1]
+    return jax.tree.map(lambda a: jnp.zeros((chunks * a.shape[0],) + a.shape[1:], a.dtype), one)
+
+
+def _chunk_into(scan, carry, records: ClosedLoop, params, start):
+    """``scan``'s chunk of steps from ``start``, its records written into ``records`` (donated: updated in
+    place) from row ``start``."""
+    carry, rec = scan(carry, params, start)
+    return carry, jax.tree.map(lambda whole, part: jax.lax.dynamic_update_slice_in_dim(whole, part, start, 0),
+                               records, rec)
+
+
+def _finish(x0, records: ClosedLoop, steps: int) -> ClosedLoop:
+    """The run of ``steps`` steps from the chunks' records (the last chunk's steps past ``steps`` dropped)."""
+    loop = jax.tree.map(lambda a: a[:steps], records)
     return _with_x0(x0, loop, jnp.full((steps,) + _batch(x0), jnp.nan))
 
 

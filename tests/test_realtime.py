@@ -13,9 +13,8 @@ from compiles import compile_count
 STEPS = 245  # chunks of interval(245) = 10 steps, the last one 5 steps past the end
 
 
-def _one_scan_and_chunked(capsys):
-    """The same closed loop as one scan and as chunks with a bar; then new values, counted."""
-    traces = []
+def _loop(traces: list):
+    """``(ctrl, params [T], x0)``: a closed loop whose dynamics count their traces in ``traces``."""
 
     def dynamics(x, u, p):
         traces.append(1)
@@ -30,7 +29,28 @@ def _one_scan_and_chunked(capsys):
     k = np.arange(STEPS)
     params = {"ref": np.sin(0.05 * k), "gain": 1.0 + 0.1 * np.cos(k),
               "band": np.where(k % 7 == 3, 1e-6, 0.5)}  # some steps fall back: the carry holds the plan
-    x0 = np.array([0.3, -0.2])
+    return ctrl, params, np.array([0.3, -0.2])
+
+
+def _close(pairs):
+    """Every decision equal, every value equal up to rounding (a chunk and the whole scan are two programs)."""
+    for name, a, b in pairs:
+        assert a.shape == b.shape, name
+        if np.issubdtype(a.dtype, np.floating):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15, err_msg=name)
+        else:
+            np.testing.assert_array_equal(a, b, err_msg=name)
+
+
+def _fields(one, other):
+    return [(name, np.asarray(a), np.asarray(getattr(other, name))) for name, a in one._asdict().items()
+            if a is not None]
+
+
+def _one_scan_and_chunked(capsys):
+    """The same closed loop as one scan and as chunks with a bar; then new values, counted."""
+    traces = []
+    ctrl, params, x0 = _loop(traces)
     assert STEPS % progress.interval(STEPS)
     one = ctrl.simulate(x0, STEPS, params=params)
     chunked = ctrl.simulate(x0, STEPS, params=params, progress=True)
@@ -39,18 +59,20 @@ def _one_scan_and_chunked(capsys):
     before, compiled = len(traces), compile_count()  # new values, the same compiled chunk
     ctrl.simulate(-x0, STEPS, params={**params, "ref": -params["ref"]}, progress=True)
     assert len(traces) == before and compile_count() == compiled
-    return [(name, np.asarray(a), np.asarray(getattr(chunked, name))) for name, a in one._asdict().items()
-            if a is not None]
+    return _fields(one, chunked)
 
 
 def test_progress_chunks_make_the_one_scan_runs_decisions(capsys):
-    """Every decision equal, every value equal up to rounding (the chunk and the scan are two programs)."""
-    for name, a, b in _one_scan_and_chunked(capsys):
-        assert a.shape == b.shape, name
-        if np.issubdtype(a.dtype, np.floating):
-            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15, err_msg=name)
-        else:
-            np.testing.assert_array_equal(a, b, err_msg=name)
+    _close(_one_scan_and_chunked(capsys))
+
+
+def test_a_batch_of_loops_with_a_bar_makes_the_same_decisions():
+    """simulate_batch with a bar: each part of the loops runs its chunks into its own records."""
+    ctrl, params, x0 = _loop([])
+    X0 = np.stack([x0, -x0, 0.5 * x0, np.array([0.1, 0.4])])
+    P = {k: np.stack([np.asarray(v)] * len(X0)) for k, v in params.items()}
+    _close(_fields(ctrl.simulate_batch(X0, STEPS, params=P),
+                   ctrl.simulate_batch(X0, STEPS, params=P, progress=True)))
 
 
 @pytest.mark.optimized
