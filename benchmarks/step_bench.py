@@ -38,10 +38,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import firhc_jax as fj
+from firhc_jax.apps._timing import BACKEND_COMPILE, LOWERED, TRACED
 from firhc_jax.models import inverter, three_level
 
-COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
-                  "/jax/core/compile/backend_compile_duration")
+COMPILE_EVENTS = (TRACED, LOWERED, BACKEND_COMPILE)
 
 
 def median_us(ts) -> float:

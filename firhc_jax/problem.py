@@ -393,7 +393,7 @@ def call(fn: Callable, params, *args):
     callable once instead of once each; the program is the same, inlined.
     Outside a trace (a plant in a Python loop) ``fn`` runs as it is."""
     args = args if params is None else (*args, params)
-    if _traceable(fn) and any(map(is_tracer, jax.tree_util.tree_leaves(args))):
+    if any(map(is_tracer, jax.tree_util.tree_leaves(args))) and _traceable(fn):
         return jax.jit(fn, inline=True)(*args)
     return fn(*args)
 

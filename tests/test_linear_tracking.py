@@ -1,7 +1,6 @@
 """fj.LinearTracking: exact against a brute force of J written here, equal to the
 plain sorted search of the same problem in its own coordinates, warm starts,
 no recompilation, the closed loop and batches."""
-import contextlib
 import itertools
 
 import jax
@@ -12,6 +11,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import firhc_jax as fj
+from firhc_jax.apps._timing import TRACED
+from firhc_jax.apps._timing import compile_events as compilations
 from firhc_jax.linear_tracking import Node
 from firhc_jax.models import thermal, three_level
 from reference import same_cost
@@ -190,26 +191,6 @@ def test_an_infeasible_warm_start_under_max_step_is_ignored():
     np.testing.assert_array_equal(np.asarray(warm.sequence), np.asarray(cold.sequence))
 
 
-@contextlib.contextmanager
-def compilations(kind="/jax/core/compile/backend_compile_duration"):
-    """Names of the functions XLA compiles inside the block (jax.monitoring's compile events; with
-    ``kind=TRACES``, the functions JAX traces)."""
-    seen = []
-
-    def listener(event, duration, **kw):
-        if event == kind:
-            seen.append(kw.get("fun_name"))
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
-        yield seen
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
-
-
-TRACES = "/jax/core/compile/jaxpr_trace_duration"
-
-
 def test_new_states_references_and_disturbances_never_recompile():
     with compilations() as seen:  # the event is still reported under this name (else the check below is void)
         jax.jit(lambda a: a * 3)(np.arange(4.0))
@@ -238,7 +219,7 @@ def test_one_compiled_loop_decides_for_every_tracker_of_equal_shapes(seed):
     """FIRHC(lt_a.shared_problem) with lt_b.params(..., with_model=True) decides as lt_b's own controller, for
     trackers of one plant with other weights (Q, lambda_u); neither lt_b's params nor lt_b.shared_problem traces
     anything again."""
-    with compilations(TRACES) as seen:  # the event is still reported under this name (else the check is void)
+    with compilations(TRACED) as seen:  # the event is still reported under this name (else the check is void)
         jax.jit(lambda a: a * 5)(np.arange(3.0))
     assert seen, "no trace event observed: jax.monitoring's event name changed"
     case = Case("common", True, seed)
@@ -263,7 +244,7 @@ def test_one_compiled_loop_decides_for_every_tracker_of_equal_shapes(seed):
     u0 = case.controls[0]
     shared = fj.FIRHC(lt_a.shared_problem, observe=lt_a.observe, warm_start=True)
     run_a = shared.simulate(case.x, steps, shared_plant, params=p_a, u0=u0)
-    with compilations(TRACES) as seen:
+    with compilations(TRACED) as seen:
         run_b = shared.simulate(case.x, steps, shared_plant, params=p_b, u0=u0)
         again = fj.FIRHC(lt_b.shared_problem, observe=lt_b.observe, warm_start=True).simulate(
             case.x, steps, shared_plant, params=p_b, u0=u0)

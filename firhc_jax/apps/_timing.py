@@ -19,16 +19,20 @@ import jax
 
 from ._status import stage
 
-BACKEND_COMPILE = "/jax/core/compile/backend_compile_duration"  # jax.monitoring's event per XLA compilation
+# jax.monitoring's events, one per function: traced (Python to jaxpr), lowered (jaxpr to MLIR), compiled by XLA
+TRACED = "/jax/core/compile/jaxpr_trace_duration"
+LOWERED = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+BACKEND_COMPILE = "/jax/core/compile/backend_compile_duration"
 
 
 @contextlib.contextmanager
-def compile_events():
-    """The ``(function name, seconds)`` of every XLA compilation inside the block (``jax.monitoring``)."""
+def compile_events(kind: str = BACKEND_COMPILE):
+    """The ``(function name, seconds)`` of every event ``kind`` inside the block (``jax.monitoring``; default:
+    each XLA compilation)."""
     seen = []
 
     def listener(event, duration, **kw):
-        if event == BACKEND_COMPILE:
+        if event == kind:
             seen.append((kw.get("fun_name"), duration))
 
     jax.monitoring.register_event_duration_secs_listener(listener)
