@@ -1,8 +1,8 @@
 """Compile, then time the loop: how every application times its closed loop.
 
-The loop is the deployment path, ``FIRHC.simulate(..., compiled=False)``: a
-Python loop of the compiled ``step`` with each decision timed in
-``solve_times``. Before it, the decision is compiled for the run's shapes and
+The loop is the deployment path, ``FIRHC.simulate(..., compiled=False)``'s
+Python loop of the compiled decision (``loop.run_python``), with each decision
+timed in ``solve_times``. Before it, the decision is compiled for the run's shapes and
 that compilation is timed on its own, so ``compile_s`` is tracing plus
 compilation and ``solve_times`` never include it. The loop runs with
 Python's cyclic garbage collector paused, as a real-time loop would run
@@ -17,6 +17,10 @@ import time
 
 import jax
 
+from ..controller_checks import sample_times
+from ..loop import run_python, user_plant, warn_held
+from ..progress import Progress
+from ._exported import decision
 from ._status import stage
 
 # jax.monitoring's events, one per function: traced (Python to jaxpr), lowered (jaxpr to MLIR), compiled by XLA
@@ -55,25 +59,40 @@ def collector_paused():
         gc.collect()
 
 
-def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None, dt=None, progress=False):
+def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None, dt=None, progress=False,
+                      settings=None):
     """``(loop, compile_s)``: ``ctrl.simulate(x0, steps, plant, ..., compiled=False)`` with every decision timed,
     and ``compile_s`` the seconds to trace and compile one decision (``ctrl.step``) for these shapes.
 
-    ``compile_s`` is measured on a fresh compilation: the first ``step`` call
-    less the same decision's time in the loop (the first step of the loop
-    decides from the same state). Where this process compiled an equal
-    controller's step before, that call compiles nothing (no XLA compilation
-    is seen); the decision is then compiled ahead of time once more
+    ``settings``: all that built ``ctrl`` besides the package's code
+    (``_exported.decision``); with
+    the compilation cache on, the decision is then kept in its folder as a
+    traced program, and a later run with the same settings neither traces nor
+    lowers it (its ``compile_s`` is reading it back). Otherwise the loop runs
+    the controller's own compiled decision, as ``simulate`` does.
+
+    ``compile_s`` is measured on a fresh compilation: the first call of the
+    decision less its time in the loop (the first step of the loop decides
+    from the same state). Where this process compiled the same program
+    before, that call compiles nothing (no XLA compilation is seen); the
+    decision is then compiled ahead of time once more
     (``jax.jit(ctrl.step).lower(...).compile()``), which is what is timed.
     """
-    state = ctrl.init(x0, u0)
+    # Committed to the device, as every later step's are: an exported program's results are, and a call with
+    # committed arguments is another compilation than one without.
+    state, x0 = jax.device_put((ctrl.init(x0, u0), x0), jax.devices()[0])
     p0 = None if params is None else jax.tree_util.tree_map(lambda a: a[0], params)
     with compile_events() as seen, stage("compiling the decision"):
         t0 = time.perf_counter()
-        jax.block_until_ready(ctrl.step(state, x0, p0))
+        folder = jax.config.jax_compilation_cache_dir
+        decide = decision(ctrl, settings, folder, state, x0, p0) if settings and folder else ctrl._decide()
+        jax.block_until_ready(decide(state, x0, p0))
         first = time.perf_counter() - t0
-    with collector_paused():
-        loop = ctrl.simulate(x0, steps, plant, params=params, u0=u0, dt=dt, progress=progress, compiled=False)
+    with collector_paused(), Progress(steps, f"FIRHC[{ctrl.solver}]", enabled=progress):
+        loop = run_python(decide, user_plant(ctrl.problem.model_plant if plant is None else plant), state, x0,
+                          params, steps, progress=progress)
+    warn_held(loop.held, steps, ctrl.u_safe is not None)
+    loop = loop._replace(times=sample_times(dt, steps))
     if seen:
         return loop, first - float(loop.solve_times[0])
     with stage("timing the decision's compilation"):

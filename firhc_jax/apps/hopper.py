@@ -76,7 +76,8 @@ def simulate(seconds: float = 2.0, horizon: int = 6, solver: str = "sdfs", param
     ctrl = controller(horizon, params, solver, bound, warm, **options)
     plant = hm.make_plant(params)
     if timed:
-        loop, compile_s = timed_closed_loop(ctrl, X0, steps, plant, dt=hm.CONTROL_PERIOD, progress=progress)
+        loop, compile_s = timed_closed_loop(ctrl, X0, steps, plant, dt=hm.CONTROL_PERIOD, progress=progress,
+                                            settings=("hopper", horizon, params, solver, bound, warm, options))
     else:
         loop, compile_s = ctrl.simulate(X0, steps, plant, dt=hm.CONTROL_PERIOD, progress=progress), None
     with stage(f"re-integrating the plant at {hm.PLANT_DT * 1e6:g} us for the figures"):

@@ -61,7 +61,8 @@ def closed_loop(horizon: int, solver: str = "sdfs", steps: int = 1600, lambda_u:
     plant = _plant(params)
     if timed:
         loop, compile_time = timed_closed_loop(ctrl, i0, steps, plant, params=p, u0=u0, dt=params.ts,
-                                               progress=progress)
+                                               progress=progress,
+                                               settings=("inverter", horizon, params, method, bound, solver))
     else:
         loop, compile_time = ctrl.simulate(i0, steps, plant, params=p, u0=u0, dt=params.ts, progress=progress), math.nan
     return InverterRun(loop, model.reference(params, loop.times), compile_time)

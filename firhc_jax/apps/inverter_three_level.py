@@ -42,7 +42,8 @@ def closed_loop(horizon: int, steps: int, lambda_u: float = LAMBDA_U, progress: 
     p = lt.params(jnp.asarray(two_level.horizon_references(params, steps, horizon)))  # leading axis: steps
     i0 = jnp.asarray(two_level.initial_currents(params))
     loop, compile_time = timed_closed_loop(ctrl, i0, steps, _plant(), params=p, u0=jnp.zeros(3), dt=params.ts,
-                                           progress=progress)
+                                           progress=progress, settings=("three-level inverter", horizon, params,
+                                                                        lambda_u))
     return InverterRun(loop, two_level.reference(params, loop.times), compile_time)
 
 

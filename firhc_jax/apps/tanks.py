@@ -38,7 +38,7 @@ EXHAUSTIVE_BUDGET = 5e8
 
 def simulate(problem: fj.Problem, solver: str = "sdfs", steps: int = 100, levels=model.INITIAL_LEVELS,
              progress: bool = False, timed: bool = False,
-             dt: float | None = None) -> tuple[fj.ClosedLoop, float | None]:
+             dt: float | None = None, settings=None) -> tuple[fj.ClosedLoop, float | None]:
     """Run the FIRHC law for ``steps`` samples from ``levels`` (hold mode before t = 0).
 
     The plant is the prediction model itself. Needs float64
@@ -49,14 +49,17 @@ def simulate(problem: fj.Problem, solver: str = "sdfs", steps: int = 100, levels
     compilation (``_timing.timed_closed_loop``), then run from Python with
     each decision's wall time in ``loop.solve_times``. Otherwise one compiled
     scan (the same closed loop) and ``compile_s`` is None. ``dt``: the
-    sample time, for the loop's time axis.
+    sample time, for the loop's time axis. ``settings``: all that built
+    ``problem``, for a timed run to keep its decision on disk
+    (``_timing.timed_closed_loop``).
     """
     fallback = "unconstrained" if problem.terminal is not None else None
     ctrl = fj.FIRHC(problem, solver, fallback=fallback)
     x0 = jnp.asarray(model.initial_state(levels))  # [5]
     if not timed:
         return ctrl.simulate(x0, steps, progress=progress, dt=dt), None
-    return timed_closed_loop(ctrl, x0, steps, jax.jit(problem.dynamics), progress=progress, dt=dt)
+    return timed_closed_loop(ctrl, x0, steps, jax.jit(problem.dynamics), progress=progress, dt=dt,
+                             settings=None if settings is None else ("tanks", settings, solver))
 
 
 def settling_time(errors: np.ndarray, ts: float, tolerance: float) -> float | None:
@@ -190,7 +193,8 @@ class Tanks(App):
         problem = model.make_problem(args.horizon, params, switch_penalty=args.switch_penalty,
                                      terminal_tol=args.terminal_tol, bound=args.bound)
         loop, compile_s = simulate(problem, args.solver, int(args.seconds // params.ts),
-                                   progress=not args.no_progress, timed=True, dt=params.ts)
+                                   progress=not args.no_progress, timed=True, dt=params.ts,
+                                   settings=(args.horizon, params, args.switch_penalty, args.terminal_tol, args.bound))
         return TanksRun(loop, compile_s, problem)
 
     def summarize(self, args, run: TanksRun) -> dict:
