@@ -6,7 +6,9 @@ Each application module registers its own subcommand through
 together, refused with argparse's one-line error (``apps/_limits.py``).
 Every command keeps its compilations in JAX's persistent compilation cache
 (``firhc_jax.enable_compilation_cache``), so a second run skips XLA's
-compilation; ``--no-cache`` turns that off for one run.
+compilation, and the applications keep their traced decisions beside it
+(``apps/_exported.py``), so it skips tracing and lowering too; ``--no-cache``
+turns both off for one run.
 """
 from __future__ import annotations
 
