@@ -21,14 +21,21 @@ the figure of merit.
   the same loop with the plant not jitted (what each step pays for it).
 * progress: a compiled ``simulate`` of ``--progress-steps`` cheap steps (N = 2,
   3 inputs) with and without ``progress=True``.
+* runtime: what bounds a standalone call on XLA:CPU. A jitted function of k
+  independent 800-byte results (``sin(x * i)``) for k = 4 .. 16, and the
+  eager step of the inverter at N = 1 against it returning ``u`` only:
+  microseconds a call and the process's context switches a call (every
+  thread's, from ``/proc``; Linux only).
 
     python benchmarks/step_bench.py [--horizons 1 3] [--steps 300] [--rounds 3] [--loop-steps 1600]
-                                    [--progress-steps 20000] [--sections step oneshot loop progress]
+                                    [--progress-steps 20000] [--sections step oneshot loop progress runtime]
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
+import glob
+import os
 import platform
 import statistics
 import time
@@ -216,6 +223,46 @@ def section_progress(steps: int, rounds: int):
     print(f"\nprogress on / off: {on / off:.3f}x ({progress.interval(steps)} steps per bar update)")
 
 
+def context_switches() -> int:
+    """Voluntary and involuntary context switches of every thread of this process so far (Linux)."""
+    total = 0
+    for status in glob.glob(f"/proc/{os.getpid()}/task/*/status"):
+        with contextlib.suppress(FileNotFoundError):
+            with open(status) as f:
+                total += sum(int(line.split()[1]) for line in f if "ctxt_switches" in line)
+    return total
+
+
+def per_call(fn, args_list, calls: int) -> tuple[float, float]:
+    """Median microseconds of ``fn(*args)`` (cycling through ``args_list``) and context switches a call."""
+    for a in args_list[:3]:
+        jax.block_until_ready(fn(*a))
+    times, before = [], context_switches()
+    for k in range(calls):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args_list[k % len(args_list)]))
+        times.append(time.perf_counter() - t0)
+    return median_us(times), (context_switches() - before) / calls
+
+
+def section_runtime(calls: int):
+    print(f"\n## What bounds a standalone call: independent results against thread hand-offs ({calls} calls a row)\n")
+    print("| program | us a call (median) | context switches a call |")
+    print("|---|---:|---:|")
+    x = jnp.ones(100)  # 800 bytes: above the size under which XLA:CPU runs a program's operations in order
+    for k in (4, 8, 9, 10, 12, 16):
+        fn = jax.jit(lambda x, k=k: tuple(jnp.sin(x * (i + 1)) for i in range(k)))
+        us, switches = per_call(fn, [(x,)], calls)
+        print(f"| {k} independent results | {us:.1f} | {switches:.2f} |")
+    ctrl, _, _, x0, u0, _, rows = inverter_case(1, 50)
+    state = ctrl.init(x0, u0)
+    decide = ctrl._decide()
+    for name, fn in (("inverter decision, N = 1: `ctrl.step`", ctrl.step),
+                     ("the same decision returning `u` only", jax.jit(lambda s, x, p: decide(s, x, p)[0]))):
+        us, switches = per_call(fn, [(state, x0, r) for r in rows], calls)
+        print(f"| {name} | {us:.1f} | {switches:.2f} |")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--horizons", type=int, nargs="+", default=[1, 3])
@@ -223,8 +270,8 @@ def main():
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--loop-steps", type=int, default=1600)
     ap.add_argument("--progress-steps", type=int, default=20_000)
-    ap.add_argument("--sections", nargs="+", default=["step", "oneshot", "loop", "progress"],
-                    choices=["step", "oneshot", "loop", "progress"])
+    ap.add_argument("--sections", nargs="+", default=["step", "oneshot", "loop", "progress", "runtime"],
+                    choices=["step", "oneshot", "loop", "progress", "runtime"])
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
     print(f"# {platform.machine()}, {jax.devices()[0].platform}, jax {jax.__version__}, float64")
@@ -236,6 +283,8 @@ def main():
         section_loop(args.loop_steps)
     if "progress" in args.sections:
         section_progress(args.progress_steps, max(3 * args.rounds, 9))
+    if "runtime" in args.sections:
+        section_runtime(2000)
 
 
 if __name__ == "__main__":
