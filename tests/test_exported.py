@@ -5,17 +5,21 @@ import jax.numpy as jnp
 import pytest
 
 import firhc_jax as fj
-from firhc_jax.apps import _exported
+from firhc_jax.apps import _exported, _timing
 from firhc_jax.models import hopper as hm
 
 CONTROLS = np.array([[-1.0], [0.0], [1.0]])
+
+
+def _step(x, u):
+    return jnp.stack([x[0] + 0.1 * x[1], 0.9 * x[1] + 0.2 * u[0]])
 
 
 def _controller(traces: list):
     """A small controller whose dynamics count their traces (one entry each time JAX runs the Python)."""
     def dynamics(x, u):
         traces.append(1)
-        return jnp.stack([x[0] + 0.1 * x[1], 0.9 * x[1] + 0.2 * u[0]])
+        return _step(x, u)
 
     cost = fj.quadratic_cost(lam=np.array([1.0, 0.5]), x_s=np.array([1.0, 0.0]), beta=0.01)
     return fj.FIRHC(fj.Problem(dynamics, CONTROLS, cost, 3), fallback=None)
@@ -97,3 +101,24 @@ def test_a_folder_that_cannot_be_written_is_warned_about_and_the_decision_still_
     with pytest.warns(RuntimeWarning, match="could not be kept in .*file"):
         decide = _exported.decision(ctrl, "small", blocker, state, x, p)
     np.testing.assert_array_equal(decide(state, x, p)[0], ctrl.step(state, x, p)[0])
+
+
+def test_a_timed_loop_with_settings_decides_as_the_compiled_loop_and_reads_its_decision_back():
+    """``timed_closed_loop(..., settings=...)`` (what the applications run, with the suite's compilation cache
+    on): the same closed loop as ``simulate``'s compiled scan, and a second run does not trace the model."""
+    if not jax.config.jax_compilation_cache_dir:
+        pytest.skip("the compilation cache is off (FIRHC_JAX_TEST_CACHE=off)")
+    traces = []
+    ctrl = _controller(traces)
+    x0 = _arguments(ctrl)[1]
+    settings = ("test_exported", __file__, 3)  # what built _controller: this file's code
+    plant = jax.jit(_step)
+    first, _ = _timing.timed_closed_loop(ctrl, x0, 6, plant, settings=settings)
+    traces.clear()
+    again, _ = _timing.timed_closed_loop(_controller(traces), x0, 6, plant, settings=settings)
+    assert traces == []
+    scan = ctrl.simulate(x0, 6, plant)
+    for loop in (first, again):
+        for field in ("states", "inputs", "nodes", "plans", "predicted_costs"):
+            np.testing.assert_array_equal(getattr(loop, field), getattr(scan, field), err_msg=field)
+        assert np.all(np.asarray(loop.solve_times) > 0)
