@@ -65,11 +65,11 @@ def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None,
     and ``compile_s`` the seconds to trace and compile one decision (``ctrl.step``) for these shapes.
 
     ``settings``: all that built ``ctrl`` besides the package's code
-    (``_exported.decision``); with
-    the compilation cache on, the decision is then kept in its folder as a
-    traced program, and a later run with the same settings neither traces nor
-    lowers it (its ``compile_s`` is reading it back). Otherwise the loop runs
-    the controller's own compiled decision, as ``simulate`` does.
+    (``_exported.decision``). With the compilation cache on, the decision is
+    then kept in its folder as a traced program, and a later run with the
+    same settings neither traces nor lowers it (its ``compile_s`` is reading
+    it back). Otherwise the loop runs the controller's own compiled decision,
+    as ``simulate`` does.
 
     ``compile_s`` is measured on a fresh compilation: the first call of the
     decision less its time in the loop (the first step of the loop decides
