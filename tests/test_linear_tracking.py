@@ -310,7 +310,7 @@ def test_closed_loop_with_firhc_decides_the_brute_force_optimum_at_every_step(sh
     ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
 
     def plant(x, u, p):
-        return jnp.asarray(case.A) @ x + jnp.asarray(case.B) @ u + p["d"][0]
+        return jnp.asarray(case.A) @ x + jnp.asarray(case.B) @ u + p.d[0]
 
     u0 = case.controls[0]
     run = ctrl.simulate(case.x, steps, plant, params=lt.params(y_refs, ds), u0=u0)
