@@ -1,4 +1,6 @@
 """apps._exported: an application's decision kept on disk as a traced program, read back without tracing."""
+from typing import NamedTuple
+
 import numpy as np
 import jax
 import jax.numpy as jnp
@@ -28,6 +30,12 @@ def _controller(traces: list):
 def _arguments(ctrl):
     x0 = jnp.asarray([0.3, -0.2], dtype=jnp.zeros(()).dtype)
     return ctrl.init(x0), x0, None
+
+
+class Target(NamedTuple):
+    """Parameters as a NamedTuple, as some models give them (``LinearTracking``'s ``TrackingParams``)."""
+
+    level: jax.Array  # [2]
 
 
 def _leaves(out):
@@ -122,3 +130,17 @@ def test_a_timed_loop_with_settings_decides_as_the_compiled_loop_and_reads_its_d
         for field in ("states", "inputs", "nodes", "plans", "predicted_costs"):
             np.testing.assert_array_equal(getattr(loop, field), getattr(scan, field), err_msg=field)
         assert np.all(np.asarray(loop.solve_times) > 0)
+
+
+def test_parameters_held_in_named_tuples_are_kept_and_read_back(tmp_path):
+    """A model whose parameters are a NamedTuple of arrays: the program is written, read back, and decides as
+    ``ctrl.step`` does."""
+    cost = lambda x, u, p: jnp.sum((x - p.level) ** 2) + 0.01 * u[0] ** 2  # noqa: E731
+    ctrl = fj.FIRHC(fj.Problem(lambda x, u, p: _step(x, u), CONTROLS, cost, 3), fallback=None)
+    x0 = jnp.asarray([0.3, -0.2], dtype=jnp.zeros(()).dtype)
+    p = Target(level=jnp.asarray([1.0, 0.0], dtype=x0.dtype))
+    state = ctrl.init(x0)
+    _exported.decision(ctrl, "target", tmp_path, state, x0, p)
+    again = _exported.decision(ctrl, "target", tmp_path, state, x0, p)
+    for a, b in zip(_leaves(again(state, x0, p)), _leaves(ctrl.step(state, x0, p)), strict=True):
+        np.testing.assert_array_equal(a, b)

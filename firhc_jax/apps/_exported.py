@@ -38,11 +38,27 @@ TRACE_CONFIG = ("jax_enable_x64", "jax_numpy_dtype_promotion", "jax_numpy_rank_p
                 "jax_default_matmul_precision")
 
 
-@functools.cache
-def _serializable() -> None:
-    """Let ``jax.export`` write and read the decision's argument and result trees (once per process)."""
-    for cls in (ControllerState, StepInfo, SearchResult):
-        jax.export.register_namedtuple_serialization(cls, serialized_name=f"firhc_jax.{cls.__name__}")
+_serializable: set = set()  # the NamedTuple classes jax.export can write and read in this process
+
+
+def _namedtuples(tree):
+    """The NamedTuple classes in a ``PyTreeDef``, outermost first."""
+    data = tree.node_data()
+    if data is not None and issubclass(data[0], tuple) and hasattr(data[0], "_fields"):
+        yield data[0]
+    for child in tree.children():
+        yield from _namedtuples(child)
+
+
+def _make_serializable(args) -> None:
+    """Let ``jax.export`` write and read the decision's arguments (``ControllerState``, a model's parameter
+    NamedTuples) and results (``StepInfo``, ``SearchResult``)."""
+    found = _namedtuples(jax.tree_util.tree_structure(args))
+    for cls in (*found, ControllerState, StepInfo, SearchResult):
+        if cls not in _serializable:
+            jax.export.register_namedtuple_serialization(
+                cls, serialized_name=f"{cls.__module__}.{cls.__qualname__}")
+            _serializable.add(cls)
 
 
 @functools.cache
@@ -96,7 +112,7 @@ def decision(ctrl, settings, folder, state, x, params) -> Callable:
     read is traced and written again, and one that cannot be written is
     warned about (``RuntimeWarning``).
     """
-    _serializable()
+    _make_serializable((state, x, params))
     path = Path(folder) / FOLDER / f"{digest(settings, (state, x, params))}.jaxexport"
     try:
         program = jax.export.deserialize(bytearray(path.read_bytes()))
