@@ -281,14 +281,21 @@ class FIRHC:
         plant, plant_key, default = self._plant(plant)
         check_closed_loop(self.options, plant_key if compiled else False, plant if compiled else None, state.u, x0,
                           params, default, drop=1)
+        out = self._run(state, x0, steps, plant, plant_key, params, progress, None if compiled else self._decide())
+        return out._replace(times=times)
+
+    def _run(self, state, x0, steps: int, plant, plant_key, params, progress: bool, decision) -> ClosedLoop:
+        """A checked closed loop (``simulate``'s), under its progress bar and followed by the held-input warning:
+        one compiled scan where ``decision`` is None, else a Python loop of ``decision``, a compiled decision of
+        this controller (``step``'s contract). No time axis."""
         with Progress(steps, f"FIRHC[{self.solver}]", enabled=progress):
-            if compiled:
+            if decision is None:
                 out, = run_compiled(functools.partial(decide, self.options), user_plant(plant), [(state, x0, params)],
                                     steps, key=(self.options.key, plant_key), progress=progress)
             else:
-                out = run_python(self._decide(), user_plant(plant), state, x0, params, steps, progress=progress)
+                out = run_python(decision, user_plant(plant), state, x0, params, steps, progress=progress)
         warn_held(out.held, steps, self.u_safe is not None)
-        return out._replace(times=times)
+        return out
 
     def simulate_batch(self, X0, steps: int, plant: Optional[Callable] = None, *, params=None, u0=None, dt=None,
                        progress: bool = False) -> ClosedLoop:

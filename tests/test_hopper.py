@@ -13,7 +13,7 @@ import pytest  # noqa: E402
 
 import firhc_jax as fj  # noqa: E402
 from firhc_jax import cli  # noqa: E402
-from firhc_jax.apps import _timing, hopper as app  # noqa: E402
+from firhc_jax.apps import hopper as app  # noqa: E402
 from firhc_jax.apps._timing import compile_events as compilations  # noqa: E402
 from firhc_jax.models import hopper as hm  # noqa: E402
 
@@ -168,15 +168,15 @@ def test_cli_runs_the_timed_loop_of_the_compiled_one_and_writes_its_results(sdfs
     decision is timed; compile_time_s covers XLA's compilation of the decision, done before the timed loop; the
     summary is the one recorded before the port; the figures and the saved closed loop are written."""
     out = tmp_path / "hop"
-    in_loop, run_python = [], _timing.run_python
+    in_loop, simulate = [], fj.FIRHC._run
 
-    def recorded(*args, **kwargs):
+    def recorded(self, *args, **kwargs):
         with compilations() as seen:
-            result = run_python(*args, **kwargs)
+            result = simulate(self, *args, **kwargs)
         in_loop.extend(seen)
         return result
 
-    monkeypatch.setattr(_timing, "run_python", recorded)
+    monkeypatch.setattr(fj.FIRHC, "_run", recorded)
     with compilations() as seen:
         assert cli.main(["hopper", "--horizon", "4", "--seconds", "0.6", "--out", str(out), "--no-progress"]) == 0
     decision = max((c for c in seen if c not in in_loop), key=lambda c: c[1])  # (name, s) the longest before

@@ -123,7 +123,9 @@ def decision(ctrl, settings, folder, state, x, params) -> Callable:
         except OSError as e:
             warnings.warn(f"the decision could not be kept in {str(path.parent)!r} ({e.strerror or e}): the next "
                           "run traces it again", RuntimeWarning, stacklevel=2)
-    return jax.jit(program.call)
+    # Placed on one device: arguments whether committed there or not (an exported program's results are) share
+    # one compilation.
+    return jax.jit(program.call, in_shardings=jax.sharding.SingleDeviceSharding(jax.devices()[0]))
 
 
 def _write(path: Path, blob: bytes) -> None:

@@ -1,8 +1,8 @@
 """Compile, then time the loop: how every application times its closed loop.
 
-The loop is the deployment path, ``FIRHC.simulate(..., compiled=False)``'s
-Python loop of the compiled decision (``loop.run_python``), with each decision
-timed in ``solve_times``. Before it, the decision is compiled for the run's shapes and
+The loop is the deployment path, ``FIRHC.simulate(..., compiled=False)``: a
+Python loop of the compiled decision with each decision timed in
+``solve_times``. Before it, the decision is compiled for the run's shapes and
 that compilation is timed on its own, so ``compile_s`` is tracing plus
 compilation and ``solve_times`` never include it. The loop runs with
 Python's cyclic garbage collector paused, as a real-time loop would run
@@ -18,8 +18,6 @@ import time
 import jax
 
 from ..controller_checks import sample_times
-from ..loop import run_python, user_plant, warn_held
-from ..progress import Progress
 from ._exported import decision
 from ._status import stage
 
@@ -68,8 +66,7 @@ def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None,
     (``_exported.decision``). With the compilation cache on, the decision is
     then kept in its folder as a traced program, and a later run with the
     same settings neither traces nor lowers it (its ``compile_s`` is reading
-    it back). Otherwise the loop runs the controller's own compiled decision,
-    as ``simulate`` does.
+    it back). Otherwise the loop runs the controller's own compiled decision.
 
     ``compile_s`` is measured on a fresh compilation: the first call of the
     decision less its time in the loop (the first step of the loop decides
@@ -78,9 +75,7 @@ def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None,
     decision is then compiled ahead of time once more
     (``jax.jit(ctrl.step).lower(...).compile()``), which is what is timed.
     """
-    # Committed to the device, as every later step's are: an exported program's results are, and a call with
-    # committed arguments is another compilation than one without.
-    state, x0 = jax.device_put((ctrl.init(x0, u0), x0), jax.devices()[0])
+    state = ctrl.init(x0, u0)
     p0 = None if params is None else jax.tree_util.tree_map(lambda a: a[0], params)
     with compile_events() as seen, stage("compiling the decision"):
         t0 = time.perf_counter()
@@ -88,11 +83,9 @@ def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None,
         decide = decision(ctrl, settings, folder, state, x0, p0) if settings and folder else ctrl._decide()
         jax.block_until_ready(decide(state, x0, p0))
         first = time.perf_counter() - t0
-    with collector_paused(), Progress(steps, f"FIRHC[{ctrl.solver}]", enabled=progress):
-        loop = run_python(decide, user_plant(ctrl.problem.model_plant if plant is None else plant), state, x0,
-                          params, steps, progress=progress)
-    warn_held(loop.held, steps, ctrl.u_safe is not None)
-    loop = loop._replace(times=sample_times(dt, steps))
+    with collector_paused():  # the decision was checked when traced; the plant is called as it is
+        plant, key, _ = ctrl._plant(plant)
+        loop = ctrl._run(state, x0, steps, plant, key, params, progress, decide)._replace(times=sample_times(dt, steps))
     if seen:
         return loop, first - float(loop.solve_times[0])
     with stage("timing the decision's compilation"):
