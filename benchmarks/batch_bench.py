@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from firhc_jax.sharding import usable_cores
+from firhc_jax._src.runtime.sharding import usable_cores
 
 SOLVERS = {"pool sDFS": "sdfs", "vmap sDFS": "sdfs-vmap", "vmap exhaustive": "exhaustive"}
 
@@ -51,7 +51,7 @@ SOLVERS = {"pool sDFS": "sdfs", "vmap sDFS": "sdfs-vmap", "vmap exhaustive": "ex
 def closed_loop_states(plant: str, horizon: int):
     """``(problem, states [S, n])``: the states a closed loop searched at."""
     if plant == "synthetic":
-        from firhc_jax.batch import solve_batch
+        from firhc_jax._src.search.batch import solve_batch
         from firhc_jax.models.synthetic import SyntheticParams, benchmark_state, make_problem
 
         problem = make_problem(horizon, SyntheticParams(17))
@@ -110,7 +110,7 @@ def cpu_use(fn, calls: int) -> tuple[float, float, float]:
 
 
 def measure(plant: str, horizon: int, batches, repeats: int, pool_options: dict, solvers=tuple(SOLVERS)) -> list[dict]:
-    from firhc_jax.batch import solve_batch
+    from firhc_jax._src.search.batch import solve_batch
 
     problem, states = closed_loop_states(plant, horizon)
     rng = np.random.default_rng(1)
@@ -140,7 +140,7 @@ def measure(plant: str, horizon: int, batches, repeats: int, pool_options: dict,
 
 def sweep(plant: str, horizon: int, batches, repeats: int) -> list[dict]:
     """The pool alone over a lanes x pop_width grid."""
-    from firhc_jax.batch import solve_batch
+    from firhc_jax._src.search.batch import solve_batch
 
     problem, states = closed_loop_states(plant, horizon)
     rng = np.random.default_rng(1)
@@ -158,7 +158,7 @@ def sweep(plant: str, horizon: int, batches, repeats: int) -> list[dict]:
 
 def device_child(plant: str, horizon: int, batch: int, repeats: int) -> None:
     """Runs in a subprocess with forced host devices: prints one JSON line."""
-    from firhc_jax.batch import solve_batch
+    from firhc_jax._src.search.batch import solve_batch
 
     problem, states = closed_loop_states(plant, horizon)
     X = jnp.asarray(states[np.random.default_rng(1).integers(0, len(states), batch)])

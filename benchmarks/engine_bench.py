@@ -21,7 +21,7 @@ import time
 import jax
 import numpy as np
 
-from firhc_jax.sharding import usable_cores
+from firhc_jax._src.runtime.sharding import usable_cores
 
 M = 17
 
@@ -64,10 +64,10 @@ def main(argv=None):
     args = ap.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
     import numba
-
-    import firhc_jax as fj
     import numba_peer as peer
     from batch_bench import cpu_use
+
+    import firhc_jax as fj
     from firhc_jax.models import tanks
     from firhc_jax.models.synthetic import SyntheticParams, benchmark_state, make_problem
 

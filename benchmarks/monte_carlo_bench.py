@@ -47,8 +47,8 @@ import numpy as np
 from jaxlib import xla_client
 
 import firhc_jax as fj
+from firhc_jax._src.runtime.sharding import usable_cores
 from firhc_jax.models import spacecraft as sc
-from firhc_jax.sharding import usable_cores
 
 
 def vmap_of_step(ctrl, plant, steps):

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import firhc_jax as fj
-from firhc_jax.linear_factor import psd_factor
+from firhc_jax._src.linear.factor import psd_factor
 from firhc_jax.models import inverter, thermal, three_level
 
 

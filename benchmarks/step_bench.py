@@ -199,7 +199,7 @@ def section_loop(T: int):
 
 def section_progress(steps: int, rounds: int):
     """Compiled closed loop of cheap steps with and without a progress bar (drawn on stderr), interleaved."""
-    from firhc_jax import progress
+    from firhc_jax._src.runtime import progress
 
     prob = fj.Problem(lambda x, u: 0.9 * x + 0.1 * u, jnp.array([-1.0, 0.0, 1.0]), fj.quadratic_cost(1.0, 0.0), 2)
     ctrl, x0 = fj.FIRHC(prob), jnp.ones(1)

@@ -58,7 +58,7 @@ def _use_compilation_cache() -> None:
     """The default folder, unless this process already set one (``JAX_COMPILATION_CACHE_DIR``, a caller)."""
     import jax
 
-    from .compilation_cache import enable_compilation_cache
+    from ._src.runtime.disk_cache import enable_compilation_cache
 
     if jax.config.jax_compilation_cache_dir is not None:
         return

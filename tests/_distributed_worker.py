@@ -13,9 +13,9 @@ import sys
 import jax
 import jax.numpy as jnp
 import numpy as np
+from random_problems import make
 
 import firhc_jax as fj
-from random_problems import make
 
 B = 10  # even: the rows are split as they are; the params case takes B - 1 (padded over 2 devices)
 
@@ -53,7 +53,7 @@ def cases():
 def closed_loops(ran: list | None = None) -> fj.ClosedLoop:
     """7 closed loops of the parameter problem in one simulate_batch (loops shared out over the processes);
     ``ran`` gets the number of loops this process ran itself."""
-    from firhc_jax import loop
+    from firhc_jax._src.control import runner as loop
 
     rng = np.random.default_rng(5)
     P = {"r": rng.uniform(-0.5, 0.5, (7, 6, 2)), "w": rng.uniform(0.0, 0.2, (7, 6))}

@@ -12,9 +12,9 @@ import functools
 import jax.numpy as jnp
 import numpy as np
 from hypothesis import strategies as st
+from reference import brute_force, rollout, same_cost, sequences, tolerance  # noqa: F401 (same_cost: re-exported)
 
 import firhc_jax as fj
-from reference import brute_force, rollout, same_cost, sequences, tolerance  # noqa: F401 (same_cost: re-exported)
 
 SHAPES = ((1, 1, 3, 4), (2, 2, 4, 3), (3, 1, 2, 6), (2, 3, 5, 3))  # (n, m, M, N)
 

@@ -6,9 +6,9 @@ from dataclasses import dataclass
 
 import jax.numpy as jnp
 import numpy as np
+import reference
 
 import firhc_jax as fj
-import reference
 
 
 @dataclass

@@ -7,11 +7,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-import firhc_jax as fj
 from compiles import compile_count
 from random_problems import make
 from reference import same_cost
+
+import firhc_jax as fj
 
 
 def dyn(x, u):
@@ -245,7 +245,8 @@ def test_firhc_bad_options():
 def test_progress_bar_reports_from_compiled_loop(capsys, monkeypatch):
     """Every step of a compiled closed loop ticks the bar (the bar's own exit would show 4/4 anyway), and
     with progress off the compiled loop has no host callback at all."""
-    from firhc_jax import loop, progress
+    from firhc_jax._src.control import runner as loop
+    from firhc_jax._src.runtime import progress
 
     ticks = []
     original = progress.tick_python

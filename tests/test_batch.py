@@ -10,16 +10,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jaxlib import xla_client
-
-import firhc_jax as fj
-from firhc_jax import batch as batch_module
-from firhc_jax.batch import row_memory, solve_batch
-from firhc_jax.pool import pool_memory, pool_row_memory
-from firhc_jax.sharding import usable_cores
 from compiles import compile_count
+from jaxlib import xla_client
 from random_problems import make
 from reference import brute_force, same_cost
+
+import firhc_jax as fj
+from firhc_jax._src.runtime.sharding import usable_cores
+from firhc_jax._src.search import batch as batch_module
+from firhc_jax._src.search.batch import row_memory, solve_batch
+from firhc_jax._src.search.pool import pool_memory, pool_row_memory
 
 SOLVERS = ("sdfs", "sdfs-vmap", "exhaustive")
 
@@ -220,7 +220,7 @@ def test_memory_limit_chunks_or_refuses(solver):
 FOUR_DEVICES = """
 import jax, numpy as np
 jax.config.update("jax_enable_x64", True)
-from firhc_jax.batch import solve_batch
+from firhc_jax._src.search.batch import solve_batch
 from random_problems import make
 from reference import brute_force, same_cost
 assert jax.local_device_count() == 4, jax.local_devices()
@@ -281,11 +281,9 @@ def test_docs_example_runs():
 
 
 # ---------------------------------------------------------------- property test of the pool
+import param_problems as pp  # noqa: E402
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
-
-import param_problems as pp  # noqa: E402
-
 
 # Lanes and pop width are compile-time constants: one setting per shape (each setting on two shapes), so that
 # one compiled pool per shape serves every example of it.

@@ -5,14 +5,24 @@ import itertools
 import jax
 import jax.numpy as jnp
 import numpy as np
+import param_problems as pp
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from param_problems import (
+    SHAPES,
+    as_jax,
+    cases,
+    cost_to_go,
+    draw_params,
+    dynamics,
+    problem,
+    same_cost,
+    stage_cost,
+    terminal,
+)
 
 import firhc_jax as fj
-import param_problems as pp
-from firhc_jax.diagnostics import check_lower_bound
-from param_problems import SHAPES, as_jax, cases, cost_to_go, draw_params, dynamics, problem, same_cost, stage_cost, \
-    terminal
+from firhc_jax._src.problem.diagnostics import check_lower_bound
 
 SETTINGS = settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

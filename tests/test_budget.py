@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-import firhc_jax as fj
 from param_problems import as_jax, as_seen
 from reference import same_cost, tolerance
+
+import firhc_jax as fj
 
 SHAPES = ((2, 1, 3, 5), (1, 1, 4, 4))  # (n, m, M, N)
 LONG = (2, 1, 3, 7)  # where a budget holds a few levels but not the tree

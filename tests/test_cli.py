@@ -4,10 +4,10 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
-import numpy as np
-
+import firhc_jax as fj
 from firhc_jax import cli
 from firhc_jax.apps import batch, bench, example, hopper, inverter, tanks
 from firhc_jax.apps import profile as profile_app
@@ -189,10 +189,9 @@ def _user_module(tmp_path, monkeypatch, kind: str, command: str) -> str:
 @pytest.mark.parametrize("command", ["batch", "profile"])
 def test_a_mistake_in_the_users_module_is_one_line_and_the_traceback_needs_debug(kind, command, tmp_path,
                                                                                    monkeypatch):
-    import firhc_jax.batch
     from firhc_jax import distributed
 
-    monkeypatch.setattr(firhc_jax.batch, "solve_batch", lambda *a, **k: pytest.fail("solved"))
+    monkeypatch.setattr(fj, "solve_batch", lambda *a, **k: pytest.fail("solved"))
     module = _user_module(tmp_path, monkeypatch, kind, command)
     distributed.save_states(tmp_path / "X0.npz", np.zeros((2, 1)))
     argv = (["batch", "--problem", f"{module}:case", "--states", str(tmp_path / "X0.npz"), "--out",

@@ -1,7 +1,7 @@
 """A closed loop keeps its plans and time axis, saves, loads and plots."""
+import jax.numpy as jnp
 import matplotlib
 import numpy as np
-import jax.numpy as jnp
 import pytest
 
 import firhc_jax as fj
@@ -53,8 +53,8 @@ def test_save_load_round_trip(run, tmp_path):
 
 def test_plot_returns_a_figure_and_leaves_the_backend_alone(run, tmp_path):
     matplotlib.use("Agg")
-    from matplotlib.figure import Figure
     import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     before, figures = matplotlib.get_backend(), plt.get_fignums()
     fig = run.plot(title="cart")

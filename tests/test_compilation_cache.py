@@ -11,7 +11,7 @@ import pytest
 
 import firhc_jax as fj
 from firhc_jax import cli
-from firhc_jax.compilation_cache import default_cache_path
+from firhc_jax._src.runtime.disk_cache import default_cache_path
 
 
 def _python(code: str, **env) -> str:

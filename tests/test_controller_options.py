@@ -55,7 +55,8 @@ def test_bad_options_are_refused():
 def test_a_progress_bar_costs_at_most_TICKS_host_callbacks(capsys, monkeypatch):
     """A host callback per step made progress=True 23x slower: a run reports every
     interval(T) steps and at its end, whatever T, compiled or not."""
-    from firhc_jax import loop, progress
+    from firhc_jax._src.control import runner as loop
+    from firhc_jax._src.runtime import progress
 
     ticks = []
     original = progress.tick_python

@@ -7,14 +7,14 @@ import sys
 import time
 from pathlib import Path
 
+import _distributed_worker as worker
 import jax
 import numpy as np
 import pytest
 
-import _distributed_worker as worker
 import firhc_jax as fj
 from firhc_jax import distributed
-from firhc_jax.sharding import mesh_of
+from firhc_jax._src.runtime.sharding import mesh_of
 from firhc_jax.cli import main as cli_main
 from firhc_jax.models.synthetic import benchmark_state
 
@@ -206,8 +206,7 @@ def _refuse_to_solve(*args, **kwargs):
 def test_batch_checks_out_before_any_work(tmp_path, monkeypatch, out, launch, match):
     """An unwritable or ambiguous ``--out`` is a one-line error before anything is solved (``--out .`` wrote
     ``..npz`` and reported ``-> .``), and nothing is written."""
-    import firhc_jax.batch
-    monkeypatch.setattr(firhc_jax.batch, "solve_batch", _refuse_to_solve)
+    monkeypatch.setattr(fj, "solve_batch", _refuse_to_solve)
     monkeypatch.chdir(tmp_path)
     (tmp_path / "sub").mkdir()
     distributed.save_states("X0.npz", np.zeros((2, 3)))
@@ -224,8 +223,7 @@ def test_batch_checks_out_before_any_work(tmp_path, monkeypatch, out, launch, ma
     ("firhc_jax.models.tanks:make_problem", None, "must be a function without arguments"),
     (None, np.array([["a", "b", "c"]]), "X0 must hold real numbers, got dtype <U1")])
 def test_batch_refuses_bad_problems_and_states_clearly(tmp_path, monkeypatch, problem, states, match):
-    import firhc_jax.batch
-    monkeypatch.setattr(firhc_jax.batch, "solve_batch", _refuse_to_solve)
+    monkeypatch.setattr(fj, "solve_batch", _refuse_to_solve)
     distributed.save_states(tmp_path / "X0.npz", np.zeros((2, 3)) if states is None else states)
     what = ["--problem", problem] if problem else ["--plant", "synthetic", "-N", "2"]
     with pytest.raises(SystemExit, match=match):

@@ -2,14 +2,14 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import param_problems as pp
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-import firhc_jax as fj
-import param_problems as pp
 from random_problems import make
 from reference import same_cost
+
+import firhc_jax as fj
 
 # Breadth of shapes (n, m, M, N drawn, M = 1 and N = 1 included): every example compiles its own problem, so
 # few examples; tests/test_params.py carries the breadth of values on one compile per shape.
@@ -131,7 +131,7 @@ def test_exhaustive_chunking_changes_nothing():
     rp = make(3, 2, 2, 4, 5, "loose")
     p, x0 = rp.problem(), np.array([0.2, -0.4])
     whole = fj.exhaustive(p, x0)
-    from firhc_jax.exhaustive import plan
+    from firhc_jax._src.search.exhaustive import plan
     assert plan(p, 200).chunks > 1 and (4**plan(p, 200).split) % plan(p, 200).chunk == 0  # chunks, none padded
     chunked = fj.exhaustive(p, x0, chunk_nodes=200)
     assert float(chunked.cost) == float(whole.cost)

@@ -1,9 +1,9 @@
 """apps._exported: an application's decision kept on disk as a traced program, read back without tracing."""
 from typing import NamedTuple
 
-import numpy as np
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import firhc_jax as fj

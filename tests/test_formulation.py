@@ -15,13 +15,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference
+from compiles import compile_count
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import firhc_jax as fj
-
-from compiles import compile_count
-import reference
 
 N, M, n = 3, 3, 2
 CONTROLS = np.array([-1.0, 0.0, 1.0])
@@ -158,7 +157,7 @@ def test_solve_batch_matches_brute_force(solver, a, b):
 @given(instances(), st.lists(st.integers(0, M - 1), min_size=N, max_size=N))
 def test_warm_start_and_rollout_cost_include_every_term(inst, seq):
     x0, p = inst
-    cost, _ = fj.nodes.rollout_cost(PROBLEM, jnp.asarray(x0), jnp.asarray(seq, jnp.int32), jnp.float64,
+    cost, _ = fj.rollout_cost(PROBLEM, jnp.asarray(x0), jnp.asarray(seq, jnp.int32), jnp.float64,
                                       jax.tree_util.tree_map(jnp.asarray, p))
     assert reference.same_cost(cost, np_cost(p, x0, seq))
     check(fj.sdfs(PROBLEM, x0, params=p, warm_start=np.array(seq)), p, x0, brute_force(p, x0))

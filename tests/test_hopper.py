@@ -217,7 +217,7 @@ def test_bound_is_admissible_and_keeps_the_closed_loop(sdfs_loop):
     warm-started from two candidates, drives the same closed loop with fewer nodes. The contact bound's
     premise holds: with valve b closed (side a idle) one period moves e = E - E_d by at most PASSIVE_DRIFT;
     where side a could charge, the bound claims nothing (0)."""
-    from firhc_jax.diagnostics import check_lower_bound
+    from firhc_jax._src.problem.diagnostics import check_lower_bound
 
     plain, _ = sdfs_loop
     warm, _, _ = app.simulate(0.6, 4, "sdfs", P, progress=False, bound=True, warm=True)
@@ -264,7 +264,7 @@ def test_bound_is_admissible_and_keeps_the_closed_loop(sdfs_loop):
 
 
 def test_warm_candidate_takes_the_unshifted_plan_when_the_shifted_one_misses_the_band(sdfs_loop):
-    from firhc_jax.nodes import rollout_cost
+    from firhc_jax._src.search.nodes import rollout_cost
 
     loop, _ = sdfs_loop
     S = np.asarray(loop.states)

@@ -5,13 +5,13 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import random_problems
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import firhc_jax as fj
-from firhc_jax import solvers
-from firhc_jax.controller import Options
-import random_problems
+from firhc_jax._src.control.controller import Options
+from firhc_jax._src.search import solvers
 
 
 def _dyn(x, u):

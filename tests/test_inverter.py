@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from reference import rollout, same_cost
 from scipy.linalg import expm
 
 import firhc_jax as fj
@@ -13,7 +14,6 @@ from firhc_jax import cli
 from firhc_jax.apps import inverter as app
 from firhc_jax.apps._timing import compile_events
 from firhc_jax.models import inverter as model
-from reference import rollout, same_cost
 
 jax.config.update("jax_enable_x64", True)
 
@@ -164,7 +164,7 @@ def test_cli_rejects_run_shorter_than_two_samples(tmp_path, capsys):
 def test_bound_is_admissible_and_keeps_the_closed_loop():
     """The reachable-hexagon bound passes the exhaustive check on closed-loop states away from the reference,
     10x it is caught, and the bounded closed loop is the unbounded one."""
-    from firhc_jax.diagnostics import check_lower_bound
+    from firhc_jax._src.problem.diagnostics import check_lower_bound
 
     plain = app.closed_loop(2, steps=40, lambda_u=1.0, timed=False)
     bounded = app.closed_loop(2, steps=40, lambda_u=1.0, bound=True, timed=False)

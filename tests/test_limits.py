@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-import firhc_jax as fj
 from param_problems import as_jax, cases, check_optimal, problem
 from reference import same_cost
+
+import firhc_jax as fj
 
 
 def _dyn(x, u):

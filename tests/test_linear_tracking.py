@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from reference import same_cost
 
 import firhc_jax as fj
+from firhc_jax._src.linear.tracking import Node
 from firhc_jax.apps._timing import TRACED
 from firhc_jax.apps._timing import compile_events as compilations
-from firhc_jax.linear_tracking import Node
 from firhc_jax.models import thermal, three_level
-from reference import same_cost
 
 SETTINGS = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

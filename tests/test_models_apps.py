@@ -16,7 +16,6 @@ import firhc_jax as fj
 from firhc_jax import cli
 from firhc_jax.apps import _run
 from firhc_jax.apps import example as example_app
-from firhc_jax.apps import hopper as hopper_app
 from firhc_jax.models import hopper, inverter, pumping, spacecraft, synthetic, tanks, thermal, three_level
 
 MODELS = (hopper, tanks, inverter, three_level, thermal, pumping, synthetic, spacecraft)
@@ -44,22 +43,6 @@ def _evaluations(problem: fj.Problem, x, p):
     return out
 
 
-def _assert_same_problem(a: fj.Problem, b: fj.Problem, x, p=None):
-    assert (a.horizon, a.step_index) == (b.horizon, b.step_index)
-    assert [getattr(a, f) is None for f in ("terminal", "lower_bound", "terminal_cost", "constraint")] == \
-        [getattr(b, f) is None for f in ("terminal", "lower_bound", "terminal_cost", "constraint")]
-    ea, eb = _evaluations(a, x, p), _evaluations(b, x, p)
-    assert ea.keys() == eb.keys()
-    for key in ea:
-        np.testing.assert_array_equal(np.asarray(ea[key]), np.asarray(eb[key]), err_msg=key)
-
-
-def _assert_same_tracking(a, b):
-    for name in ("A", "B", "C", "Q", "lambda_u", "max_step", "horizon"):
-        np.testing.assert_array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)), err_msg=name)
-    np.testing.assert_array_equal(np.asarray(a.problem.controls), np.asarray(b.problem.controls))
-
-
 def test_every_model_has_the_same_factory_signature():
     """``make_problem(horizon, params=<Model>Params(), ...)`` with the model's own parameter record as the
     default, and ``make_plant(params=...)`` with the same default wherever the model has a plant."""
@@ -76,45 +59,13 @@ def test_every_model_has_the_same_factory_signature():
         assert list(plant)[0] == "params" and isinstance(plant["params"].default, PARAMS[module]), module.__name__
 
 
-def test_the_old_hopper_names_warn_and_return_the_same_objects():
+def test_the_hopper_factory_relaxes_and_bounds_as_asked():
     P = hopper.HopperParams()
-    with pytest.warns(DeprecationWarning, match=r"make_problem\(horizon, params, bound=bound\)"):
-        assert hopper.problem(P, 3, True) is hopper.make_problem(3, P, bound=True)
-    with pytest.warns(DeprecationWarning, match="terminal=False"):
-        assert hopper.fallback_problem(P, 3) is hopper.make_problem(3, P, bound=True, terminal=False)
-    with pytest.warns(DeprecationWarning, match="make_plant"):
-        assert hopper.plant(P) is hopper.make_plant(P)
-    with pytest.warns(DeprecationWarning, match="apps.hopper.controller"):
-        assert hopper.controller(P, 3, "sdfs", True, True) is hopper_app.controller(3, P, "sdfs", True, True)
     bounded = hopper.make_problem(3, P, bound=True)
     relaxed = hopper.make_problem(3, P, bound=True, terminal=False)
     assert relaxed.terminal is None and relaxed.lower_bound is not bounded.lower_bound
     assert hopper.make_problem(3, P, terminal=False).terminal is None
-    z = jnp.asarray([0.0, 0.0, P.P_a0, P.P_b0, 0.0])
-    previous = jnp.zeros(3, jnp.int32)  # valve b closed throughout
-    with pytest.warns(DeprecationWarning, match="apps.hopper.warm_candidate"):
-        old = hopper.warm_candidate(bounded, z, previous)
-    np.testing.assert_array_equal(old, hopper_app.warm_candidate(bounded, z, previous))
-
-
-def test_the_old_factory_names_and_orders_warn_and_build_equal_problems():
-    x = jnp.asarray([0.2, 0.03, 1.0 / 3.0])
-    with pytest.warns(DeprecationWarning, match="synthetic.make_problem"):
-        old = synthetic.synthetic_problem(5, 2, 3)
-    _assert_same_problem(old, synthetic.make_problem(2, synthetic.SyntheticParams(num_controls=5, work=3)), x)
-
-    hours = pumping.horizon_params(*pumping.forecast(4), 1, 3)
-    p0 = jax.tree_util.tree_map(lambda a: jnp.asarray(a[0]), hours)
-    with pytest.warns(DeprecationWarning, match="bound=bound"):
-        old = pumping.make_problem(3, "target")
-    _assert_same_problem(old, pumping.make_problem(3, bound="target"), jnp.asarray(pumping.INITIAL_LEVELS), p0)
-
-    with pytest.warns(DeprecationWarning, match="three_level.make_problem"):
-        old = three_level.tracking(2, 0.3)
-    _assert_same_tracking(old, three_level.make_problem(2, lambda_u=0.3))
-    with pytest.warns(DeprecationWarning, match="thermal.make_problem"):
-        old = thermal.tracking(2, 0.01)
-    _assert_same_tracking(old, thermal.make_problem(2, lambda_u=0.01))
+    assert hopper.make_problem(3, P, bound=True) is bounded
 
 
 def test_pumping_params_reach_every_callable():
@@ -161,7 +112,8 @@ def test_the_thermal_plant_holds_its_steady_state():
 
 
 def _imports(path: Path) -> set:
-    """The absolute names of every module ``path`` imports (relative imports resolved in ``firhc_jax.apps``)."""
+    """The absolute names of every module ``path`` imports (relative imports resolved in its own package)."""
+    package = "firhc_jax." + path.parent.name
     names = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
@@ -169,8 +121,8 @@ def _imports(path: Path) -> set:
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
-                package = "firhc_jax.apps" if node.level == 1 else "firhc_jax"
-                base = f"{package}.{base}" if base else package
+                parent = package if node.level == 1 else "firhc_jax"
+                base = f"{parent}.{base}" if base else parent
             names.add(base)
             names.update(f"{base}.{a.name}" for a in node.names)
     return names
@@ -182,10 +134,20 @@ def test_no_app_imports_another_and_no_model_builds_a_controller():
     for name in commands:
         path = apps / f"{name.rsplit('.', 1)[1]}.py"
         assert not (_imports(path) & (commands - {name})), f"{path.name} imports another command"
-    models = Path(cli.__file__).parent / "models"
-    for path in models.glob("*.py"):
-        text = path.read_text()
-        assert "fj.FIRHC(" not in text and "firhc_jax.nodes" not in text and "from ..nodes" not in text, path.name
+    for path in (Path(cli.__file__).parent / "models").glob("*.py"):
+        assert "fj.FIRHC(" not in path.read_text(), path.name
+
+
+def test_models_and_apps_import_only_public_names():
+    """Models and the command line are written as a user would write them: no private module, and no model
+    imports an application."""
+    root = Path(cli.__file__).parent
+    for folder in ("models", "apps"):
+        for path in (root / folder).glob("*.py"):
+            private = {name for name in _imports(path) if "._src" in name or name.startswith("firhc_jax._")}
+            assert not private, f"{folder}/{path.name} imports {sorted(private)}"
+            if folder == "models":
+                assert not {n for n in _imports(path) if n.startswith("firhc_jax.apps")}, path.name
 
 
 class _Run(NamedTuple):

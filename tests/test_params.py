@@ -4,13 +4,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiles import compile_count
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-import firhc_jax as fj
-from compiles import compile_count
 from param_problems import SHAPES, as_jax, cases, check_optimal, draw_params, problem
 from reference import brute_force, same_cost
+
+import firhc_jax as fj
 
 SETTINGS = settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

@@ -6,7 +6,6 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from reference import same_cost
 
 # One fixture runs every block of the README (about 30 s of compiling): the documents' examples are long checks.

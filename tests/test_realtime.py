@@ -4,11 +4,10 @@ full suite) it is that run to the last bit."""
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiles import compile_count
 
 import firhc_jax as fj
-from firhc_jax import progress
-
-from compiles import compile_count
+from firhc_jax._src.runtime import progress
 
 STEPS = 245  # chunks of interval(245) = 10 steps, the last one 5 steps past the end
 

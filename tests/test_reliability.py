@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from reference import brute_force, same_cost
 
 import firhc_jax as fj
-from firhc_jax.diagnostics import check_problem
-from reference import brute_force, same_cost
+from firhc_jax._src.problem.diagnostics import check_problem
 
 
 def _shift(x, u):

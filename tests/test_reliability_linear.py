@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
-
-import firhc_jax as fj
-from firhc_jax.linear_tracking import input_classes
-from firhc_jax.models import three_level
 from reference import same_cost
 from test_linear_tracking import NONE, Case
+
+import firhc_jax as fj
+from firhc_jax._src.linear.tracking import input_classes
+from firhc_jax.models import three_level
 
 FEW = settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

@@ -4,13 +4,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-
-import firhc_jax as fj
 import random_problems
 from compiles import compile_count
-from test_step import CONTROLS, N, PROBLEM, actuate, counting_controller, observe, plant
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from test_step import CONTROLS, PROBLEM, N, actuate, counting_controller, observe, plant
+
+import firhc_jax as fj
 
 T = 8
 

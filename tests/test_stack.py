@@ -1,10 +1,10 @@
-"""The sDFS stack (``firhc_jax.stack``) on its own: push, pop, top and paths."""
+"""The sDFS stack (``firhc_jax._src.search.stack``) on its own: push, pop, top and paths."""
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from firhc_jax import stack as stacks
+from firhc_jax._src.search import stack as stacks
 
 N, K, M, n = 4, 2, 3, 2  # rows 0..N, K parents of M inputs: L = 6 nodes a row
 

@@ -4,10 +4,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiles import compile_count
 
 import firhc_jax as fj
-
-from compiles import compile_count
 
 # A plant that is not the model: a cart with friction the model ignores, driven through a gain, with a
 # second plant input set by a fixed law (actuate). The model state carries the input applied last (observe),

@@ -29,8 +29,7 @@ import jax
 import jaxlib
 import numpy as np
 
-from ..decision import ControllerState, StepInfo
-from ..result import SearchResult
+from .. import ControllerState, SearchResult, StepInfo
 
 FOLDER = "firhc_jax_exported"  # inside the compilation cache's folder
 # The JAX options that change what a trace produces.

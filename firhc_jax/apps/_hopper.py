@@ -11,8 +11,6 @@ import numpy as np
 import firhc_jax as fj
 from firhc_jax.models import hopper as hm
 
-from ..nodes import rollout_cost
-
 
 def warm_candidate(problem: fj.Problem, x, previous, params=None):
     """The warm start for a search from ``x``: the cheaper of ``previous`` (the last decision's sequence ``[N]``)
@@ -26,7 +24,7 @@ def warm_candidate(problem: fj.Problem, x, previous, params=None):
     shifted = jnp.concatenate([previous[1:], previous[-1:]])
     candidates = jnp.stack([shifted, previous])  # [2, N]
     dtype = jnp.promote_types(x.dtype, jnp.float32)
-    costs = jax.vmap(lambda w: rollout_cost(problem, x, w, dtype, params)[0])(jnp.maximum(candidates, 0))
+    costs = jax.vmap(lambda w: fj.rollout_cost(problem, x, w, dtype, params)[0])(jnp.maximum(candidates, 0))
     i = jnp.argmin(costs)
     return jnp.where((previous[0] >= 0) & jnp.isfinite(costs[i]), candidates[i], -1)
 

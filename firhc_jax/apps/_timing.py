@@ -17,7 +17,6 @@ import time
 
 import jax
 
-from ..controller_checks import sample_times
 from ._exported import decision
 from ._status import stage
 
@@ -85,7 +84,7 @@ def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None,
         first = time.perf_counter() - t0
     with collector_paused():  # the decision was checked when traced; the plant is called as it is
         plant, key, _ = ctrl._plant(plant)
-        loop = ctrl._run(state, x0, steps, plant, key, params, progress, decide)._replace(times=sample_times(dt, steps))
+        loop = ctrl._run(state, x0, steps, plant, key, params, progress, decide, dt)
     if seen:
         return loop, first - float(loop.solve_times[0])
     with stage("timing the decision's compilation"):

@@ -133,7 +133,7 @@ def check_out(path: Path) -> Path:
 def make_problem(args):
     """The ``Problem`` named by ``--problem`` or ``--plant``/``--horizon``."""
     if args.problem:
-        from ..problem import Problem
+        from .. import Problem
 
         spec = args.problem
         module, sep, name = spec.partition(":")
@@ -239,7 +239,8 @@ def _solve(args) -> int:
     import numpy as np
     from jax.experimental import multihost_utils
 
-    from ..batch import DEFAULT_MAX_MEMORY, solve_batch
+    from .. import solve_batch
+    from ..solvers import DEFAULT_MAX_MEMORY
 
     jax.config.update("jax_enable_x64", not args.float32)
     X0 = X0.astype(np.float32 if args.float32 else np.float64)

@@ -17,6 +17,7 @@ import json
 import os
 import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 from typing import Callable, NamedTuple
@@ -24,6 +25,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from tqdm.auto import tqdm
 
 from ._args import number, output_dir
 from ._status import stage
@@ -255,7 +257,6 @@ def machine() -> str:
 
 
 def run_tables(args) -> int:
-    from ..progress import Progress
 
     # --quick: Table 3 at its first horizon only (about 6 compilations), unless --plants says otherwise.
     asked = args.plants or (["tanks"] if args.quick else ["hopper", "tanks"])
@@ -268,13 +269,13 @@ def run_tables(args) -> int:
         raise SystemExit(f"bench tables: --pop-widths must start with 1 (the paper's sDFS) and not repeat, "
                          f"got {widths}")
     rows = []
-    with Progress(len(todo), "tables") as bar:
-        for i, (plant, n) in enumerate(todo):
+    with tqdm(total=len(todo), desc="tables", file=sys.stderr) as bar:
+        for plant, n in todo:
             with stage(f"{plant} N = {n}: the closed loop that gives the states searched"):
                 case = (hopper_case(n, 0.5 if args.quick else 2.0, args.bound) if plant == "hopper"
                         else tanks_case(n, 20.0 if args.quick else 200.0, args.bound))
             rows.append(table_row(case, 1 if args.quick else args.repeats, args.max_es_nodes, widths))
-            bar.update(i + 1)
+            bar.update(1)
     text = f"Measured on {machine()}, float64, {time.strftime('%Y-%m-%d')}.\n\n" + tables_markdown(rows, args.bound)
     _write(args.out, "tables-bound" if args.bound else "tables", text, rows)
     print(text)
@@ -371,7 +372,6 @@ def plot_profile(profile: list[dict], sweep: list[dict], out: Path) -> list[Path
 
 
 def run_throughput(args) -> int:
-    from ..progress import Progress
 
     repeats = 1 if args.quick else args.repeats
     if args.quick:
@@ -385,13 +385,13 @@ def run_throughput(args) -> int:
                       (lambda n: synthetic_case(n), (3, 4, 5))]
         batches, widths = BATCHES, POP_WIDTHS
     profile, sweep = [], []
-    with Progress(len(cases) + len(sweep_plan), "throughput") as bar:
-        for i, make in enumerate(cases):
+    with tqdm(total=len(cases) + len(sweep_plan), desc="throughput", file=sys.stderr) as bar:
+        for make in cases:
             profile += profile_case(make(), repeats, batches, args.max_es_nodes, widths)
-            bar.update(i + 1)
-        for j, (make, horizons) in enumerate(sweep_plan):
+            bar.update(1)
+        for make, horizons in sweep_plan:
             sweep += horizon_sweep(make, horizons, repeats, args.max_es_nodes)
-            bar.update(len(cases) + j + 1)
+            bar.update(1)
     lines = [f"Measured on {machine()}, float64.", "",
              "| plant | N | search | batch | nodes/s | solves/s | us/iteration |", "|---|---|---|---|---|---|---|"]
     for r in profile:

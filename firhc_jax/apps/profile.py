@@ -19,7 +19,6 @@ from pathlib import Path
 from ._args import number, output_dir
 from ._user_code import import_user_module, user_code
 
-
 MAX_LANES = 4096  # slots of one solve_batch: each holds a stack of sDFS nodes
 MAX_REPEATS = 100
 MAX_EXHAUSTIVE_NODES = 1_000_000_000  # once per repeat: minutes at the rates of docs/batch.md
@@ -113,8 +112,8 @@ def run(args) -> int:
     jax.config.update("jax_enable_x64", not args.float32)
     problem, states, params = load_case(args.case, args.debug)
     args.out.mkdir(parents=True, exist_ok=True)  # writable: checked by output_dir when the arguments were parsed
-    from ..profile import profile
-    from ..sharding import usable_cores
+    from .. import profile
+    from ..distributed import usable_cores
 
     try:
         rows = profile(problem, states, params, pop_widths=args.pop_widths, lanes=args.lanes, repeats=args.repeats,

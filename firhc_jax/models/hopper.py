@@ -69,8 +69,6 @@ from scipy.optimize import brentq
 
 import firhc_jax as fj
 
-from ._deprecation import renamed
-
 PSI = 6894.757  # Pa per psi
 
 
@@ -529,20 +527,6 @@ def make_problem(horizon: int, params: HopperParams = HopperParams(), bound: boo
     return _problems(params, horizon)["relaxed" if bound else "open"]
 
 
-def problem(params: HopperParams, horizon: int, bound: bool = False) -> fj.Problem:
-    """Deprecated: ``make_problem(horizon, params, bound=bound)``."""
-    renamed("firhc_jax.models.hopper.problem(params, horizon, bound)",
-            "firhc_jax.models.hopper.make_problem(horizon, params, bound=bound)")
-    return make_problem(horizon, params, bound)
-
-
-def fallback_problem(params: HopperParams, horizon: int) -> fj.Problem:
-    """Deprecated: ``make_problem(horizon, params, bound=True, terminal=False)``."""
-    renamed("firhc_jax.models.hopper.fallback_problem(params, horizon)",
-            "firhc_jax.models.hopper.make_problem(horizon, params, bound=True, terminal=False)")
-    return make_problem(horizon, params, True, False)
-
-
 @functools.lru_cache(maxsize=None)
 def _problems(params: HopperParams, horizon: int) -> dict:
     p = params
@@ -621,24 +605,6 @@ def actuate(X, u, p: HopperParams):
     return jnp.where(contact(X), jnp.stack([side_a_law(X[0] - X[2], X[4], p), jnp.sign(u[0])]), 0.0)
 
 
-def warm_candidate(problem: fj.Problem, x, previous, params=None):
-    """Deprecated: ``firhc_jax.apps.hopper.warm_candidate``."""
-    renamed("firhc_jax.models.hopper.warm_candidate", "firhc_jax.apps.hopper.warm_candidate")
-    from ..apps._hopper import warm_candidate as candidate
-
-    return candidate(problem, x, previous, params)
-
-
-def controller(params: HopperParams, horizon: int, solver: str, bound: bool = False, warm: bool = False,
-               **options) -> fj.FIRHC:
-    """Deprecated: ``firhc_jax.apps.hopper.controller(horizon, params, solver, ...)``."""
-    renamed("firhc_jax.models.hopper.controller(params, horizon, solver, ...)",
-            "firhc_jax.apps.hopper.controller(horizon, params, solver, ...)")
-    from ..apps._hopper import controller as build
-
-    return build(horizon, params, solver, bound, warm, **options)
-
-
 def control_period(X, cmd, p: HopperParams):
     """One control period of the plant from ``X`` ``[6]`` with commands ``cmd`` ``[2]``:
     ``(X_end, [SUBSTEPS, 6] states after each plant step)``.
@@ -657,9 +623,3 @@ def control_period(X, cmd, p: HopperParams):
 def make_plant(params: HopperParams = HopperParams()):
     """``plant(X, cmd) -> X`` one control period later, for ``FIRHC.simulate`` (jitted, cached)."""
     return jax.jit(lambda X, cmd: control_period(X, cmd, params)[0])
-
-
-def plant(params: HopperParams):
-    """Deprecated: ``make_plant(params)``."""
-    renamed("firhc_jax.models.hopper.plant(params)", "firhc_jax.models.hopper.make_plant(params)")
-    return make_plant(params)

@@ -34,8 +34,6 @@ import numpy as np
 
 import firhc_jax as fj
 
-from ._deprecation import renamed
-
 AREA = np.array([220.0, 160.0])  # m^2 per tank
 H_MIN, H_MAX = 0.5, 4.5  # m, hard bounds on both levels
 TARGET = np.array([2.5, 2.5])  # m, levels the stored water is valued against
@@ -130,11 +128,7 @@ def make_problem(horizon: int, params: PumpingParams = PumpingParams(), bound: s
     ``bound``: ``"demand"`` (the water that must be pumped to stay above
     ``h_min``; weak where the tanks are full, as a first bound tends to be),
     ``"target"`` (also the water missing below ``target`` at the end; several
-    times fewer nodes) or None. The old order ``make_problem(horizon, bound)`` is deprecated."""
-    if params is None or isinstance(params, str):
-        renamed("firhc_jax.models.pumping.make_problem(horizon, bound)",
-                "firhc_jax.models.pumping.make_problem(horizon, bound=bound)")
-        params, bound = PumpingParams(), params
+    times fewer nodes) or None."""
     if not isinstance(params, PumpingParams):
         raise TypeError(f"params must be a PumpingParams, got {type(params).__name__}")
     if bound not in (None, "demand", "target"):

@@ -42,8 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..linear import product_controls
-from ..problem import Problem, positive_int
+from .. import Problem, product_controls
 
 CONTROLS = product_controls([-1.0, 0.0, 1.0], repeat=3)  # [27, 3] torque direction per axis
 DEG = 180.0 / math.pi  # deg per rad
@@ -113,7 +112,9 @@ def make_problem(horizon: int, params: SpacecraftParams = PARAMS, rate_weight: f
     """
     if not rate_weight >= 0:
         raise ValueError(f"rate_weight must be >= 0 s^2, got {rate_weight}")
-    dynamics = _integrator(params, positive_int("substeps", substeps))
+    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
+        raise ValueError(f"substeps must be an int >= 1, got {substeps!r}")
+    dynamics = _integrator(params, int(substeps))
 
     def stage_cost(x_next, u, p):
         e = (4.0 * DEG) * x_next[:3]  # [3] deg, the pointing error

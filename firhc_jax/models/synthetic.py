@@ -8,8 +8,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from ..problem import Problem, quadratic_cost
-from ._deprecation import renamed
+from .. import Problem, quadratic_cost
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,13 +42,6 @@ def make_problem(horizon: int, params: SyntheticParams = SyntheticParams(), dtyp
 
     cost = quadratic_cost(jnp.array([1.0, 0.1, 1.0]), jnp.zeros(3), 0.5)
     return Problem(dynamics, controls, cost, horizon)
-
-
-def synthetic_problem(num_controls: int = 17, horizon: int = 5, work: int = 0, dtype=None) -> Problem:
-    """Deprecated: ``make_problem(horizon, SyntheticParams(num_controls, work), dtype=dtype)``."""
-    renamed("firhc_jax.models.synthetic.synthetic_problem(num_controls, horizon, work, dtype)",
-            "firhc_jax.models.synthetic.make_problem(horizon, SyntheticParams(num_controls, work), dtype=dtype)")
-    return make_problem(horizon, SyntheticParams(num_controls, work), dtype)
 
 
 def benchmark_state(dtype=None):

@@ -23,9 +23,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from ..linear import discretize, product_controls
-from ..linear_tracking import LinearTracking
-from ._deprecation import renamed
+from .. import LinearTracking, discretize, product_controls
 
 HEATERS = product_controls([0.0, 1.0], repeat=4)  # [16, 4]
 OUTPUTS = np.array([[0.5, 0.5, 0.0, 0.0], [0.0, 0.0, 0.5, 0.5]])  # [2, 4] zone means
@@ -77,13 +75,6 @@ def make_plant(params: ThermalParams = ThermalParams()):
         return jnp.asarray(A) @ x + jnp.asarray(B) @ u + jnp.asarray(d)
 
     return plant
-
-
-def tracking(horizon: int, lambda_u: float = LAMBDA_U, params: ThermalParams = ThermalParams()) -> LinearTracking:
-    """Deprecated: ``make_problem(horizon, params, lambda_u=lambda_u)``."""
-    renamed("firhc_jax.models.thermal.tracking(horizon, lambda_u, params)",
-            "firhc_jax.models.thermal.make_problem(horizon, params, lambda_u=lambda_u)")
-    return make_problem(horizon, params, lambda_u)
 
 
 def calm_states(count: int, rng: np.random.Generator, params: ThermalParams = ThermalParams(),

@@ -24,9 +24,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from ..linear import discretize, product_controls
-from ..linear_tracking import LinearTracking
-from ._deprecation import renamed
+from .. import LinearTracking, discretize, product_controls
 from .inverter import InverterParams
 
 MAX_HORIZON = 30  # the command line's limit; N = 15 already takes about a second per decision at lambda_u = 0.1
@@ -74,11 +72,3 @@ def make_plant(params: InverterParams = PARAMS):
         return jnp.asarray(A) @ i + jnp.asarray(B) @ u
 
     return plant
-
-
-def tracking(horizon: int, lambda_u: float = 0.1, params: InverterParams = PARAMS,
-             max_step: float | None = 1.0) -> LinearTracking:
-    """Deprecated: ``make_problem(horizon, params, lambda_u=lambda_u, max_step=max_step)``."""
-    renamed("firhc_jax.models.three_level.tracking(horizon, lambda_u, params, max_step)",
-            "firhc_jax.models.three_level.make_problem(horizon, params, lambda_u=lambda_u, max_step=max_step)")
-    return make_problem(horizon, params, lambda_u, max_step)

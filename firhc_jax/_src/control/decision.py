@@ -13,10 +13,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from . import solvers
-from .problem import call
-from .result import SearchResult
-from .sdfs import INT32_MAX
+from ..problem.problem import call
+from ..search import solvers
+from ..search.result import SearchResult
+from ..search.sdfs import INT32_MAX
 
 
 class ControllerState(NamedTuple):

@@ -26,12 +26,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import multihost_utils
 
-from .cache import cached
+from ..checks import is_tracer
+from ..problem.problem import call
+from ..runtime.memory_cache import cached
+from ..runtime.progress import due, interval, tick_python
+from ..runtime.sharding import default_parts, join_rows, mesh_of, on_stream, same_on_every_process, split_rows
 from .closed_loop import ClosedLoop
 from .decision import StepInfo
-from .problem import call, is_tracer
-from .progress import due, interval, tick_python
-from .sharding import default_parts, join_rows, mesh_of, on_stream, same_on_every_process, split_rows
 
 
 def run_compiled(decide: Callable, plant: Callable, runs: list, steps: int, *, key, progress: bool,
@@ -39,7 +40,7 @@ def run_compiled(decide: Callable, plant: Callable, runs: list, steps: int, *, k
     """``steps`` steps of each run ``(state, x0, params)`` in ``runs`` (``params`` leaves ``[steps, ...]``,
     row k: step k) as compiled scans, one ``ClosedLoop`` each. Several runs (parts of a batch of loops) are
     dispatched each on its own execution stream, so they run side by side on the CPU's cores
-    (``firhc_jax.sharding``). With ``progress`` the bar moves by ``ticks_per_step`` per step done."""
+    (``firhc_jax._src.runtime.sharding``). With ``progress`` the bar moves by ``ticks_per_step`` per step done."""
     if not progress:
         run = cached(("closed loop", key, steps), lambda: jax.jit(lambda s, x, p: _with_x0(
             x, _scan(decide, plant, (s, x), p, 0, steps)[1], jnp.full((steps,) + _batch(x), jnp.nan))))

@@ -4,7 +4,7 @@ Each iteration takes the ``K = pop_width`` cheapest remaining nodes of the
 deepest live peer batch (``K = 1`` is Table 1 exactly), expands all their
 ``K * M`` children in one vmapped call, lets feasible leaves improve the
 incumbent, and pushes the other children, as one batch, one depth lower
-(``firhc_jax.stack``). Peers are never sorted: popping takes the cheapest
+(``firhc_jax._src.search.stack``). Peers are never sorted: popping takes the cheapest
 remaining node (ties: the lowest input index, the order of a stable sort), so
 the nodes come out in Table 1's order. Once a batch's cheapest remaining node
 is no cheaper than the incumbent, the rest of the batch is dropped at once
@@ -39,11 +39,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .cache import compiled
-from .checks import as_sequence, cost_dtype, search_inputs
+from ..checks import as_sequence, is_tracer, positive_int
+from ..problem.callables import cost_dtype, search_inputs
+from ..problem.problem import Problem, call
+from ..runtime.memory_cache import compiled
 from . import stack as stacks
-from .nodes import SearchStats, one_child, best_leaf, expand, first_min, no_stats, rollout_cost, tally
-from .problem import Problem, call, is_tracer, positive_int
+from .nodes import SearchStats, best_leaf, expand, first_min, no_stats, one_child, rollout_cost, tally
 from .result import SearchResult, finish, raise_on_errors
 from .stack import Popped, Stack
 
@@ -110,7 +111,7 @@ class Settled(NamedTuple):
 def settle_children(problem: Problem, popped: Popped, row, children, best_cost, stats: SearchStats, *,
                     prune: bool = True, leaf_depth=None) -> Settled:
     """Best leaf and the batch to push: the rest of every sDFS iteration after
-    ``expand``, here and in each slot of the batch pool (``firhc_jax.pool``,
+    ``expand``, here and in each slot of the batch pool (``firhc_jax._src.search.pool``,
     vmapped over the slots).
 
     ``children`` (``[K, M]`` fields) are those of the nodes ``popped`` ``[K]``
@@ -325,7 +326,7 @@ def sdfs(problem: Problem, x0, *, params=None, pop_width: int = 1, warm_start=No
       problem: the ``Problem``.
       x0: ``[n]`` current state.
       params: optional parameter pytree passed to every callable as its last
-        argument (see ``firhc_jax.problem``). New values of the same shapes and
+        argument (see ``firhc_jax._src.problem.problem``). New values of the same shapes and
         dtypes reuse the compiled search.
       pop_width: K, nodes popped and expanded per iteration (K * M children in
         one batched call). 1 is the paper's algorithm; larger K trades some

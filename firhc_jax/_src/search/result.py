@@ -8,8 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..problem.problem import Problem
 from .nodes import SearchStats
-from .problem import Problem
 
 
 class SearchResult(NamedTuple):

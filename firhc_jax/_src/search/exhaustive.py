@@ -24,10 +24,11 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from .cache import cached, compiled
-from .checks import cost_dtype, search_inputs
+from ..checks import positive_int
+from ..problem.callables import cost_dtype, search_inputs
+from ..problem.problem import Problem
+from ..runtime.memory_cache import cached, compiled
 from .nodes import best_leaf, expand, no_stats, tally
-from .problem import Problem, positive_int
 from .result import SearchResult, finish, raise_on_errors
 from .sdfs import INT32_MAX, exhaustive_dfs
 

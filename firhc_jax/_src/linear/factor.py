@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .problem import weight
+from ..problem.problem import weight
 
 
 def input_classes(B, controls) -> np.ndarray:

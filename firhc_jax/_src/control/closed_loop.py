@@ -19,7 +19,6 @@ import jax
 import numpy as np
 from numpy.lib import format as npy
 
-
 # Each field's layout in a saved run: (length of the leading axis, number of axes, dtype kinds).
 _LAYOUT = {"states": ("T+1", 2, "f"), "inputs": ("T", 2, "f"), "input_indices": ("T", 1, "iu"),
            "stage_costs": ("T", 1, "f"), "predicted_costs": ("T", 1, "f"), "nodes": ("T", 1, "iu"),

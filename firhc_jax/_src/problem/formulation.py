@@ -27,7 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from .problem import check_target, is_tracer, positive_int, weight, weighted_square
+from ..checks import is_tracer, positive_int
+from .problem import check_target, weight, weighted_square
 
 _MAX_CONTROLS = 2**31 - 1  # the searches index inputs with int32
 

@@ -8,7 +8,7 @@ several lane counts. Each setting's first call compiles and is timed apart
 (``compile_s``); the rates come from the median of the timed calls after it.
 The fastest setting (most solves per second) is marked. The one-state
 searches are jitted once per problem and setting, in the package's cache
-(``firhc_jax.cache``): profiling the same problem again compiles nothing.
+(``firhc_jax._src.runtime.memory_cache``): profiling the same problem again compiles nothing.
 """
 from __future__ import annotations
 
@@ -21,12 +21,13 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from .batch import solve_batch
-from .cache import cached
-from . import solvers
-from .checks import search_inputs
-from .problem import Problem, positive_int
-from .sdfs import INT32_MAX
+from ..checks import positive_int
+from ..problem.callables import search_inputs
+from ..problem.problem import Problem
+from ..search import solvers
+from ..search.batch import solve_batch
+from ..search.sdfs import INT32_MAX
+from .memory_cache import cached
 
 POP_WIDTHS = (1, 2, 4, 8)
 LANES = (16, 64, 256)

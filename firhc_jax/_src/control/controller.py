@@ -10,7 +10,7 @@ fallback), actuate. A real-time loop calls it once per sampling period;
 (``compiled=False``); a Python loop of ``step`` reproduces either.
 ``simulate_batch`` runs B closed loops at once, their searches shared out
 by the solver's batch (``firhc_jax.solvers``). The decision itself is
-``firhc_jax.decision``; the loop runner ``firhc_jax.loop``.
+``firhc_jax._src.control.decision``; the loop runner ``firhc_jax._src.control.runner``.
 
 The closed loop separates plant and model (the do-mpc split):
 
@@ -46,16 +46,16 @@ from typing import Any, Callable, Mapping, Optional
 import jax
 import numpy as np
 
-from .cache import cached
-from .checks import as_batch, as_sequence, as_state, check_params
+from ..checks import as_batch, as_inputs, as_sequence, as_state, check_params, is_tracer, positive_int, sample_times
+from ..problem.problem import Problem, input_dtype
+from ..runtime.memory_cache import cached
+from ..runtime.progress import Progress
+from ..search.result import SearchResult, raise_on_errors
 from .closed_loop import ClosedLoop
-from .decision import ControllerState, StepInfo, decide, decide_rows  # noqa: F401  StepInfo importable here
-from .controller_checks import (as_inputs, check_closed_loop, controller_options, decide_checked,
-                                no_input_message, sample_times, solve_checked)
-from .loop import ready, run_compiled, run_loops, run_python, user_plant, warn_held
-from .problem import Problem, is_tracer, positive_int
-from .progress import Progress
-from .result import SearchResult, raise_on_errors
+from .decision import ControllerState, decide, decide_rows
+from .decision_checks import check_closed_loop, controller_options, decide_checked, no_input_message, solve_checked
+from .runner import ready, run_compiled, run_loops, run_python, user_plant, warn_held
+
 
 class InfeasibleError(RuntimeError):
     """A one-shot decision (``FIRHC.__call__``) found no input to apply."""
@@ -171,7 +171,7 @@ class FIRHC:
         checked by the first ``step`` (they need the parameters' shapes).
         """
         as_state(x0)
-        u0 = as_inputs(self.problem, "u0", u0)
+        u0 = as_inputs("u0", u0, *self._input_form)
         return ControllerState(u=u0, plan=np.full((self.problem.horizon,), -1, np.int32))
 
     def step(self, state: ControllerState, x, params=None):
@@ -277,17 +277,17 @@ class FIRHC:
         x0 = as_state(x0)
         params = check_params(params, leading=steps, axis="steps")
         state = self.init(x0, u0)
-        times = sample_times(dt, steps)
+        sample_times(dt, steps)
         plant, plant_key, default = self._plant(plant)
         check_closed_loop(self.options, plant_key if compiled else False, plant if compiled else None, state.u, x0,
                           params, default, drop=1)
-        out = self._run(state, x0, steps, plant, plant_key, params, progress, None if compiled else self._decide())
-        return out._replace(times=times)
+        return self._run(state, x0, steps, plant, plant_key, params, progress, None if compiled else self._decide(),
+                         dt)
 
-    def _run(self, state, x0, steps: int, plant, plant_key, params, progress: bool, decision) -> ClosedLoop:
+    def _run(self, state, x0, steps: int, plant, plant_key, params, progress: bool, decision, dt) -> ClosedLoop:
         """A checked closed loop (``simulate``'s), under its progress bar and followed by the held-input warning:
         one compiled scan where ``decision`` is None, else a Python loop of ``decision``, a compiled decision of
-        this controller (``step``'s contract). No time axis."""
+        this controller (``step``'s contract); ``dt`` (checked) gives its time axis."""
         with Progress(steps, f"FIRHC[{self.solver}]", enabled=progress):
             if decision is None:
                 out, = run_compiled(functools.partial(decide, self.options), user_plant(plant), [(state, x0, params)],
@@ -295,7 +295,7 @@ class FIRHC:
             else:
                 out = run_python(decision, user_plant(plant), state, x0, params, steps, progress=progress)
         warn_held(out.held, steps, self.u_safe is not None)
-        return out
+        return out._replace(times=sample_times(dt, steps))
 
     def simulate_batch(self, X0, steps: int, plant: Optional[Callable] = None, *, params=None, u0=None, dt=None,
                        progress: bool = False) -> ClosedLoop:
@@ -324,7 +324,7 @@ class FIRHC:
         X0 = as_batch(X0)
         B = X0.shape[0]
         params = check_params(params, leading=(B, steps), axis="[B (loops), steps]")
-        u0 = as_inputs(self.problem, "u0", u0, (B,))
+        u0 = as_inputs("u0", u0, *self._input_form, (B,))
         state = ControllerState(u=u0, plan=np.full((B, self.problem.horizon), -1, np.int32))
         times = sample_times(dt, steps)
         plant, plant_key, default = self._plant(plant)
@@ -334,6 +334,11 @@ class FIRHC:
                             params, steps, key=("batch", self.options.key, plant_key), progress=progress)
         warn_held(out.held, steps * B, self.u_safe is not None)
         return out._replace(times=times)
+
+    @property
+    def _input_form(self) -> tuple:
+        """``(m, dtype)`` of the searched inputs (``u0``, ``u_safe``)."""
+        return self.problem.input_dim, input_dtype(self.problem)
 
     def _plant(self, plant):
         """``(plant, its cache key, whether it is the default)``: the default plant (the model's dynamics)

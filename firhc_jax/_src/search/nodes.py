@@ -16,8 +16,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from .checks import cost_dtype as dtype_of_cost
-from .problem import Problem, call
+from ..problem.callables import cost_dtype as dtype_of_cost
+from ..problem.problem import Problem, call
 
 # Error flags, as bits of one int32 (combined with |).
 NEGATIVE, NONFINITE, OVERFLOW = 1, 2, 4

@@ -10,49 +10,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import solvers
-from .cache import cached
+from ..checks import as_inputs
+from ..problem.callables import check_state, params_spec, shape_of
+from ..problem.problem import Problem, input_dtype
+from ..runtime.memory_cache import cached
+from ..search import solvers
 from .decision import decide, solve
-from .checks import check_state, params_spec, shape_of
-from .problem import Problem, input_dtype, is_tracer
 
 _DEFAULT_PLANT_HINT = ("; the default plant is the model's dynamics, which with observe set runs on model states: "
                        "pass plant= with the plant's own dynamics")
-
-
-def as_inputs(problem: Problem, name: str, value, leading: tuple = (), concrete: bool = False):
-    """``value`` as searched inputs ``leading + [m]`` of the problem's input dtype, finite (default, None:
-    zeros), or a clear error. One input ``[m]`` is repeated over ``leading``; a traced one is taken as it is
-    unless ``concrete`` (compiled in as a constant)."""
-    m, dtype = problem.input_dim, input_dtype(problem)
-    if value is None:
-        return np.zeros(leading + (m,), dtype)
-    if is_tracer(value):
-        if concrete:
-            raise TypeError(f"{name} must be concrete, not a traced array (it is compiled in as a constant)")
-        if value.shape != (m,):
-            raise ValueError(f"{name} must be one input of shape ({m},), got {value.shape}")
-        return value.astype(dtype)
-    try:
-        a = np.asarray(value, dtype=dtype)
-    except (TypeError, ValueError) as e:
-        raise TypeError(f"{name} must be one input of shape ({m},): {e}") from None
-    if a.shape != (m,) and a.shape != leading + (m,):
-        also = f" (every loop) or {leading + (m,)} (one per loop)" if leading else ""
-        raise ValueError(f"{name} must be one input of shape ({m},){also}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains NaN or inf: {a}")
-    return np.broadcast_to(a, leading + (m,)).copy() if a.shape != leading + (m,) else a
-
-
-def sample_times(dt, steps: int):
-    """``[T+1]`` seconds of each state (None without ``dt``)."""
-    if dt is None:
-        return None
-    if isinstance(dt, (bool, np.bool_)) or not isinstance(dt, (int, float, np.integer, np.floating)) \
-            or not np.isfinite(dt) or dt <= 0:
-        raise ValueError(f"dt must be a finite positive number of seconds, got {dt!r}")
-    return np.arange(steps + 1) * float(dt)
 
 
 def controller_options(problem, solver, fallback, warm_start, observe, actuate, u_safe, solver_options) -> dict:
@@ -75,7 +41,8 @@ def controller_options(problem, solver, fallback, warm_start, observe, actuate, 
     for name, fn in (("observe", observe), ("actuate", actuate)):
         if fn is not None and not callable(fn):
             raise TypeError(f"{name} must be callable or None, got {type(fn).__name__}")
-    u_safe = None if u_safe is None else as_inputs(problem, "u_safe", u_safe, concrete=True)
+    if u_safe is not None:
+        u_safe = as_inputs("u_safe", u_safe, problem.input_dim, input_dtype(problem), concrete=True)
     return dict(problem=problem, solver=solver, solver_options=options, fallback=fallback, warm_start=warm_start,
                 observe=observe, actuate=actuate, u_safe=u_safe)
 

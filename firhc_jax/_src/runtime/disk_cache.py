@@ -1,7 +1,7 @@
 """Compile once across runs: JAX's persistent compilation cache, opt in.
 
 A decision compiles in seconds (XLA:CPU compiles the search's loop body once
-per problem, horizon and solver option). In-process, ``firhc_jax.cache``
+per problem, horizon and solver option). In-process, ``firhc_jax._src.runtime.memory_cache``
 keeps the executable; across processes, JAX's persistent compilation cache
 stores XLA's output on disk, keyed by the lowered program, so a second run of
 the same script finds it there and only traces and lowers again

@@ -9,7 +9,7 @@ problem's callables take a parameter pytree as last argument
 row b is solved with ``p = params[b]``, exactly as given (dtype and value).
 
 Solvers. ``"sdfs"`` (the default) is the shared work pool
-(``firhc_jax.pool``); ``"sdfs-vmap"`` and ``"exhaustive"`` vmap ``fj.sdfs``
+(``firhc_jax._src.search.pool``); ``"sdfs-vmap"`` and ``"exhaustive"`` vmap ``fj.sdfs``
 and ``fj.exhaustive`` over the rows.
 
 This module checks the arguments and plans the memory: the pool stores
@@ -18,7 +18,7 @@ numbers per row (``pool_memory``, ``pool_row_memory``); the vmapped solvers
 need ``row_memory`` per row. A batch that would exceed ``max_memory`` bytes
 is solved in chunks of rows (``lax.map``), and a pool or row that does not
 fit on its own is refused before anything is compiled. Where the rows run
-(devices, processes) is ``firhc_jax.sharding``.
+(devices, processes) is ``firhc_jax._src.runtime.sharding``.
 """
 from __future__ import annotations
 
@@ -29,16 +29,16 @@ import jax
 import jax.numpy as jnp
 from jax.sharding import Mesh, PartitionSpec
 
+from ..checks import is_tracer, positive_int
+from ..problem.callables import search_inputs
+from ..problem.problem import Problem
+from ..runtime.memory_cache import compiled
+from ..runtime.sharding import AXIS, default_parts, global_rows, mesh_of, replicated, run_parts
 from . import solvers
-from .solvers import DEFAULT_LANES  # noqa: F401  solve_batch's default lanes, importable here as before
-from .cache import compiled
 from .exhaustive import DEFAULT_CHUNK_NODES
-from .checks import search_inputs
-from .problem import Problem, is_tracer, positive_int
 from .result import SearchResult, raise_on_errors
 from .sdfs import DEFAULT_MAX_MEMORY, node_budget
-from .sharding import AXIS, mesh_of, default_parts, global_rows, replicated, run_parts
-
+from .solvers import DEFAULT_LANES  # noqa: F401  solve_batch's default lanes, importable here as before
 
 # ---------------------------------------------------------------------------
 # The memory plan.
@@ -52,7 +52,7 @@ def _rows_per_chunk(need: int, batch: int, max_memory: int, what: str) -> int:
 
 
 class _Plan(NamedTuple):
-    parts: int  # shares of the rows run at once (firhc_jax.sharding.run_parts)
+    parts: int  # shares of the rows run at once (firhc_jax._src.runtime.sharding.run_parts)
     rows_per_chunk: int  # rows a device solves at once within a part
     options: dict  # the solver's options, ``lanes`` resolved for these rows
 
@@ -134,7 +134,7 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         parameter pytree as last argument.
       X0: ``[B, n]`` initial states.
       solver: ``"sdfs"`` (default: the shared work pool,
-        ``firhc_jax.pool``), ``"sdfs-vmap"`` (plain ``jax.vmap`` of ``fj.sdfs``) or
+        ``firhc_jax._src.search.pool``), ``"sdfs-vmap"`` (plain ``jax.vmap`` of ``fj.sdfs``) or
         ``"exhaustive"`` (``jax.vmap`` of the vectorised ``fj.exhaustive``).
       params: optional pytree with leading axis B: row b is solved with
         ``params[b]``, one compiled call for all rows; new values never
@@ -169,7 +169,7 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         every device.
       cores: parts of the rows dispatched at once, each a separate execution
         of the same compiled batch on its own share of the rows (row i in
-        part ``i % cores``), run side by side (``firhc_jax.sharding``).
+        part ``i % cores``), run side by side (``firhc_jax._src.runtime.sharding``).
         Default: on CPU devices, every core this process may use
         (``os.sched_getaffinity``) shared among the devices, so one device
         keeps all cores busy without any flag; 1 elsewhere, inside

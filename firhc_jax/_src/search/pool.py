@@ -4,7 +4,7 @@ fixed number of slots, every slot's nodes expanded in one call per iteration.
 A plain ``jax.vmap`` of ``fj.sdfs`` runs every row's loop until the slowest
 row finishes, so with node counts that differ 10x or more between rows most
 lanes idle. Instead the pool keeps ``lanes`` slots. A slot holds one sDFS
-stack (``firhc_jax.stack``, the store of ``fj.sdfs``, vmapped over the
+stack (``firhc_jax._src.search.stack``, the store of ``fj.sdfs``, vmapped over the
 slots). Every iteration each slot pops the K next nodes of its deepest live
 batch (cheapest first) and the children of all slots come from one call of
 ``expand``: ``lanes * K * M`` children per iteration. A slot whose row is
@@ -33,10 +33,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ..problem.callables import cost_dtype
+from ..problem.problem import Problem
 from . import stack as stacks
-from .checks import cost_dtype
 from .nodes import SearchStats, expand, no_stats
-from .problem import Problem
 from .result import SearchResult, finish
 from .sdfs import seed, settle_children, stack_memory, start_incumbent
 from .stack import Popped, Stack
@@ -52,7 +52,7 @@ class Rows(NamedTuple):
 
 
 class Pool(NamedTuple):
-    """S slots, each an sDFS stack (``firhc_jax.stack``, rows 1 .. N - 1 used;
+    """S slots, each an sDFS stack (``firhc_jax._src.search.stack``, rows 1 .. N - 1 used;
     row N takes leaf batches) working on one row of the batch."""
 
     stack: Stack  # [S, ...] fields
@@ -219,7 +219,7 @@ def pool_search(problem: Problem, X, params, n_valid, max_nodes, lanes: int, pop
     ``max_nodes - K M`` is not expanded further (it never starts when that is
     negative). ``warm_start`` ``[B, N]`` (optional): each row's candidate
     sequence, evaluated first as ``fj.sdfs`` does. ``budgeted``: each row
-    first gets ``fj.sdfs``'s seeds (``firhc_jax.sdfs.seed``, vmapped over
+    first gets ``fj.sdfs``'s seeds (``firhc_jax._src.search.sdfs.seed``, vmapped over
     the rows), within its budget. ``steal``: see ``plan``. Returns a batched
     result."""
     N, M, K, S = problem.horizon, problem.num_controls, pop_width, lanes

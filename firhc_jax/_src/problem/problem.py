@@ -52,7 +52,6 @@ a returned sequence can be re-evaluated differentiably with
 from __future__ import annotations
 
 import dataclasses
-import operator
 import weakref
 from typing import Any, Callable, Optional
 
@@ -60,26 +59,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..checks import is_tracer, positive_int
+
 Array = Any
-
-
-def is_tracer(x) -> bool:
-    return isinstance(x, jax.core.Tracer)
-
-
-def positive_int(name: str, value, minimum: int = 1) -> int:
-    """``value`` as a Python int >= ``minimum`` (NumPy integers accepted), or a
-    ``TypeError``/``ValueError`` naming the argument. The one validator for
-    every count and size argument of the package."""
-    if isinstance(value, (bool, np.bool_)):
-        raise TypeError(f"{name} must be an int >= {minimum}, got a bool")
-    try:
-        out = operator.index(value)
-    except TypeError:
-        raise TypeError(f"{name} must be an int >= {minimum}, got {value!r} of type {type(value).__name__}") from None
-    if out < minimum:
-        raise ValueError(f"{name} must be an int >= {minimum}, got {out}")
-    return out
 
 
 @jax.tree_util.register_pytree_node_class

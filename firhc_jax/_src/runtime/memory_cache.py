@@ -64,7 +64,7 @@ def clear_cache() -> None:
 
 def set_cache_size(max_size: int) -> None:
     """Keep at most ``max_size`` (>= ``MIN_SIZE``) compiled searches and checks."""
-    from .problem import positive_int
+    from ..checks import positive_int
 
     global _max_size
     max_size = positive_int("max_size", max_size)

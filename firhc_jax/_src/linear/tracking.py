@@ -1,0 +1,615 @@
+"""Exact tracking for linear plants with a finite input set at long horizons:
+the sphere decoder as a lower bound of the sorted search.
+
+The problem (``LinearTracking``): x(k+1) = A x(k) + B u(k) + d(k), y = C x,
+every u(k) a row of ``controls``, and
+
+    J(U) = sum_{k=0}^{N-1} ||y_ref[k] - C x(k+1)||_Q^2 + lambda_u ||u(k) - u(k-1)||^2,   u(-1) = u_prev,
+
+optionally with |u_i(k) - u_i(k-1)| <= max_step for every component and step.
+
+Why this is the sphere decoder (Geyer and Quevedo, IEEE TPEL 29(12), 2014).
+Stacking the horizon, J(U) = ||F U - g||^2 with F static (A, B, C, Q,
+lambda_u, N) and g linear in (x, u_prev, y_ref, d). A QR factorisation of F
+with its columns reversed completes the square without inverting anything:
+J(U) = c + ||V U - h||^2 with V lower triangular. The decoder's partial
+distance of a prefix u(0..k) (c plus the rows of V up to u(k)) is J's minimum
+over every *continuous* completion of the prefix, which is also the prefix's
+own cost plus W_{k+1}(x(k+1), u(k)), the unconstrained cost-to-go of the steps
+left: a quadratic in the state the prefix reaches (the plant is Markov). So
+the decoder is the sorted search on the problem in its own coordinates with
+W as ``lower_bound``: the same keys, the same nodes in the same order (peers
+sorted by key: the Schnorr-Euchner order), and the incumbent is the decoder's
+radius, which ``warm_start`` (the shifted previous sequence) sets first. W is
+at least the decoder's distance where F is rank deficient (singular Q,
+lambda_u = 0, more inputs than outputs): the decoder then loses the part of
+the suffix that no input reaches.
+
+Inputs of equal effect are merged. Where B u_i = B u_j (up to rounding: the
+inverter's switch states that differ by one step on every leg, its common
+mode), two inputs lead to the same plant state and differ only in the
+switching term. Branching on both would search the same subtree twice for
+every such choice along a path, so a node branches on the C *classes* of
+inputs (``input_classes``) and keeps, for each member of its class, the
+cheapest switching of the steps so far that ends on that member (a min-plus
+step per child: the Viterbi recursion over at most R members). Its cost is
+then J's minimum over every sequence of inputs of that class sequence, and
+its bound the smallest of (member's switching + W from that member). Exact:
+the optimum is the cheapest class sequence with its cheapest members, which
+``sequence`` recovers from the plan (forward min-plus, argmins backward), and
+``first_input_of`` gives the member to apply now. On the three-level inverter
+(27 inputs, 19 classes, N = 10, lambda_u = 0.1) this computes 27 times fewer
+nodes than the plain sorted search (docs/inverter.md); without equal-effect
+inputs (R = 1) the node is the plain one.
+
+In this form the search state is the plant's own: a ``Node`` (x, the
+class's R inputs U, their switching costs o above the cheapest, the stage cost
+and the bound W; n + R (m + 1) + 2 numbers instead of the decoder's N m
+partial sums), and the cost a search returns is J itself, accumulated stage by
+stage. W_k is kept factored, W_k(s) = ||T_k s + w_k||^2 + s_k for
+s = [x; u_prev]: T_k is static (a ``TrackingModel``), w_k and s_k are linear
+and quadratic in (y_ref, d) and travel as params (``TrackingParams``), so new
+states, references and disturbances never recompile. One node is one step with
+its C classes (not one input component per level as in the decoder), and where
+F is rank deficient W is strictly tighter than the decoder's distance: both
+measured in docs/inverter.md.
+
+W stays a lower bound at any scaling of Q, lambda_u and the units: which
+directions inputs reach is decided on F with unit rows and columns
+(``linear_factor._rank``), and the factorisation's own error bound is taken off W
+(``linear_factor.cost_to_go``): weights whose ratio nears 1/eps weaken W towards 0, and
+the search towards the plain sorted search, which is still exact.
+
+The factorisation is NumPy, float64, done once per tracker (``firhc_jax._src.linear.factor``); this module holds the
+named structures and the traced callables.
+"""
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping
+from typing import NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..checks import as_sequence, as_state, is_tracer, positive_int
+from ..problem.formulation import _matrix
+from ..problem.problem import Problem, _check_controls
+from ..runtime.memory_cache import compiled
+from ..search.result import SearchResult, raise_on_errors
+from ..search.sdfs import DEFAULT_MAX_MEMORY, node_budget, sdfs
+from .factor import child_map, factor_memory, input_classes, psd_factor
+
+# ---------------------------------------------------------------------------
+# Named structures. Shapes are one decision's: n states, m inputs, p outputs, N steps, C classes of at most R
+# inputs; params and a batch of nodes take leading axes (one per row, step or loop) in front.
+# ---------------------------------------------------------------------------
+
+class Node(NamedTuple):
+    """A node of the search: the plant state that a class of inputs of equal effect reached, the class's
+    members with the cheapest switching that ends on each, the step's stage cost and the bound.
+
+    ``o[e]`` is the cheapest switching of the steps so far that ends on member e, less that of the cheapest
+    member (whose cost ``stage`` carries), so o >= 0; -1 marks a member that no allowed switching reaches (a
+    marker no cost can take, and finite: the searches discard non-finite states). ``fj.Problem`` states are
+    vectors that every search stacks ``[..., n]``, so the searches hold a node packed, ``[n + R (m + 1) + 2]``
+    (``pack``; ``LinearTracking.observe`` packs the root), and the callables read it back (``unpack``)."""
+    x: jax.Array      # [n] the plant state
+    U: jax.Array      # [R, m] the class's members (padding repeats the first)
+    o: jax.Array      # [R] each member's switching so far above the cheapest member's; -1: not reached
+    stage: jax.Array  # [] the stage cost of the step into the node: tracking error plus the cheapest switching
+    W: jax.Array      # [] the bound on the cost to go: the least o[e] + W_k(x, U[e]) over the members
+
+    def pack(self) -> jax.Array:
+        """``[n + R (m + 1) + 2]``: the node as the searches hold it."""
+        return jnp.concatenate([self.x, self.U.reshape(-1), self.o, self.stage[None], self.W[None]])
+
+    @classmethod
+    def unpack(cls, z, R: int, m: int) -> Node:
+        """The node packed in ``z`` ``[n + R (m + 1) + 2]``, its classes of ``R`` members of ``m`` inputs."""
+        n = z.shape[0] - R * (m + 1) - 2
+        return cls(z[:n], z[n:n + R * m].reshape(R, m), z[n + R * m:n + R * (m + 1)], z[-2], z[-1])
+
+
+class TrackingModel(NamedTuple):
+    """What the callables read of a tracker's model: its factorisation (``linear_factor.child_map``) and its
+    classes of inputs. Trackers of equal shapes (A, B, C, controls, horizon, classes, a ``max_step`` or none)
+    have models of equal shapes, whatever their values, Q and lambda_u."""
+    M: jax.Array             # [N, 2n + p + m, n + m] step k's map of [x; u]: x(k+1), -sqrt(Q) C x(k+1), W's residual
+    M_norm: jax.Array        # [N] Frobenius norm of M's rows of W's residual: a bound on their rounding
+    lambda_u: jax.Array      # [] the weight of ||u(k) - u(k-1)||^2
+    Tu: jax.Array            # [N, n + m, m] how W's residual moves with the child's input (the other members)
+    Tu_norm: jax.Array       # [N] Frobenius norm of Tu
+    err_s: jax.Array         # [N] the factorisation's error in sqrt(W_{k+1}) per unit of ||[x(k+1); u]||
+    members: jax.Array       # [C, R, m] each class's inputs (padding repeats the first)
+    member_index: jax.Array  # [C, R] their indices into controls, as numbers of the model's dtype
+    member_ok: jax.Array     # [C, R] 1 for a member, 0 for padding
+    max_step: Optional[jax.Array] = None  # [] the bound on |u_i(k) - u_i(k-1)|; None: no bound
+
+
+class _DataMaps(NamedTuple):
+    """The linear maps from a decision's data [vec(y_ref); vec(d)] ``[N (p + n)]`` to its params."""
+    M_data: jax.Array  # [N, 2n + p + m, N (p + n)] the data's part of each step's child map
+    Ms: jax.Array      # [N, N (p + m), N (p + n)] the data-only part of W_{k+1}'s residual
+    err_d: jax.Array   # [N] the factorisation's error in sqrt(W_{k+1}) per unit of ||data||
+
+
+class TrackingParams(NamedTuple):
+    """One decision's params of ``LinearTracking.problem`` (``lt.params(y_ref, d)``): what its data decides.
+    A closed loop's plant gets them too: ``A x + B u + p.d[0]``."""
+    off: jax.Array      # [N, 2n + p + m] the data's part of each step's child map (M_data data)
+    off_err: jax.Array  # [N] a bound on the rounding of off's rows of W's residual
+    s: jax.Array        # [N] the data-only part of W_{k+1}, rounded down
+    g_err: jax.Array    # [N] the factorisation's error in sqrt(W_{k+1}) from the data
+    y_ref: jax.Array    # [N, p] the reference: y_ref[k] is the target of C x(k+1)
+    d: jax.Array        # [N, n] the disturbance: x(k+1) = A x(k) + B u(k) + d[k]
+
+    def __getitem__(self, key):
+        """``p[i]`` as for any tuple; ``p["d"]`` (the params were a dict) warns and reads ``p.d``."""
+        if isinstance(key, str):
+            if key not in self._fields:
+                raise KeyError(f"{key!r}: LinearTracking's params have the fields {self._fields}")
+            warnings.warn(f'LinearTracking\'s params are a TrackingParams: read p.{key}, not p["{key}"] (the '
+                          "dict access goes in the next release)", DeprecationWarning, stacklevel=2)
+            return getattr(self, key)
+        return tuple.__getitem__(self, key)
+
+
+class SharedParams(NamedTuple):
+    """One decision's params of ``LinearTracking.shared_problem`` (``lt.params(y_ref, d, with_model=True)``):
+    the data and the tracker's model, so that one compiled search serves every tracker of equal shapes."""
+    data: TrackingParams  # the decision's data (the plant reads p.data.d)
+    model: TrackingModel  # the tracker's model in the data's dtype, with the data's leading axes
+
+
+class LinearTracking:
+    """Exact finite-input tracking MPC for a linear plant (module docstring).
+
+    Args:
+      A: ``[n, n]``, B: ``[n, m]``: the discrete-time model x+ = A x + B u + d.
+      controls: ``[M, m]`` finite input set (``[M]`` when m = 1).
+      horizon: N >= 1.
+      C: ``[p, n]`` output matrix (default I).
+      Q: ``[p, p]`` symmetric positive semidefinite output weight (default I).
+      lambda_u: weight (>= 0) of ||u(k) - u(k-1)||^2, the first step against u_prev.
+      max_step: optional bound (>= 0) on |u_i(k) - u_i(k-1)|, every component
+        and step, the first against u_prev: a hard constraint.
+      max_memory: bytes the factorisation may take (``factor_memory``, which
+        grows as N^3); a larger one is refused before any work.
+
+    Attributes:
+      problem: the ``fj.Problem`` the search solves (``step_index=True``): one
+        child per class of inputs (its controls ``[C, m]``: each class's first
+        input), state a packed ``Node`` ``[n + R (m + 1) + 2]`` (``observe``),
+        params of one decision from ``params``, ``lower_bound`` the
+        cost-to-go W, ``first_input_of`` the member to apply. Use it with any
+        solver: ``fj.sdfs``, ``fj.solve_batch``, ``fj.FIRHC``: their
+        ``first_input`` is the exact optimum's; their ``sequence`` indexes
+        classes (``sequence`` maps it to inputs). Its callables hold the model
+        as constants, so each step's params are its data only, and a new
+        tracker compiles its own search.
+      shared_problem: the same problem with callables that read the model
+        from the params (``params(..., with_model=True)``): one compiled
+        search for every tracker of equal shapes (see below); ``solve`` uses it.
+      num_classes, class_size: C classes of at most R inputs (``input_classes``).
+      observe: ``observe(x, u_prev[, p])``, the search state at plant state
+        ``x`` after input ``u_prev``.
+
+    Weights per closed loop or per row, without recompiling: trackers of equal
+    shapes (A, B, C and Q shapes, the same ``controls`` and classes, horizon, a
+    ``max_step`` or none) differ only in their ``TrackingModel``'s values. So
+    ``fj.FIRHC(lt.shared_problem, observe=lt.observe)`` with
+    ``other.params(y_ref, d, with_model=True)`` decides as ``other``'s own
+    controller, and a batch whose rows (or loops) carry params of different
+    trackers, stacked, solves each with its own weights in one compiled call.
+
+    The factorisation is done once here, in float64 (NumPy); the search runs in
+    the dtype of the state given to it.
+    """
+
+    def __init__(self, A, B, controls, horizon, *, C=None, Q=None, lambda_u=0.0, max_step=None,
+                 max_memory: int = DEFAULT_MAX_MEMORY):
+        A = _matrix("A", A)
+        n = A.shape[0]
+        if A.shape != (n, n):
+            raise ValueError(f"A must be square [n, n], got shape {A.shape}")
+        B = _matrix("B", B)
+        if B.shape[0] != n:
+            raise ValueError(f"B must be [n, m] with n = {n} rows like A, got shape {B.shape}")
+        m = B.shape[1]
+        C = np.eye(n) if C is None else _matrix("C", C)
+        if C.shape[1] != n:
+            raise ValueError(f"C must be [p, n] with n = {n} columns like A, got shape {C.shape}")
+        p = C.shape[0]
+        Q = np.eye(p) if Q is None else _matrix("Q", Q)
+        if Q.shape != (p, p):
+            raise ValueError(f"Q must be [p, p] = [{p}, {p}] like the rows of C, got shape {Q.shape}")
+        N = positive_int("horizon", horizon)
+        lambda_u = _scalar("lambda_u", lambda_u)
+        max_step = None if max_step is None else _scalar("max_step", max_step)
+        max_memory = positive_int("max_memory", max_memory)
+        need = factor_memory(n, m, p, N)
+        if need > max_memory:
+            raise ValueError(f"LinearTracking's factorisation at horizon N = {N} (n = {n}, m = {m}, p = {p}) needs "
+                             f"about {need:,} bytes, more than max_memory={max_memory:,} (it grows as N^3); "
+                             "shorten the horizon or raise max_memory")
+        self.A, self.B, self.C, self.Q = A, B, C, Q
+        self.lambda_u, self.max_step, self.horizon = lambda_u, max_step, N
+        self.n, self.m, self.p = n, m, p
+        controls = _check_controls(controls)
+        if controls.shape[1] != m:
+            raise ValueError(f"controls must have m = {m} columns like B, got shape {controls.shape}")
+        self._controls = controls
+        members = input_classes(B, controls)  # [C, R]
+        self.num_classes, self.class_size = members.shape
+        self._class_of = np.zeros(len(controls), np.int32)  # [M] the class of each input
+        for j, row in enumerate(members):
+            self._class_of[row[row >= 0]] = j
+        M, M_data, Ms, Tu, err_s, err_d = child_map(A, B, C, psd_factor("Q", Q), lambda_u, N)
+        filled = np.where(members >= 0, members, members[:, :1])  # padding repeats the first member
+        # float64, NumPy: the constants of problem's callables, and what params applies to the data
+        self._model = TrackingModel(
+            M=M, M_norm=np.linalg.norm(M[:, n + p:], axis=(1, 2)), lambda_u=np.float64(lambda_u), Tu=Tu,
+            Tu_norm=np.linalg.norm(Tu, axis=(1, 2)), err_s=err_s, members=controls.astype(float)[filled],
+            member_index=filled.astype(float), member_ok=(members >= 0).astype(float),
+            max_step=None if max_step is None else np.float64(max_step))
+        self._maps = _DataMaps(M_data, Ms, err_d)
+        self._device = {}  # dtype -> the model and the data maps on the device
+        reps = controls[members[:, 0]]
+        self.problem = Problem(controls=reps, horizon=N, step_index=True, **_callables(self._model))
+        self.shared_problem = Problem(controls=reps, horizon=N, step_index=True, **_SHARED)
+        self.observe = _observer(self.class_size)
+
+    @property
+    def controls(self) -> np.ndarray:
+        """``[M, m]`` the input set (read-only)."""
+        return self._controls
+
+    @property
+    def class_of(self) -> np.ndarray:
+        """``[M]`` the class (row of ``problem.controls``) of each input (read-only)."""
+        return self._class_of
+
+    def sequence(self, z0, classes, params):
+        """``[N]`` int32 indices into ``controls``: the cheapest inputs of the
+        optimal class sequence ``classes`` ``[N]`` (a ``SearchResult.sequence``
+        of ``problem`` or ``shared_problem``) from the search state ``z0``
+        (``observe``), with the model of ``params`` (a ``SharedParams``) or
+        this tracker's; -1 where it is -1 (infeasible). Its J is the search's cost."""
+        z0 = jnp.asarray(z0)
+        model = params.model if isinstance(params, SharedParams) else self._on_device(z0.dtype)[0]
+        return _sequence(z0, classes, _in_dtype(model, z0.dtype))
+
+    def params(self, y_ref, d=None, *, with_model: bool = False) -> TrackingParams | SharedParams:
+        """The params of ``problem`` for a reference ``y_ref`` ``[..., N, p]``
+        (y_ref[k] is the target of C x(k+1)) and disturbance ``d`` ``[..., N, n]``
+        (default 0), in y_ref's floating dtype. Leading axes batch: one row per
+        state for ``fj.solve_batch``, one per step for ``FIRHC.simulate``.
+
+        A ``TrackingParams``: what the data decides, per step (its fields), the
+        data itself included (``p.y_ref``, ``p.d``: a closed loop's plant gets
+        the same params, e.g. ``A x + B u + p.d[0]``). The model is held by
+        ``problem``'s callables. With ``with_model=True``, the params of
+        ``shared_problem``: a ``SharedParams`` of that data and this tracker's
+        model (``TrackingModel``), every leaf with y_ref's leading axes, so
+        that rows, steps or loops of different trackers stack. Give the state
+        (``observe``) the same dtype."""
+        y_ref = jnp.asarray(y_ref)
+        if not jnp.issubdtype(y_ref.dtype, jnp.floating):
+            y_ref = y_ref.astype(jax.dtypes.canonicalize_dtype(np.float64))
+        lead, N = y_ref.shape[:-2], self.horizon
+        if y_ref.shape[-2:] != (N, self.p):
+            raise ValueError(f"y_ref must be [N, p] = [{N}, {self.p}] (with optional leading axes), "
+                             f"got shape {tuple(y_ref.shape)}")
+        d = jnp.zeros(lead + (N, self.n), y_ref.dtype) if d is None else jnp.asarray(d, y_ref.dtype)
+        if d.shape != lead + (N, self.n):
+            raise ValueError(f"d must be [N, n] = [{N}, {self.n}] with y_ref's leading axes {lead}, "
+                             f"got shape {tuple(d.shape)}")
+        model, maps = self._on_device(y_ref.dtype)
+        data = _params(maps, y_ref, d)
+        if not with_model:
+            return data
+        return SharedParams(data, jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, lead + a.shape), model))
+
+    def _on_device(self, dtype) -> tuple[TrackingModel, _DataMaps]:
+        """The model and the data maps on the device in ``dtype`` (made once per dtype)."""
+        key = jnp.dtype(dtype)
+        if key not in self._device:
+            with jax.ensure_compile_time_eval():  # concrete arrays even when first asked for inside a trace
+                self._device[key] = _in_dtype((self._model, self._maps), key)
+        return self._device[key]
+
+    def solve(self, x, u_prev, y_ref, d=None, *, warm_start=None, max_nodes=None) -> SearchResult:
+        """The exact minimiser of J from state ``x`` ``[n]`` after input
+        ``u_prev`` ``[m]``, for ``y_ref`` ``[N, p]`` and ``d`` ``[N, n]`` (default 0).
+
+        ``cost`` is J, ``sequence`` indexes ``controls`` (infeasible under
+        ``max_step``: cost +inf, sequence -1, NaN input). ``warm_start``
+        ``[N]`` is evaluated first and becomes the initial radius if feasible;
+        ``max_nodes`` as in ``fj.sdfs``. Runs in ``x``'s floating dtype;
+        works under ``jax.jit`` and ``jax.vmap``, and new values never
+        recompile."""
+        x = as_state(x, "x")
+        if x.shape != (self.n,):
+            raise ValueError(f"x must be [n] = [{self.n}], got shape {tuple(x.shape)}")
+        u_prev = _vector("u_prev", u_prev, (self.m,), x.dtype)
+        y_ref = _vector("y_ref", y_ref, (self.horizon, self.p), x.dtype)
+        d = None if d is None else _vector("d", d, (self.horizon, self.n), x.dtype)
+        warm_start = as_sequence(warm_start, self.horizon, len(self._controls))
+        # One compiled call (observe, params, search, members), shared by trackers of equal shapes: the model
+        # travels as an argument, so a new A, B, Q or lambda_u of the same shapes reuses it.
+        run = compiled(_solve, self.shared_problem, observe=self.observe)
+        return raise_on_errors(run(*self._on_device(x.dtype), self._controls, self._class_of, x, u_prev, y_ref, d,
+                                   warm_start, node_budget(max_nodes)))
+
+
+def _solve(problem, model, maps, controls, class_of, x, u_prev, y_ref, d, warm_start, budget, *, observe):
+    """``LinearTracking.solve`` after its checks, traced (``problem``: ``shared_problem``)."""
+    if warm_start is not None:  # indices into controls -> their classes (all -1 stays none)
+        M = class_of.shape[0]
+        inside = (warm_start >= 0) & (warm_start < M)
+        warm_start = jnp.where(inside, class_of[jnp.clip(warm_start, 0, M - 1)],
+                               jnp.where(warm_start < 0, warm_start, problem.num_controls))
+    d = jnp.zeros(y_ref.shape[:-1] + x.shape, x.dtype) if d is None else d
+    z0 = observe(x, u_prev)
+    result = sdfs(problem, z0, params=SharedParams(_params(maps, y_ref, d), model), warm_start=warm_start,
+                  max_nodes=budget)
+    sequence = _sequence(z0, result.sequence, model)
+    # the first of these inputs (first_input_of may break a tie between members the other way)
+    first = controls.astype(result.first_input.dtype)[jnp.maximum(sequence[0], 0)]
+    return result._replace(sequence=sequence, first_input=jnp.where(result.feasible, first, jnp.nan))
+
+
+# ---------------------------------------------------------------------------
+# The problem's callables: one set for every model, ``fn(z, ..., data, model)``. ``problem`` binds its model as
+# constants (``_callables(model)``: a closed loop's per-step params carry only the step's data); ``shared_problem``
+# reads it from the params (``_SHARED``: a new A, B, Q or lambda_u of the same shapes reuses its compiled search).
+# A child is a *class* of inputs with the same effect B u on the plant (the inverter's switch states of one voltage
+# vector: ``input_classes``); only the switching term tells its members apart, so the child keeps all R of them
+# (``Node``), with a min-plus step per child (the Viterbi recursion), and the tree branches on the C classes and
+# never on members of one class. One affine map of [x; u] per child (``child_map``) gives its state, the residual
+# of its stage cost and that of its cost-to-go (one matrix product instead of several: measured in
+# docs/inverter.md).
+# ---------------------------------------------------------------------------
+
+def _callables(model: Optional[TrackingModel] = None) -> dict:
+    """The ``fj.Problem`` callables, each ``(z, ..., p)``: with ``model`` (float64 NumPy) held as constants
+    (``problem``), or, for None, the model read from the params (``shared_problem``)."""
+    def reading(fn):
+        def call(z, *args):
+            *rest, p = args
+            if model is None:
+                if not isinstance(p, SharedParams):
+                    raise TypeError("LinearTracking.shared_problem reads the model from its params: pass "
+                                    f"params=lt.params(y_ref, d, with_model=True) (a SharedParams), got "
+                                    f"{type(p).__name__}")
+                data, held = p.data, p.model
+            else:
+                data, held = _tracking_params(p), model
+            return fn(z, *rest, data, _in_dtype(held, z.dtype))
+
+        return call
+
+    return {"dynamics": reading(_dynamics), "stage_cost": reading(_stage_cost),
+            "lower_bound": reading(_lower_bound), "constraint": reading(_constraint),
+            "first_input_of": reading(_first_input)}
+
+
+def _tracking_params(p) -> TrackingParams:
+    """``problem``'s params: a ``TrackingParams``, or a mapping of its fields (``python -m firhc_jax batch
+    --params`` reads an ``.npz`` of ``lt.params(Y)._asdict()`` as one); else a ``TypeError``."""
+    if isinstance(p, Mapping) and set(p) == set(TrackingParams._fields):
+        p = TrackingParams(**p)
+    if not isinstance(p, TrackingParams):
+        hint = " (lt.shared_problem takes the params with the model)" if isinstance(p, SharedParams) else ""
+        raise TypeError("LinearTracking.problem reads each decision's data from its params: pass "
+                        f"params=lt.params(y_ref, d) (a TrackingParams){hint}, got {type(p).__name__}")
+    return p
+
+
+def _in_dtype(tree, dtype):
+    """Every array of ``tree`` in ``dtype`` (NumPy constants become arrays of the trace)."""
+    return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), tree)
+
+
+def _node(z, model: TrackingModel) -> Node:
+    return Node.unpack(z, *model.members.shape[-2:])
+
+
+def _switch(u_from, o_from, u_to, ok_to, model: TrackingModel):
+    """One min-plus step of the switching costs: for each member ``u_to`` ``[R', m]`` the cheapest
+    o_from[e] + lambda_u ||u_to - u_from[e]||^2 over the allowed predecessors e (``[R', R]``; +inf where there
+    is none), and the argmin."""
+    du = u_to[:, None, :] - u_from[None, :, :]
+    allowed = ok_to[:, None] & (o_from[None, :] >= 0)
+    if model.max_step is not None:
+        allowed &= jnp.all(jnp.abs(du) <= model.max_step, axis=-1)
+    S = jnp.where(allowed, o_from[None, :] + model.lambda_u * jnp.sum(du * du, axis=-1), jnp.inf)
+    return jnp.min(S, axis=1), jnp.argmin(S, axis=1)
+
+
+def _class(u, model: TrackingModel):
+    """``(class, found)``: the first class whose members include input ``u`` ``[m]``, and whether one does."""
+    hit = jnp.any(jnp.all(model.members == u.astype(model.members.dtype), axis=-1) & (model.member_ok > 0),
+                  axis=-1)
+    C = hit.shape[0]
+    return jnp.minimum(jnp.min(jnp.where(hit, jnp.arange(C), C)), C - 1), jnp.any(hit)
+
+
+def _dynamics(z, u, k, data: TrackingParams, model: TrackingModel):
+    node = _node(z, model)
+    n, m = node.x.shape[0], node.U.shape[1]
+    p = model.M.shape[1] - 2 * n - m
+    j, found = _class(u, model)  # an input of no class (not a control) has no child
+    U, ok = model.members[j].astype(z.dtype), (model.member_ok[j] > 0) & found  # [R, m], [R]
+    xu = jnp.concatenate([node.x, U[0]])
+    out = model.M[k] @ xu + data.off[k]  # [x(k+1) (n), sqrt(Q) (y_ref[k] - C x(k+1)) (p), W's residual v (n + m)]
+    dU = U - U[0]
+    v = out[n + p:] + dU @ model.Tu[k].T  # [R, n + m] the residual of W_{k+1}(x(k+1), member)
+    # W = ||v||^2 + s, rounded down by a bound on the rounding of v (its terms nearly cancel, and W must stay
+    # admissible): ||v_true|| >= ||v|| - ||v - v_true||, with ||v - v_true|| <= gamma (||M_v|| ||[x; u]|| + ||off_v||
+    # + ||Tu|| ||du||) + the rounding of off_v.
+    off_v = data.off[k][n + p:]
+    g = _gamma(z.dtype, n + 2 * m)
+    err = g * (model.M_norm[k] * jnp.sqrt(xu @ xu) + jnp.sqrt(off_v @ off_v)
+               + model.Tu_norm[k] * jnp.sqrt(jnp.sum(dU * dU, axis=1))) + data.off_err[k]
+    W = jnp.maximum(jnp.sqrt(jnp.sum(v * v, axis=1)) - err, 0) ** 2 * (1 - g) + data.s[k]
+    # and by the factorisation's own error (``cost_to_go``): sqrt(W) is off by at most
+    # err_s ||[x(k+1); u]|| + g_err
+    x_next = out[:n]
+    off_by = model.err_s[k] * jnp.sqrt(x_next @ x_next + jnp.sum(U * U, axis=1)) + data.g_err[k]
+    W = jnp.maximum(jnp.sqrt(W) - off_by, 0) ** 2 * (1 - g)
+    cost, _ = _switch(node.U, node.o, U, ok, model)
+    reached = jnp.isfinite(cost)
+    switching = jnp.min(cost)  # +inf where no member is reached: the constraint discards that child
+    o = jnp.where(reached, cost - switching, -1)
+    # o + W: one more rounding of each sum, taken off the bound too
+    bound = jnp.min(jnp.where(reached, (o + W) * (1 - g), jnp.inf))
+    e = out[n:n + p]
+    return Node(x_next, U, o, e @ e + switching, bound).pack()
+
+
+def _stage_cost(z, u, k, data, model):
+    return _node(z, model).stage
+
+
+def _lower_bound(z, steps_left, data, model):
+    return _node(z, model).W
+
+
+def _constraint(z, u, k, data, model):
+    """Some member of the class can follow the node's (max_step). Decided on the switching costs alone, so a
+    NaN state or reference reaches the searches' own check of non-finite nodes (``nan_encountered``)."""
+    return jnp.any(_node(z, model).o >= 0)
+
+
+def _members(z0, classes, model: TrackingModel):
+    """``[N]`` the member (0 .. R-1) of each class of ``classes`` on the cheapest switching path from the
+    root ``z0``: the min-plus recursion of ``_dynamics`` forward, then its argmins backward."""
+    root = _node(z0, model)
+    j = jnp.maximum(classes, 0)
+
+    def forward(carry, jk):
+        U_from, o_from = carry
+        U, ok = model.members[jk].astype(z0.dtype), model.member_ok[jk] > 0
+        cost, came_from = _switch(U_from, o_from, U, ok, model)
+        return (U, cost), came_from
+
+    (_, last), came_from = jax.lax.scan(forward, (root.U, root.o), j)  # came_from [N, R]
+
+    def backward(e, came):
+        return came[e], e
+
+    _, picked = jax.lax.scan(backward, jnp.argmin(last).astype(came_from.dtype), came_from, reverse=True)
+    return picked
+
+
+@jax.jit
+def _sequence(z0, classes, model: TrackingModel):
+    picked = _members(z0, classes, model)
+    return jnp.where(classes >= 0, model.member_index[jnp.maximum(classes, 0), picked].astype(jnp.int32), -1)
+
+
+def _first_input(z0, classes, data, model: TrackingModel):
+    """``first_input_of``: the first member on the cheapest switching path of ``classes`` from ``z0``.
+
+    This runs in every decision, so without a loop: the switching costs between the members of consecutive
+    classes are R x R matrices, all built at once, and their min-plus product (associative) is reduced
+    pairwise, log2(N) vectorised levels (a scan costs several microseconds a step on XLA:CPU, and an
+    unrolled recursion made the work pool's compile time grow steeply with N: 340 s at N = 10)."""
+    root = _node(z0, model)
+    j = jnp.maximum(classes, 0)
+    U, ok = model.members[j].astype(z0.dtype), model.member_ok[j] > 0  # [N, R, m], [N, R]
+    first, _ = _switch(root.U, root.o, U[0], ok[0], model)  # [R] the root to each first member
+    du = U[1:, None, :, :] - U[:-1, :, None, :]  # [N-1, R (from), R (to), m]
+    allowed = ok[:-1, :, None] & ok[1:, None, :]
+    if model.max_step is not None:
+        allowed &= jnp.all(jnp.abs(du) <= model.max_step, axis=-1)
+    chain = jnp.where(allowed, model.lambda_u * jnp.sum(du * du, axis=-1), jnp.inf)  # [N-1, R, R]
+    while chain.shape[0] > 1:  # min-plus products of neighbours; an odd one out waits a level
+        pairs = chain.shape[0] // 2 * 2
+        product = jnp.min(chain[:pairs:2, :, :, None] + chain[1:pairs:2, None, :, :], axis=2)
+        chain = jnp.concatenate([product, chain[pairs:]])
+    rest = jnp.min(chain[0], axis=1) if chain.shape[0] else jnp.zeros(U.shape[1:2], z0.dtype)
+    return U[0][jnp.argmin(first + rest)]
+
+
+_SHARED = _callables()  # shared_problem's: one set of callables, so trackers of equal shapes share its searches
+
+
+_OBSERVERS = {}
+
+
+def _observer(R: int):
+    """``observe`` for trackers whose classes have R members: one function per R, so that controllers of
+    equal shapes share their compiled loop."""
+    if R not in _OBSERVERS:
+        def observe(x, u_prev, p=None):
+            """The search state, the root ``Node`` packed ``[n + R (m + 1) + 2]``: plant state ``x`` ``[n]``
+            after the input applied last ``u_prev`` ``[m]`` (every member, switching costs [0, -1, ...],
+            stage cost and bound 0). The signature of ``fj.FIRHC``'s ``observe`` (``p`` unused)."""
+            x = jnp.asarray(x)
+            u_prev = jnp.asarray(u_prev, x.dtype)
+            zero = jnp.zeros((), x.dtype)
+            o = jnp.full((R,), -1, x.dtype).at[0].set(0)
+            return Node(x, jnp.broadcast_to(u_prev, (R,) + u_prev.shape), o, zero, zero).pack()
+
+        _OBSERVERS[R] = observe
+    return _OBSERVERS[R]
+
+
+@jax.jit
+def _params(maps: _DataMaps, y_ref, d) -> TrackingParams:
+    dtype = y_ref.dtype
+    lead = y_ref.shape[:-2]
+    data = jnp.concatenate([y_ref.reshape(lead + (-1,)), d.reshape(lead + (-1,))], axis=-1)  # [..., N(p + n)]
+    gamma = _gamma(dtype, data.shape[-1])
+
+    def apply(M):  # M data and a bound on its rounding error
+        return (jnp.einsum("kid,...d->...ki", M, data),
+                gamma * jnp.einsum("kid,...d->...ki", jnp.abs(M), jnp.abs(data)))
+
+    off, off_err = apply(maps.M_data)
+    e, e_err = apply(maps.Ms)
+    n_w = off.shape[-1] - d.shape[-1] - y_ref.shape[-1]  # n + m rows of W's residual, the last of off
+    data_norm = jnp.sqrt(jnp.sum(data * data, axis=-1))
+    return TrackingParams(off=off, off_err=jnp.sqrt(jnp.sum(off_err[..., -n_w:] ** 2, axis=-1)),
+                          s=_norm2_below(e, e_err), g_err=maps.err_d * (data_norm * (1 + gamma))[..., None],
+                          y_ref=y_ref, d=d)
+
+
+def _gamma(dtype, terms: int):
+    """Relative rounding bound of a dot product of ``terms`` terms (with margin)."""
+    return jnp.finfo(dtype).eps * (terms + 2)
+
+
+def _norm2_below(v, err):
+    """A lower bound of ||v_true||^2 over the last axis, given |v - v_true| <= err
+    elementwise: W must never exceed the true cost-to-go (T s and w nearly
+    cancel, so their rounding matters in float32)."""
+    sq = jnp.sum(jnp.maximum(jnp.abs(v) - err, 0) ** 2, axis=-1)
+    return sq * (1 - _gamma(v.dtype, v.shape[-1]))
+
+
+def _scalar(name, value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a real number, got {value!r}") from None
+    if not np.isfinite(v) or v < 0:
+        raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+    return v
+
+
+def _vector(name, a, shape, dtype):
+    if not is_tracer(a):
+        arr = np.asarray(a)
+        if arr.dtype.kind not in "biuf":
+            raise TypeError(f"{name} must be a real array {list(shape)}, got dtype {arr.dtype}")
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} contains NaN or inf")
+        a = arr
+    if tuple(a.shape) != shape:
+        raise ValueError(f"{name} must have shape {list(shape)}, got {tuple(a.shape)}")
+    return a.astype(dtype) if is_tracer(a) else np.asarray(a, dtype)  # a jitted call takes NumPy as it is

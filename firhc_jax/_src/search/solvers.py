@@ -1,0 +1,183 @@
+"""The table of solvers: every search strategy under one traced signature.
+
+A ``Solver`` is what the controller (``FIRHC(solver=...)``), ``solve_batch``,
+``simulate_batch``, ``profile``, the apps' ``--solver`` choices and the docs
+know of a search. Its two traced entry points share one signature (mctx's
+``search(params, ...)`` taking its strategy as functions):
+
+* ``search(problem, x, params, warm_start, max_nodes, *, budgeted, **options)``
+  solves one state ``x`` ``[n]``: ``warm_start`` ``[N]`` int32 or None (all
+  -1: none), ``max_nodes`` ``[]`` int32 (``INT32_MAX``: no budget; traced,
+  so budgets never recompile), ``budgeted`` (static) whether a budget was
+  set at all (a budgeted search seeds its incumbent first, docs/budgets.md).
+* ``batch(problem, X, params, warm_start, max_nodes, n_valid, *, budgeted,
+  **options)`` solves the rows ``X[:n_valid]`` of ``[R, n]`` (``params``
+  leaves ``[R, ...]``, ``warm_start`` ``[R, N]`` or None, ``max_nodes``
+  ``[R]``); rows from ``n_valid`` on are padding, their results unused.
+
+Both run inside a trace and trust their arguments: the options are checked
+once, by ``check_options``, at the public boundary. ``memory`` estimates the
+bytes of one search and ``batch_memory`` those of a batch, ``(fixed, per_row)``.
+
+Adding a solver is its module plus one entry in ``SOLVERS``.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable, Mapping, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ..checks import positive_int
+from ..problem.problem import Problem
+from . import exhaustive as exhaustive_module
+from .pool import pool_memory, pool_row_memory, pool_search
+from .result import SearchResult
+from .sdfs import DEFAULT_MAX_MEMORY, INT32_MAX, stack_memory
+from .sdfs import check_memory as check_max_memory
+from .sdfs import search as sdfs_search
+
+DEFAULT_LANES = 64  # pool slots of a batch when ``lanes`` is not given: at most this many, at most the rows
+DECISION_LANES = 4  # pool slots of one decision of solver="pool"
+
+
+class Solver(NamedTuple):
+    """One search strategy (module docstring)."""
+
+    search: Callable[..., SearchResult]  # one state: (problem, x [n], params, warm_start, max_nodes, *, budgeted, ...)
+    batch: Callable[..., SearchResult]  # rows: (problem, X [R, n], params, warm_start, max_nodes [R], n_valid, ...)
+    options: Mapping[str, Any]  # every option it takes, with its default (None: chosen per call)
+    memory: Callable[..., int]  # (problem, n, itemsize, **options) -> bytes of one search
+    batch_memory: Callable[..., tuple[int, int]]  # (problem, n, itemsize, rows, param_bytes, **opts) -> bytes
+    budgets: bool  # takes max_nodes
+    warm_starts: bool  # takes a warm start
+    doc: str  # one line for tables and --help
+
+
+def _vmapped(search: Callable) -> Callable:
+    """A ``batch`` that runs ``search`` on every row, each to its own end (lanes lock-step: a vmapped
+    while-loop runs until its slowest row is done)."""
+    def batch(problem, X, params, warm_start, max_nodes, n_valid, **options):
+        one = lambda x, p, w, b: search(problem, x, p, w, b, **options)  # noqa: E731
+        return jax.vmap(one, in_axes=(0, 0, None if warm_start is None else 0, 0))(X, params, warm_start,
+                                                                                max_nodes)
+    return batch
+
+
+def _pool_batch(problem, X, params, warm_start, max_nodes, n_valid, *, budgeted, pop_width, lanes, steal=True, **_):
+    return pool_search(problem, X, params, n_valid, max_nodes, lanes_for(lanes, X.shape[0]), pop_width, budgeted,
+                       warm_start=warm_start, steal=steal)
+
+
+def _pool_one(problem, x, params, warm_start, max_nodes, *, budgeted, pop_width, lanes, **_):
+    """One decision on ``lanes`` slots: the root on one, the others steal its nodes."""
+    lanes = DECISION_LANES if lanes is None else lanes
+    row = lambda a: None if a is None else jnp.asarray(a)[None]  # noqa: E731
+    out = pool_search(problem, x[None], jax.tree_util.tree_map(row, params), 1, row(max_nodes), lanes, pop_width,
+                      budgeted, warm_start=row(warm_start))
+    return jax.tree_util.tree_map(lambda a: a[0], out)
+
+
+def _exhaustive(problem, x, params, warm_start, max_nodes, *, method, chunk_nodes, pop_width, **_):
+    if method == "dfs" or exhaustive_module._levels_executable(problem, x, params, chunk_nodes) is None:
+        # the sDFS machinery with pruning off (and the bound unused: the reference); also where XLA:CPU
+        # cannot compile the level search (docs/xla_notes.md)
+        return sdfs_search(problem.replace(lower_bound=None), x, params, None, INT32_MAX, pop_width=pop_width,
+                           prune=False)
+    return exhaustive_module._exhaustive(problem, x, params, chunk_nodes=chunk_nodes)
+
+
+def _stack_memory(problem, n, itemsize, *, pop_width, **_):
+    return stack_memory(problem, n, itemsize, pop_width)
+
+
+def _one_pool_memory(problem, n, itemsize, *, pop_width, lanes, **_):
+    return sum(_pool_memory(problem, n, itemsize, 1, 0, pop_width=pop_width, lanes=DECISION_LANES if lanes is None
+                            else lanes))
+
+
+def _rows_of(memory: Callable) -> Callable:
+    """A ``batch_memory`` of rows that each need ``memory`` (and their params)."""
+    return lambda problem, n, itemsize, rows, param_bytes, **options: (0, memory(problem, n, itemsize, **options)
+                                                                       + param_bytes)
+
+
+def _pool_memory(problem, n, itemsize, rows, param_bytes, *, pop_width, lanes, **_):
+    slots = lanes_for(lanes, rows)
+    return (pool_memory(problem, n, itemsize, slots, pop_width, param_bytes),
+            pool_row_memory(problem, n, itemsize, param_bytes))
+
+
+def _exhaustive_memory(problem, n, itemsize, *, method, chunk_nodes, pop_width, **_):
+    if method == "dfs":
+        return stack_memory(problem, n, itemsize, pop_width)
+    return exhaustive_module.memory(problem, n, itemsize, chunk_nodes)
+
+
+def lanes_for(lanes, rows: int) -> int:
+    """Pool slots for ``rows`` rows: ``lanes``, or by default the rows, at most ``DEFAULT_LANES``."""
+    return min(DEFAULT_LANES, rows) if lanes is None else lanes
+
+
+_SDFS_OPTIONS = {"pop_width": 1, "max_nodes": None, "max_memory": DEFAULT_MAX_MEMORY}
+SOLVERS: dict[str, Solver] = {
+    "sdfs": Solver(search=sdfs_search, batch=_pool_batch, options={**_SDFS_OPTIONS, "lanes": None},
+                   memory=_stack_memory, batch_memory=_pool_memory, budgets=True, warm_starts=True,
+                   doc="sorted depth-first search (the paper's Table 1); a batch shares a work pool"),
+    "pool": Solver(search=_pool_one, batch=_pool_batch, options={**_SDFS_OPTIONS, "lanes": None},
+                   memory=_one_pool_memory, batch_memory=_pool_memory, budgets=True, warm_starts=True,
+                   doc=f"sDFS on a work pool: one decision on `lanes` slots (default {DECISION_LANES}) by stealing"),
+    "sdfs-vmap": Solver(search=sdfs_search, batch=_vmapped(sdfs_search), options=_SDFS_OPTIONS,
+                        memory=_stack_memory, batch_memory=_rows_of(_stack_memory), budgets=True, warm_starts=True,
+                        doc="sDFS vmapped over a batch's rows (each row its own loop, lanes in lock-step)"),
+    "exhaustive": Solver(search=_exhaustive, batch=_vmapped(_exhaustive),
+                         options={"method": "levels", "chunk_nodes": exhaustive_module.DEFAULT_CHUNK_NODES,
+                                  "pop_width": 1, "max_memory": DEFAULT_MAX_MEMORY},
+                         memory=_exhaustive_memory, batch_memory=_rows_of(_exhaustive_memory), budgets=False,
+                         warm_starts=False, doc="every node of the tree (the reference)"),
+}
+_COUNTS = ("pop_width", "max_nodes", "max_memory", "chunk_nodes", "lanes")
+
+
+def get(name: str) -> Solver:
+    """The solver called ``name``, or a ``ValueError`` naming the choices."""
+    if not isinstance(name, str) or name not in SOLVERS:
+        raise ValueError(f"solver must be one of {list(SOLVERS)}, got {name!r}")
+    return SOLVERS[name]
+
+
+def check_options(name: str, options: Mapping[str, Any]) -> dict:
+    """Every option of solver ``name``: those given, checked, and the defaults of the rest."""
+    solver = get(name)
+    unknown = set(options) - set(solver.options)
+    if unknown:
+        raise TypeError(f"unknown option(s) {sorted(unknown)} for solver={name!r}; it accepts "
+                        f"{sorted(solver.options)}")
+    out = {**solver.options, **options}
+    for key in _COUNTS:
+        if out.get(key) is not None:
+            out[key] = positive_int(key, out[key])
+    if "method" in out and out["method"] not in ("levels", "dfs"):
+        raise ValueError(f"method must be 'levels' or 'dfs', got {out['method']!r}")
+    if out.get("method") == "levels" and out.get("pop_width") != 1:
+        raise ValueError("pop_width applies to method='dfs'; method='levels' expands whole levels")
+    return out
+
+
+def check_memory(name: str, options: Mapping[str, Any], problem: Problem, n: int, itemsize: int) -> int:
+    """Bytes of one search, refused (``ValueError``) beyond ``max_memory``, or where the tree cannot be
+    searched that way at all."""
+    solver = get(name)
+    if options.get("method", "levels") == "levels" and name == "exhaustive":
+        exhaustive_module.plan(problem, options["chunk_nodes"])  # refuses trees it cannot split
+    elif options.get("method") == "dfs" and problem.tree_size() > INT32_MAX:
+        raise ValueError(f"exhaustive search of M={problem.num_controls}, N={problem.horizon} has "
+                         f"{problem.tree_size():,} nodes, more than the int32 node counter holds")
+    need = solver.memory(problem, n, itemsize, **options)
+    check_max_memory(need, options["max_memory"], f"solver={name!r} on N={problem.horizon}, M={problem.num_controls}")
+    return need
+
+
+def options_help() -> str:
+    """One line per solver, for ``--help`` texts and docs."""
+    return "; ".join(f"{name}: {s.doc}" for name, s in SOLVERS.items())
