@@ -17,7 +17,7 @@ cheaper, equal when ``complete``) and the lower bound passes
 
 The default 72-hour loop (the issue's) takes several minutes on a shared
 2-core CPU, most of it the exact N = 8 row; ``--quick`` (12 hours, no exact
-N = 8, no N = 24) well under one. Figures: docs/budgets.md.
+N = 8, no N = 24) well under one. Figures: docs/guide/budgets.md.
 
     python benchmarks/pumping_bench.py [--steps 72] [--quick] [--skip-others | --only-others] [--only 0,2]
 """

@@ -4,7 +4,7 @@
   library never flips it), with XLA's optimizations off (``jax_disable_most_optimizations``) and XLA:CPU's
   older fusion emitters (``--xla_cpu_use_fusion_emitters=false``, added to ``XLA_FLAGS``, which the tests'
   subprocesses inherit): compiling is most of the suite's time, and each of the two roughly halves it
-  (docs/cache.md).
+  (docs/guide/caching.md).
 * ``pytest --float32``: only the tests marked ``float32``, with x64 left off (the library's default float32
   path), compiled as the quick suite.
 * ``pytest --full``: every test, ``slow`` ones too (subprocesses, soaks, multi-process runs, sweeps, the

@@ -269,10 +269,10 @@ def test_error_flags_reach_the_caller():
 
 @pytest.mark.slow
 def test_docs_example_runs():
-    """docs/batch.md's example runs as written and its results are exact."""
-    text = (Path(__file__).parent.parent / "docs" / "batch.md").read_text()
+    """docs/guide/batches.md's example runs as written and its results are exact."""
+    text = (Path(__file__).parent.parent / "docs" / "guide" / "batches.md").read_text()
     namespace = {}
-    exec(compile(re.search(r"```python\n(.*?)```", text, re.S).group(1), "docs/batch.md", "exec"), namespace)
+    exec(compile(re.search(r"```python\n(.*?)```", text, re.S).group(1), "docs/guide/batches.md", "exec"), namespace)
     problem, X0, res = namespace["problem"], namespace["X0"], namespace["res"]
     ref = solve_batch(problem, X0[:4], solver="exhaustive")
     np.testing.assert_allclose(res.cost[:4], ref.cost, rtol=1e-12)

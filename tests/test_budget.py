@@ -1,6 +1,6 @@
 """Budgeted searches (``max_nodes``) on random problems with near-ties: honest
 results, exact when the budget allows, the iterative-deepening guarantee of
-docs/budgets.md, and budgets never passed (warm start, fallback, pool).
+docs/guide/budgets.md, and budgets never passed (warm start, fallback, pool).
 
 The problems quantise their stage and terminal costs (steps of 1/grain) and
 add a tiny input term, so many sequences cost exactly or nearly the same:
@@ -105,7 +105,7 @@ def optimum(p, x0, shape):
 
 def seeds_bound(p, x0, shape, N0):
     """The largest full-horizon cost among the exact horizon-N0 decisions (all the tied optima of stage costs
-    plus the terminal cost at x(N0)) extended by the greedy rollout of docs/budgets.md."""
+    plus the terminal cost at x(N0)) extended by the greedy rollout of docs/guide/budgets.md."""
     n, m, M, N = shape
     rtol, atol = tolerance()
     scored = []
@@ -133,7 +133,7 @@ def seeds_bound(p, x0, shape, N0):
 
 
 def guaranteed_levels(shape, budget):
-    """The N0 whose guarantee holds at ``budget`` (docs/budgets.md): twice the nodes of levels 1..N0 (each its
+    """The N0 whose guarantee holds at ``budget`` (docs/guide/budgets.md): twice the nodes of levels 1..N0 (each its
     full tree and its extension), one more extension and one expansion."""
     n, m, M, N = shape
     need, out = N * M + M, []

@@ -149,7 +149,7 @@ def test_the_bounds_leave_the_documented_runs_alone(no_work, tmp_path):
 
 
 def test_table_3_shows_the_papers_mean_as_a_mean():
-    """The paper's 595 at N = 3 is a mean of nodes per step (docs/tanks.md), 2,516 the maximum."""
+    """The paper's 595 at N = 3 is a mean of nodes per step (docs/applications/tanks.md), 2,516 the maximum."""
     row = {"plant": "tanks", "N": 3, "A": 5219, "B_max": 3145, "B_min": 51, "B_mean": 181.4, "C_dfs_pct": 10.0,
            "C_levels_pct": 9.0, "sdfs_ms": 0.6, "dfs_ms": 5.0, "levels_ms": 5.1, "us_per_iteration": 3.0,
            "warm_nodes_mean": 100.0, "warm_ms": 0.5, "best_pop_width": 1, "best_pop_width_ms": 0.6, "es_steps": 100,

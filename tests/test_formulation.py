@@ -315,14 +315,14 @@ def test_fallback_keeps_constraints_and_terminal_cost():
 
 @pytest.mark.slow
 def test_the_documented_plants_run():
-    """docs/formulation.md's three plants, as written there (each block in its own namespace)."""
+    """docs/guide/formulation.md's three plants, as written there (each block in its own namespace)."""
     import pathlib
     import re
-    text = (pathlib.Path(__file__).parent.parent / "docs" / "formulation.md").read_text()
+    text = (pathlib.Path(__file__).parent.parent / "docs" / "guide" / "formulation.md").read_text()
     blocks = re.findall(r"```python\n(.*?)```", text, re.S)
     assert len(blocks) == 3
     for block in blocks:
-        exec(compile(block, "docs/formulation.md", "exec"), {})
+        exec(compile(block, "docs/guide/formulation.md", "exec"), {})
 
 
 def _leg(x, u, p):

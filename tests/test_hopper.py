@@ -127,7 +127,7 @@ def test_static_equilibrium_is_an_equilibrium():
 def sdfs_loop():
     """``(loop, X)`` of the sDFS closed loop of 0.6 s (120 periods, one hop) at horizon 4, a compiled scan run
     once for every test below that looks at it: one compiled loop and one fine trajectory serve them all."""
-    # Horizon 4 keeps the exhaustive closed loop's compile short; docs/hopper.md reports N = 5-8.
+    # Horizon 4 keeps the exhaustive closed loop's compile short; docs/applications/hopper.md reports N = 5-8.
     loop, X, compile_s = app.simulate(0.6, 4, "sdfs", progress=False)
     assert compile_s is None
     return loop, X

@@ -31,7 +31,7 @@ def test_a_budget_is_honest(case, budget, pop_width):
     full = fj.sdfs(problem(shape), x0, params=prm, pop_width=pop_width)
     cut = fj.sdfs(problem(shape), x0, params=prm, pop_width=pop_width, max_nodes=budget)
     assert int(cut.nodes) <= budget
-    if bool(cut.complete):  # the seeds (docs/budgets.md) may find a tied optimum first
+    if bool(cut.complete):  # the seeds (docs/guide/budgets.md) may find a tied optimum first
         assert same_cost(float(cut.cost), float(full.cost))
     else:
         # It stopped only because the next iteration (up to K * M children) could pass the budget.

@@ -150,7 +150,7 @@ def test_params_keep_their_dtype_and_value_in_every_solver():
 
 # 4. Long horizons compile (the fused (value, index) argmin failed at N >= 12).
 @pytest.mark.parametrize("N", [12, 14])
-@pytest.mark.filterwarnings("ignore:XLA could not compile")  # N = 14: the depth-first fallback (docs/xla_notes.md)
+@pytest.mark.filterwarnings("ignore:XLA could not compile")  # N = 14: the depth-first fallback (docs/dev/xla_notes.md)
 def test_exhaustive_compiles_long_horizons(N):
     prob = fj.Problem(lambda x, u: jnp.stack([0.5 * x[0] + u[0], x[1]]), jnp.array([0.0, 1.0]),
                       fj.quadratic_cost(1.0, jnp.zeros(2)), N)

@@ -241,7 +241,7 @@ def test_horizon_windows_start_picks_the_states_or_the_inputs_window():
 
 
 def test_lower_bound_is_evaluated_at_the_leaves_and_ignored_there():
-    """What docs/formulation.md says: ``lower_bound`` is called with steps_left = 0 .. N - 1 (0 for the
+    """What docs/guide/formulation.md says: ``lower_bound`` is called with steps_left = 0 .. N - 1 (0 for the
     leaves, never N), and at 0 its value is not used (a leaf's key is its cost): a bound that is absurd at 0
     changes nothing."""
     seen = []

@@ -38,7 +38,7 @@ def strong(a):
     and dtypes. A strongly typed JAX array stays as it is; anything else
     becomes a NumPy array of JAX's canonical dtype, which a jitted search
     takes as it is (making a device array here would cost a dispatch per
-    call; measured in benchmarks/RESULTS.md)."""
+    call; measured in docs/dev/benchmark-history.md)."""
     if isinstance(a, jax.Array) and not a.weak_type:
         return a
     a = np.asarray(a)

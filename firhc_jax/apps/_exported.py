@@ -3,7 +3,7 @@
 JAX's persistent compilation cache (``enable_compilation_cache``, which the
 command line turns on) keeps XLA's output, but every run still traces the
 decision to a jaxpr and lowers it, only to find that output: on the hopper,
-0.6 s of the 0.9 s a second run spends (docs/cache.md). An application
+0.6 s of the 0.9 s a second run spends (docs/guide/caching.md). An application
 builds its controller from this package's code and a few settings, so those
 settings, the package's source and JAX's version name the traced program
 exactly. ``decision`` stores it with ``jax.export`` (StableHLO bytecode, no

@@ -7,7 +7,7 @@ that compilation is timed on its own, so ``compile_s`` is tracing plus
 compilation and ``solve_times`` never include it. The loop runs with
 Python's cyclic garbage collector paused, as a real-time loop would run
 (``gc.disable``/``gc.freeze``): one collection of the run's records took
-130-160 ms inside a single decision (docs/inverter.md).
+130-160 ms inside a single decision (docs/applications/inverter.md).
 """
 from __future__ import annotations
 

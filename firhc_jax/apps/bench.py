@@ -206,7 +206,7 @@ def tables_markdown(rows: list[dict], bound: bool = False) -> str:
         if not mine:
             continue
         stat = PAPER_B[plant]
-        lines += [f"### {title}{', sDFS with the lower bound (docs/bounds.md)' if bound else ''}", "",
+        lines += [f"### {title}{', sDFS with the lower bound (docs/guide/bounds.md)' if bound else ''}", "",
                   f"| N | A ours (paper) | B max/{stat} ours (paper) | B {'min' if stat == 'mean' else 'mean'} | "
                   "C vs ES-dfs ours (paper) | C vs ES-levels "
                   "| sDFS ms/step | ES-dfs ms | ES-levels ms | us/iter | warm nodes / ms | fastest K (ms) | ES steps |",
@@ -443,7 +443,7 @@ def register(subparsers) -> None:
             q.add_argument("--pop-widths", type=number(int, 1, 64), nargs="+", metavar="K",
                            help="sDFS pop widths timed, the first must be 1 (default 1 2 4 8 16; --quick: 1)")
             q.add_argument("--bound", action="store_true",
-                           help="sDFS variants with the applications' lower bounds (docs/bounds.md); the "
+                           help="sDFS variants with the applications' lower bounds (docs/guide/bounds.md); the "
                                 "exhaustive searches are unchanged")
         q.set_defaults(func=_prepared(func))
 

@@ -2,8 +2,8 @@
 
 The robot is dropped from rest at the apex of the specified flight (foot at
 ``g T_air^2 / 8``) and controlled for ``--seconds`` by ``controller``
-(``_hopper.py``; explained and measured in ``docs/hopper.md``): side a by the paper's on/off law, valve b by FIRHC over
-its three states, both valves sealed in flight, a 5 ms control period and a
+(``_hopper.py``; explained and measured in ``docs/applications/hopper.md``): side a by the paper's on/off
+law, valve b by FIRHC over its three states, both valves sealed in flight, a 5 ms control period and a
 plant integrated at 50 us.
 
 The closed loop is ``FIRHC.simulate``, one step per control period:
@@ -268,13 +268,14 @@ class Hopper(App):
         horizon_argument(parser, 12, 6, short=False)
         solver_argument(parser)
         parser.add_argument("--bound", action="store_true",
-                            help="sDFS with the admissible lower bound (docs/bounds.md)")
+                            help="sDFS with the admissible lower bound (docs/guide/bounds.md)")
         parser.add_argument("--warm", action="store_true",
                             help="sDFS seeded with the better of the previous solution shifted and unshifted "
-                                 "(exact; with --bound: N = 10 in real time, docs/bounds.md)")
+                                 "(exact; with --bound: N = 10 in real time, docs/guide/bounds.md)")
         parser.add_argument("--pop-width", type=number(int, 1, 64), default=1, metavar="K",
                             help="nodes expanded per search iteration (default 1, the paper's sDFS; exact for every "
-                                 "K; --bound --warm --pop-width 4: N = 10 within the 5 ms period, docs/bounds.md)")
+                                 "K; --bound --warm --pop-width 4: N = 10 within the 5 ms period, "
+                                 "docs/guide/bounds.md)")
         parser.add_argument("--seconds", type=number(float, hm.CONTROL_PERIOD, 60), default=2.0,
                             help="simulated time in s (default 2)")
 

@@ -131,10 +131,11 @@ class Inverter(App):
         p.add_argument("--lambda-u", type=number(float, 0), default=None,
                        help="switching penalty in A^2 per leg change, charged against the previous input "
                             "(default 1; 0.1 per unit leg step with --levels 3)")
-        p.add_argument("--bound", action="store_true", help="sDFS with the admissible lower bound (docs/bounds.md)")
+        p.add_argument("--bound", action="store_true", help="sDFS with the admissible lower bound "
+                       "(docs/guide/bounds.md)")
         p.add_argument("--levels", type=int, choices=(2, 3), default=2,
                        help="inverter levels: 2, the two-level inverter (8 switch states, default); 3, the "
-                            "three-level inverter (27 states) on fj.LinearTracking (docs/inverter.md)")
+                            "three-level inverter (27 states) on fj.LinearTracking (docs/applications/inverter.md)")
         p.add_argument("--model", choices=model.DISCRETISATIONS, default="exact",
                        help="prediction model: exact zero-order hold (default) or forward Euler; the plant is exact")
 

@@ -30,7 +30,7 @@ from ._inverter import InverterRun, figure, report, waveform_metrics
 from ._run import App
 from ._timing import timed_closed_loop
 
-LAMBDA_U = 0.1  # A^2 per unit leg step (docs/inverter.md)
+LAMBDA_U = 0.1  # A^2 per unit leg step (docs/applications/inverter.md)
 
 
 def closed_loop(horizon: int, steps: int, lambda_u: float = LAMBDA_U, progress: bool = False) -> InverterRun:

@@ -21,7 +21,7 @@ from ._user_code import import_user_module, user_code
 
 MAX_LANES = 4096  # slots of one solve_batch: each holds a stack of sDFS nodes
 MAX_REPEATS = 100
-MAX_EXHAUSTIVE_NODES = 1_000_000_000  # once per repeat: minutes at the rates of docs/batch.md
+MAX_EXHAUSTIVE_NODES = 1_000_000_000  # once per repeat: minutes at the rates of docs/guide/batches.md
 
 
 HELP = "time every search setting on your own problem and states; name the fastest"

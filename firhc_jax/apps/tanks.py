@@ -174,7 +174,8 @@ class Tanks(App):
         p.add_argument("--terminal-tol", type=number(float, 0, low_open=True), default=None,
                        help="terminal box half-width in m around the set point (default: none); steps where "
                             "it cannot be reached apply the unconstrained optimum")
-        p.add_argument("--bound", action="store_true", help="sDFS with the admissible lower bound (docs/bounds.md)")
+        p.add_argument("--bound", action="store_true", help="sDFS with the admissible lower bound "
+                       "(docs/guide/bounds.md)")
         p.add_argument("--tolerance", type=number(float, 0, low_open=True), default=0.005,
                        help="settling band half-width in m (default 0.005)")
 

@@ -25,7 +25,7 @@ All functions are elementwise arithmetic (no matmuls), so a search gives the
 same bits for the same sequence whatever its batch size.
 
 Controller (last section: the problem and the pieces of its closed loop; the ``FIRHC`` itself is built by
-``firhc_jax.apps.hopper.controller``; ``docs/hopper.md`` explains and measures it):
+``firhc_jax.apps.hopper.controller``; ``docs/applications/hopper.md`` explains and measures it):
 
 * Control period 5 ms: longer than the 2-5 ms switching time of fast 3/2
   solenoid valves, so a commanded state is actually reached within a period,
@@ -82,7 +82,7 @@ class HopperParams:
     rod 6 mm, standard stroke 160 mm) with external dead volumes, and valve
     flow constants from Richer & Hurmuzlu (2000), ASME JDSMC 122(3):416-425.
 
-    Design rule for the free choices (see ``docs/hopper.md``): the nominal
+    Design rule for the free choices (see ``docs/applications/hopper.md``): the nominal
     pressure of chamber a is the geometric mean of atmosphere and supply (equal
     pressure ratios for charging and exhausting); chamber b's follows from the
     static force balance; the dead volumes make the stance stiffness of the two
@@ -195,7 +195,7 @@ def power(x, a):
 
     XLA:CPU evaluates a float power element by element through a scalar library
     call, exp and log as vector code; the prediction model evaluates about 80
-    powers per control period and node (measured in docs/xla_notes.md). Agrees
+    powers per control period and node (measured in docs/dev/xla_notes.md). Agrees
     with ``**`` to about 1e-14 relative.
     """
     return jnp.exp(a * jnp.log(x))
@@ -516,7 +516,7 @@ def make_problem(horizon: int, params: HopperParams = HopperParams(), bound: boo
     and the terminal constraint holds; the optimum is valve b closed, found in
     3N nodes. Contact decisions are unaffected (bit for bit).
 
-    ``bound``: add the lower bound of ``docs/bounds.md`` (energy-band
+    ``bound``: add the lower bound of ``docs/guide/bounds.md`` (energy-band
     reachability and energy-error cost), exact results with fewer nodes.
     ``terminal=False``: without the terminal set, for the fallback search; with
     ``bound`` its bound is the same one without the ``+inf`` that only the
@@ -551,7 +551,7 @@ def _problems(params: HopperParams, horizon: int) -> dict:
         return (z[4] == IN_FLIGHT) | (jnp.abs(energy_error(z)) <= ENERGY_TOL)
 
     def bound(z, steps_left, band: bool):
-        """docs/bounds.md. In flight 0. After a predicted lift-off (frozen state) the exact cost with valve b
+        """docs/guide/bounds.md. In flight 0. After a predicted lift-off (frozen state) the exact cost with valve b
         closed. In contact, with side a's law provably idle, e stays put while valve b is closed: either b stays
         closed (every stage costs at least LAMBDA1 e^2) or it opens at least once (BETA u^2 = OPEN_COST); with side
         a possibly charging, 0. ``band``: the terminal set applies, so a frozen or closed-valve future with e

@@ -113,7 +113,7 @@ def to_phases(i_ab) -> np.ndarray:
 
 
 def current_bound(horizon: int, params: InverterParams = InverterParams(), method: str = "exact"):
-    """Admissible ``lower_bound(x, steps_left, p)`` of the tracking cost (``docs/bounds.md``).
+    """Admissible ``lower_bound(x, steps_left, p)`` of the tracking cost (``docs/guide/bounds.md``).
 
     After l more steps from i, ``i(l) = a^l i + b sum_m a^(l-1-m) v_m`` with
     every v in the hexagon of the switch states (circumradius 2 Vdc / 3), so

@@ -167,7 +167,8 @@ def make_plant(params: TankParams = TankParams()):
 
     def plant(h, mode):
         c = jnp.asarray(coeffs, h.dtype)[mode]  # [5]
-        # A loop, not unrolled: unrolled, XLA recomputes the chain for each output level (docs/tanks.md, 14x slower).
+        # A loop, not unrolled: unrolled, XLA recomputes the chain for each output level (14x slower,
+        # docs/applications/tanks.md).
         h1, h2, h3, out, _ = jax.lax.fori_loop(0, steps, substep, (h[0], h[1], h[2], jnp.zeros((), h.dtype), c))
         return jnp.stack([h1, h2, h3]), out * params.area
 
@@ -212,7 +213,7 @@ def make_problem(horizon: int, params: TankParams = TankParams(), set_point=SET_
         0 disables it.
       terminal_tol: if given, the terminal set ``|h_i(k+N) - h_s,i| <= tol``
         (m) for all tanks, the paper's eq. (3) relaxed to a box.
-      bound: add the admissible lower bound of ``docs/bounds.md``: no level
+      bound: add the admissible lower bound of ``docs/guide/bounds.md``: no level
         moves faster than ``level_steps`` towards its set point.
 
     Levels are scored in mm so that costs are O(1)-O(1e4) numbers. Each call

@@ -53,7 +53,7 @@ def model(params: InverterParams = PARAMS) -> tuple[np.ndarray, np.ndarray]:
 
 def pop_width(horizon: int) -> int:
     """Nodes the sorted search pops per iteration at this horizon: 4 from N = 6 on, where it takes a third
-    of the iterations for the same nodes (within 1 %), else 1 (docs/inverter.md)."""
+    of the iterations for the same nodes (within 1 %), else 1 (docs/applications/inverter.md)."""
     return 4 if horizon > 5 else 1
 
 

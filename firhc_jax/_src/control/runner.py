@@ -6,7 +6,7 @@ leading axis B (the runner does not care). ``run_compiled`` drives them as
 one compiled ``lax.scan`` (or, with a progress bar, as one compiled chunk of
 steps dispatched again and again from Python, the bar moved between chunks:
 a host callback inside the scan costs more than cheap steps,
-docs/xla_notes.md; each chunk writes its steps into the run's records, which
+docs/dev/xla_notes.md; each chunk writes its steps into the run's records, which
 it updates in place). ``run_python`` drives an already compiled decision from a
 Python loop, timing each decision, for plants that cannot be traced. Both
 return a time-major ``ClosedLoop`` (``states`` ``[T+1, ...]``).

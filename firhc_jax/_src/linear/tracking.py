@@ -39,7 +39,7 @@ the optimum is the cheapest class sequence with its cheapest members, which
 ``sequence`` recovers from the plan (forward min-plus, argmins backward), and
 ``first_input_of`` gives the member to apply now. On the three-level inverter
 (27 inputs, 19 classes, N = 10, lambda_u = 0.1) this computes 27 times fewer
-nodes than the plain sorted search (docs/inverter.md); without equal-effect
+nodes than the plain sorted search (docs/applications/inverter.md); without equal-effect
 inputs (R = 1) the node is the plain one.
 
 In this form the search state is the plant's own: a ``Node`` (x, the
@@ -52,7 +52,7 @@ and quadratic in (y_ref, d) and travel as params (``TrackingParams``), so new
 states, references and disturbances never recompile. One node is one step with
 its C classes (not one input component per level as in the decoder), and where
 F is rank deficient W is strictly tighter than the decoder's distance: both
-measured in docs/inverter.md.
+measured in docs/applications/inverter.md.
 
 W stays a lower bound at any scaling of Q, lambda_u and the units: which
 directions inputs reach is decided on F with unit rows and columns
@@ -370,7 +370,7 @@ def _solve(problem, model, maps, controls, class_of, x, u_prev, y_ref, d, warm_s
 # (``Node``), with a min-plus step per child (the Viterbi recursion), and the tree branches on the C classes and
 # never on members of one class. One affine map of [x; u] per child (``child_map``) gives its state, the residual
 # of its stage cost and that of its cost-to-go (one matrix product instead of several: measured in
-# docs/inverter.md).
+# docs/applications/inverter.md).
 # ---------------------------------------------------------------------------
 
 def _callables(model: Optional[TrackingModel] = None) -> dict:

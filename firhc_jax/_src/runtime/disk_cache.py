@@ -5,7 +5,7 @@ per problem, horizon and solver option). In-process, ``firhc_jax._src.runtime.me
 keeps the executable; across processes, JAX's persistent compilation cache
 stores XLA's output on disk, keyed by the lowered program, so a second run of
 the same script finds it there and only traces and lowers again
-(docs/cache.md has the split measured per plant).
+(docs/guide/caching.md has the split measured per plant).
 
 The library never turns it on by itself (that would change global JAX
 config on import): call ``enable_compilation_cache()`` once at the start of

@@ -16,7 +16,7 @@ tests and the benchmarks:
 * ``exit_on_failure``: make a failing process of a job exit at once (so the
   launcher sees the failure and stops the rest).
 
-See docs/batch.md, "Many devices and many hosts".
+See docs/guide/batches.md, "Many devices and many hosts".
 """
 from __future__ import annotations
 

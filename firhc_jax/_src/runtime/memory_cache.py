@@ -8,10 +8,10 @@ the same callables, shapes and dtypes reuse one executable, and a rebuilt
 entry's ``jax.jit`` object, and with it its executables, is freed. So a process
 that builds problem after problem (a notebook, a parameter study, a controller
 that re-identifies its plant) keeps a bounded amount of compiled code instead
-of pinning one executable per problem for ever (measured in docs/cache.md).
+of pinning one executable per problem for ever (measured in docs/guide/caching.md).
 
 ``clear_cache()`` empties it; ``set_cache_size(n)`` changes the bound (at
-least ``MIN_SIZE``: one call must never evict its own entries, docs/cache.md);
+least ``MIN_SIZE``: one call must never evict its own entries, docs/guide/caching.md);
 ``cache_info()`` reports its use.
 """
 from __future__ import annotations
@@ -24,9 +24,9 @@ import jax
 
 DEFAULT_MAX_SIZE = 64
 # At least the most entries one call uses (12: a closed loop with a fallback on the exhaustive solver and a
-# progress bar, while it compiles; docs/cache.md), with room for a few more: LRU at this size keeps them all, so a
-# repeated call finds every one; below it, a call can evict its own and recompile every time. tests/test_soak.py
-# checks every kind of call.
+# progress bar, while it compiles; docs/guide/caching.md), with room for a few more: LRU at this size keeps them
+# all, so a repeated call finds every one; below it, a call can evict its own and recompile every time.
+# tests/test_soak.py checks every kind of call.
 MIN_SIZE = 16
 _entries: "collections.OrderedDict[Hashable, Any]" = collections.OrderedDict()
 _max_size = DEFAULT_MAX_SIZE

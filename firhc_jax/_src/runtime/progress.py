@@ -5,7 +5,7 @@
 most ``TICKS`` times: every ``interval(total)`` steps and at its last step
 (``due``). A compiled closed loop never calls back from inside its scan (a
 host callback in the loop's program costs more than cheap steps,
-docs/xla_notes.md): it runs as chunks of ``interval(total)`` steps, one
+docs/dev/xla_notes.md): it runs as chunks of ``interval(total)`` steps, one
 compiled chunk dispatched again from Python, and reports between chunks.
 
 The bar reads "compiling" until the first step is done and its clock starts

@@ -148,7 +148,7 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         best count depends on the plant and on B (2-core CPU, N = 5: at
         B = 256 64 lanes beat 16 and 256 on the linear and tank plants; at
         B = 4096 the linear plant is fastest at 256 and the tanks at 1,024;
-        benchmarks/RESULTS.md). A GPU wants far more.
+        docs/dev/benchmark-history.md). A GPU wants far more.
       chunk_nodes: per-row ``chunk_nodes`` of ``"exhaustive"``.
       max_nodes: optional node budget per row (sDFS solvers): a row stops
         expanding before an expansion could take its count above it (as
@@ -156,7 +156,7 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
         keeps its incumbent, with ``complete=False``; in the pool, slots that
         share a stolen row stop where all of them together could pass it.
         Never passed. Each row first gets ``fj.sdfs``'s budgeted seeds
-        (docs/budgets.md).
+        (docs/guide/budgets.md).
       max_memory: bytes the batch may use at once on each device (estimate,
         see ``row_memory``, ``pool_memory``), shared equally by the parts
         running at once; larger batches are solved in chunks of rows, and

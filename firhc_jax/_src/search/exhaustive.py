@@ -161,7 +161,7 @@ def _levels_executable(problem: Problem, x0, params, chunk_nodes: int):
     """The level search for these shapes, compiled ahead of time and cached;
     None where XLA:CPU fails to compile it. Some deep level chains (seen with
     M = 2, 13 <= N <= 23) stop XLA:CPU with "Unknown MLIR failure"
-    (docs/xla_notes.md); the caller then visits the same tree depth first.
+    (docs/dev/xla_notes.md); the caller then visits the same tree depth first.
     Under an outer trace the jitted search is returned, to be inlined."""
     spec = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), (x0, params))
     key = ("levels", problem.key, chunk_nodes, str(spec), jax.tree_util.tree_structure(spec))

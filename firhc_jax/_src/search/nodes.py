@@ -89,7 +89,7 @@ def expand(problem: Problem, x, cost, params, *, steps_left, check_terminal: boo
 
 class SearchStats(NamedTuple):
     """What a search counts: the same fields in every solver (batched searches
-    add a leading axis). Three bool flags, not one array: docs/xla_notes.md
+    add a leading axis). Three bool flags, not one array: docs/dev/xla_notes.md
     ("Tried and not kept", three flags against one array)."""
 
     nodes: jax.Array  # [] int32 child nodes computed (the paper's count)
@@ -125,7 +125,7 @@ def first_min(a):
     """Smallest entry along the last axis and its first index (int32). Two plain
     reductions: XLA:CPU runs a (value, index) argmin reduction as a scalar
     loop, several times slower, and fails to compile one fused into a deep
-    chain of levels (``Unknown MLIR failure`` at N >= 12, docs/xla_notes.md)."""
+    chain of levels (``Unknown MLIR failure`` at N >= 12, docs/dev/xla_notes.md)."""
     low = jnp.min(a, axis=-1)
     idx = jnp.arange(a.shape[-1], dtype=jnp.int32)
     first = jnp.min(jnp.where(a == low[..., None], idx, a.shape[-1]), axis=-1)

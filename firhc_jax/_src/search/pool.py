@@ -62,7 +62,7 @@ class Pool(NamedTuple):
 class Work(NamedTuple):
     """What each slot expands in the next iteration (taken out of the stacks
     at the end of the previous one, so that the stacks are written, then read,
-    within an iteration: XLA updates them in place; docs/xla_notes.md,
+    within an iteration: XLA updates them in place; docs/dev/xla_notes.md,
     "Pop right after the push")."""
 
     popped: Popped  # [S, K] fields: the nodes, cheapest first (expanded where below the row's incumbent)

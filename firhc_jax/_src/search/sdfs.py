@@ -28,7 +28,7 @@ batched call of ``dynamics`` each (``SearchResult.iterations`` for the other
 solvers). ``max_nodes`` stops the loop before an iteration could take the
 node count above it; the result then holds the incumbent found so far and
 ``complete=False``. A budgeted search first seeds its incumbent by iterative
-deepening over the horizon (``seed``, docs/budgets.md), within half the
+deepening over the horizon (``seed``, docs/guide/budgets.md), within half the
 budget.
 """
 from __future__ import annotations
@@ -56,7 +56,7 @@ class _Carry(NamedTuple):
     """Loop state. The nodes to expand are popped at the end of the previous
     iteration, right after the push: the stack's buffers are then only ever
     written and then read within an iteration, which XLA updates in place
-    (read first, and it copies every buffer each iteration; docs/xla_notes.md,
+    (read first, and it copies every buffer each iteration; docs/dev/xla_notes.md,
     "Pop right after the push")."""
 
     stack: Stack
@@ -237,7 +237,7 @@ def seed(problem: Problem, x0, params, start: Incumbent, max_nodes, *, pop_width
     where that half holds less than two extensions (``2 N M`` nodes) and one
     expansion (below that, the search's own first dive is as good): deepening
     stops after ``D = N - 1`` or at the first level stopped (its best so far
-    is still extended). docs/budgets.md states what this guarantees."""
+    is still extended). docs/guide/budgets.md states what this guarantees."""
     N, M, K = problem.horizon, problem.num_controls, pop_width
     L = K * M
     level = problem.replace(terminal=None, terminal_cost=None, lower_bound=None)
@@ -339,7 +339,7 @@ def sdfs(problem: Problem, x0, *, params=None, pop_width: int = 1, warm_start=No
       max_nodes: optional node budget (real-time use): ``nodes <= max_nodes``
         always (a warm start's N nodes included). Up to half of it first
         seeds the incumbent (the exact problems of horizon 1, 2, ... each
-        extended to N by a greedy rollout; docs/budgets.md states what that
+        extended to N by a greedy rollout; docs/guide/budgets.md states what that
         guarantees). The search stops before an iteration could take the
         count above it and returns its incumbent with ``complete=False``
         (infeasible if it has none yet; ``True``: proven optimal). A traced

@@ -9,7 +9,7 @@ know of a search. Its two traced entry points share one signature (mctx's
   solves one state ``x`` ``[n]``: ``warm_start`` ``[N]`` int32 or None (all
   -1: none), ``max_nodes`` ``[]`` int32 (``INT32_MAX``: no budget; traced,
   so budgets never recompile), ``budgeted`` (static) whether a budget was
-  set at all (a budgeted search seeds its incumbent first, docs/budgets.md).
+  set at all (a budgeted search seeds its incumbent first, docs/guide/budgets.md).
 * ``batch(problem, X, params, warm_start, max_nodes, n_valid, *, budgeted,
   **options)`` solves the rows ``X[:n_valid]`` of ``[R, n]`` (``params``
   leaves ``[R, ...]``, ``warm_start`` ``[R, N]`` or None, ``max_nodes``
@@ -81,7 +81,7 @@ def _pool_one(problem, x, params, warm_start, max_nodes, *, budgeted, pop_width,
 def _exhaustive(problem, x, params, warm_start, max_nodes, *, method, chunk_nodes, pop_width, **_):
     if method == "dfs" or exhaustive_module._levels_executable(problem, x, params, chunk_nodes) is None:
         # the sDFS machinery with pruning off (and the bound unused: the reference); also where XLA:CPU
-        # cannot compile the level search (docs/xla_notes.md)
+        # cannot compile the level search (docs/dev/xla_notes.md)
         return sdfs_search(problem.replace(lower_bound=None), x, params, None, INT32_MAX, pop_width=pop_width,
                            prune=False)
     return exhaustive_module._exhaustive(problem, x, params, chunk_nodes=chunk_nodes)
