@@ -132,16 +132,17 @@ def seeds_bound(p, x0, shape, N0):
     return worst
 
 
-def guaranteed_levels(shape, budget):
-    """The N0 whose guarantee holds at ``budget`` (docs/guide/budgets.md): twice the nodes of levels 1..N0 (each its
-    full tree and its extension), one more extension and one expansion."""
+def documented_budget(shape, N0, pop_width=1, warm_start=False):
+    """B(N0) of docs/guide/budgets.md, as written there: twice levels 1..N0 (each its whole tree and its
+    extension) and one expansion, plus twice a warm start's N nodes."""
     n, m, M, N = shape
-    need, out = N * M + M, []
-    for D in range(1, N):
-        need += sum(M**i for i in range(1, D + 1)) + N * M
-        if 2 * need <= budget:
-            out.append(D)
-    return out
+    T = [sum(M**i for i in range(1, D + 1)) for D in range(N0 + 1)]
+    return 2 * (sum(T[D] + N * M for D in range(1, N0 + 1)) + pop_width * M) + (2 * N if warm_start else 0)
+
+
+def guaranteed_levels(shape, budget):
+    """The N0 whose guarantee holds at ``budget``: ``B(N0) <= budget``."""
+    return [N0 for N0 in range(1, shape[3]) if documented_budget(shape, N0) <= budget]
 
 
 def check_result(r, shape, params, x0, budget, opt, name="", lanes=1):
@@ -175,7 +176,7 @@ def test_a_budgeted_search_is_honest_and_exact_when_it_can_be(case, budget):
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(cases(shapes=(LONG,)), st.integers(60, 900))
+@given(cases(shapes=(LONG,)), st.integers(40, 900))
 def test_a_budgeted_decision_is_never_dearer_than_the_exact_shorter_one_extended(case, budget):
     """The guarantee: at a budget that holds levels 1..N0, never dearer over the horizon than the exact
     horizon-N0 decision extended by the greedy rollout."""
@@ -186,6 +187,44 @@ def test_a_budgeted_decision_is_never_dearer_than_the_exact_shorter_one_extended
     for N0 in guaranteed_levels(shape, budget):
         bound = seeds_bound(seen, x_seen, shape, N0)
         assert float(r.cost) <= bound + rtol * abs(bound) + atol, (N0, float(r.cost), bound)
+
+
+@pytest.mark.float32
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(cases(shapes=(LONG,)), st.integers(1, LONG[3] - 1), st.booleans())
+def test_the_guarantee_holds_at_exactly_the_documented_budget_at_every_level(case, N0, warm):
+    """At ``max_nodes = B(N0)`` exactly (with a warm start: its ``+ 2 N``, the warm start the worst sequence
+    there is, so that it never decides), N0 from 1: never dearer than the horizon-N0 decision extended."""
+    shape, params, x0 = case
+    seen, x_seen = as_seen(params, x0)
+    budget = documented_budget(shape, N0, warm_start=warm)
+    warm_start = None
+    if warm:
+        costs = [sequence_cost(seen, x_seen, s, shape[3]) for s in itertools.product(range(shape[2]), repeat=shape[3])]
+        finite = [c if np.isfinite(c) else -1 for c in costs]
+        warm_start = np.array(list(itertools.product(range(shape[2]), repeat=shape[3]))[int(np.argmax(finite))])
+    r = fj.sdfs(problem(shape), x0, params=as_jax(params), max_nodes=budget, warm_start=warm_start)
+    bound = seeds_bound(seen, x_seen, shape, N0)
+    rtol, atol = tolerance()
+    assert int(r.nodes) <= budget
+    assert float(r.cost) <= bound + rtol * abs(bound) + atol, (N0, budget, float(r.cost), bound)
+
+
+def test_the_guarantee_at_level_one_where_the_terminal_cost_alone_points_the_way():
+    """x' = x + u, u in {0, 1, 2}, the stage cost 0.01 u, the terminal cost 100 (x_N - 12)^2, N = 6: the exact
+    level-1 decision (u = 2) extended by the rollout is [2] * 6 at 0.12, while the first dive of the full search
+    sees the terminal cost only at the leaves (3600.06). From B(1) on, fj.sdfs and a pool row are never dearer."""
+    shape = (1, 1, 3, 6)
+    tiny = fj.Problem(lambda x, u: x + u, jnp.array([0.0, 1.0, 2.0]), lambda x, u: 0.01 * u[0], 6,
+                      terminal_cost=lambda x: 100 * (x[0] - 12) ** 2)
+    x0 = jnp.zeros(1)
+    extended = 0.12
+    assert documented_budget(shape, 1) == 48
+    for budget in [*range(48, 78), *(documented_budget(shape, N0) for N0 in range(2, 6))]:
+        r = fj.sdfs(tiny, x0, max_nodes=budget)
+        assert float(r.cost) <= extended + 1e-6, (budget, float(r.cost), np.asarray(r.sequence))
+    rows = fj.solve_batch(tiny, jnp.zeros((2, 1)), max_nodes=48, lanes=2, cores=1)
+    assert np.all(np.asarray(rows.cost) <= extended + 1e-6), np.asarray(rows.cost)
 
 
 # ---------------------------------------------------------------- budgets never passed

@@ -234,10 +234,11 @@ def seed(problem: Problem, x0, params, start: Incumbent, max_nodes, *, pop_width
     sequence extended to N by ``_rollout`` seeds the search when cheaper than
     the incumbent. The seeds take at most half the budget (each level stops
     where the next node could leave no room for its extension), and none run
-    where that half holds less than two extensions (``2 N M`` nodes) and one
-    expansion (below that, the search's own first dive is as good): deepening
-    stops after ``D = N - 1`` or at the first level stopped (its best so far
-    is still extended). docs/guide/budgets.md states what this guarantees."""
+    where that half holds less than level 1 whole, its extension and one
+    expansion (``M + N M + K M`` nodes: half of ``B(1)``, the least budget
+    that guarantees anything): deepening stops after ``D = N - 1`` or at the
+    first level stopped (its best so far is still extended).
+    docs/guide/budgets.md states what this guarantees."""
     N, M, K = problem.horizon, problem.num_controls, pop_width
     L = K * M
     level = problem.replace(terminal=None, terminal_cost=None, lower_bound=None)
@@ -268,9 +269,9 @@ def seed(problem: Problem, x0, params, start: Incumbent, max_nodes, *, pop_width
         best = jax.lax.cond(fits, lambda: _rollout(problem, x0, params, found.path, D, best), lambda: best)
         return D + 1, best, done
 
-    def more(c):  # no seeds where half the budget does not hold two extensions and an expansion
+    def more(c):  # no seeds where half the budget does not hold level 1, its extension and an expansion
         D, best, done = c
-        return done & (D < N) & (best.stats.nodes <= share - N * M - L) & (share >= 2 * N * M + L)
+        return done & (D < N) & (best.stats.nodes <= share - N * M - L) & (share >= M + N * M + L)
 
     _, best, _ = jax.lax.while_loop(more, body, (jnp.ones((), jnp.int32), start, jnp.ones((), bool)))
     return best
