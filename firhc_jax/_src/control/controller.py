@@ -235,14 +235,14 @@ class FIRHC:
         the first search's iterations added, its error flags kept, and
         ``complete`` only if both searches ran to the end (a constrained
         search stopped by ``max_nodes`` has not proven infeasibility).
-        ``previous_sequence`` seeds the warm start (ignored unless
-        ``warm_start``; an all ``-1`` sequence, i.e. infeasible, is no warm
-        start and costs no nodes). No input found: ``result.feasible`` is
+        ``previous_sequence``: the last decision's plan, the candidates'
+        source (ignored unless ``warm_start`` or ``max_nodes``; an all ``-1``
+        sequence, i.e. infeasible, is none and costs no nodes). No input found: ``result.feasible`` is
         False and ``result.first_input`` NaN.
         """
         x, params = as_state(x, "x"), check_params(params)
         prev = as_sequence(previous_sequence, self.problem.horizon, self.problem.num_controls,
-                           "previous_sequence") if self.warm_start else None
+                           "previous_sequence") if self.warm_start or self.options.budgeted else None
         fn = cached(("solve", self.options.key), lambda: jax.jit(functools.partial(solve_checked, self.options)))
         result, used = fn(x, params, prev)
         return raise_on_errors(result), used
