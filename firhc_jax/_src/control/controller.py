@@ -30,8 +30,11 @@ before any complete sequence), or the input found is not finite (a
 ``first_input_of`` returning NaN), a controller never hands a NaN to the plant.
 ``step`` and ``simulate`` apply a safe input instead: ``u_safe`` if given,
 else the input applied last (``u0`` at the start), and flag the decision
-(``info.held``, ``ClosedLoop.held``); ``simulate`` warns after a run with
-held steps; the one-shot ``ctrl(x)`` raises ``InfeasibleError``.
+(``info.held``, ``ClosedLoop.held``); ``simulate`` and ``simulate_batch``
+warn at the first held step (a Python loop: as it happens; a compiled run
+with ``progress``: at the end of its chunk; a compiled run without: after
+it, naming the step) and count the held steps after the run; the one-shot
+``ctrl(x)`` raises ``InfeasibleError``.
 
 With ``params`` (leaves with leading axis ``steps``) step k calls every
 callable, the problem's and these, with ``params[k]``: a reference trajectory,
@@ -54,7 +57,7 @@ from ..search.result import SearchResult, raise_on_errors
 from .closed_loop import ClosedLoop
 from .decision import ControllerState, decide, decide_rows
 from .decision_checks import check_closed_loop, controller_options, decide_checked, no_input_message, solve_checked
-from .runner import ready, run_compiled, run_loops, run_python, user_plant, warn_held
+from .runner import first_held_warning, ready, run_compiled, run_loops, run_python, user_plant, warn_held
 
 
 class InfeasibleError(RuntimeError):
@@ -270,8 +273,10 @@ class FIRHC:
             The plant is called as it is: jit it, or each of its
             operations is one eager dispatch a step.
 
-        Steps where no input was found hold the safe input (``held``); a
-        ``RuntimeWarning`` follows such a run.
+        Steps where no input was found hold the safe input (``held``): a
+        ``RuntimeWarning`` names the first one as it happens (``compiled=False``),
+        at the end of its chunk (``progress=True``) or after the run, and another
+        counts them after the run.
         """
         steps = positive_int("steps", steps)
         x0 = as_state(x0)
@@ -288,12 +293,14 @@ class FIRHC:
         """A checked closed loop (``simulate``'s), under its progress bar and followed by the held-input warning:
         one compiled scan where ``decision`` is None, else a Python loop of ``decision``, a compiled decision of
         this controller (``step``'s contract); ``dt`` (checked) gives its time axis."""
+        on_held = first_held_warning(self.u_safe is not None, stacklevel=5)
         with Progress(steps, f"FIRHC[{self.solver}]", enabled=progress):
             if decision is None:
                 out, = run_compiled(functools.partial(decide, self.options), user_plant(plant), [(state, x0, params)],
-                                    steps, key=(self.options.key, plant_key), progress=progress)
+                                    steps, key=(self.options.key, plant_key), progress=progress, on_held=on_held)
             else:
-                out = run_python(decision, user_plant(plant), state, x0, params, steps, progress=progress)
+                out = run_python(decision, user_plant(plant), state, x0, params, steps, progress=progress,
+                                 on_held=on_held)
         warn_held(out.held, steps, self.u_safe is not None)
         return out._replace(times=sample_times(dt, steps))
 
@@ -331,7 +338,8 @@ class FIRHC:
         check_closed_loop(self.options, plant_key, plant, state.u[0], X0[0], params, default, drop=2)
         with Progress(B * steps, f"FIRHC[{self.solver}] x {B} loops", enabled=progress):
             out = run_loops(functools.partial(decide_rows, self.options), jax.vmap(user_plant(plant)), state, X0,
-                            params, steps, key=("batch", self.options.key, plant_key), progress=progress)
+                            params, steps, key=("batch", self.options.key, plant_key), progress=progress,
+                            on_held=first_held_warning(self.u_safe is not None, stacklevel=5))
         warn_held(out.held, steps * B, self.u_safe is not None)
         return out._replace(times=times)
 

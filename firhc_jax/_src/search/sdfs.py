@@ -211,9 +211,10 @@ def _rollout(problem: Problem, x0, params, prefix, length, start: Incumbent) -> 
         total = cost + s
         nonfinite = jnp.isnan(total) | jnp.any(~jnp.isfinite(x))
         met = ok & allowed  # flags as the search raises them: not for children a constraint discards
+        overflow = jnp.isinf(total) & jnp.isfinite(cost) & jnp.isfinite(s)
         stats = stats._replace(nodes=stats.nodes + 1, negative=stats.negative | (met & (s < 0)),
                                nonfinite=stats.nonfinite | (met & nonfinite),
-                               overflow=stats.overflow | (met & jnp.isinf(total) & jnp.isfinite(cost) & jnp.isfinite(s)))
+                               overflow=stats.overflow | (met & overflow))
         return x, total, met & ~nonfinite, path.at[k].set(prefix[k]), stats
 
     def greedy(carry, k):
