@@ -66,9 +66,12 @@ def test_budget_stops_a_search_that_would_never_end():
     assert not bool(r.complete) and not bool(r.feasible) and int(r.nodes) <= 5_000
     b = fj.solve_batch(hard, jnp.ones((3, 1)), max_nodes=5_000, lanes=2)
     assert not np.asarray(b.complete).any() and (np.asarray(b.nodes) <= 5_000 + 17).all()
+    run = fj.FIRHC(hard, fallback="unconstrained", max_nodes=2_000).simulate(jnp.ones(1), 2)
+    assert not np.asarray(run.complete).any()  # the fallback acts within the half kept for it
+    assert np.asarray(run.used_fallback).all() and not np.asarray(run.held).any()
+    assert (np.asarray(run.decision_nodes) <= 2_000).all()
     with pytest.warns(RuntimeWarning, match="no feasible input sequence found .* at 2 of 2 steps"):
-        run = fj.FIRHC(hard, fallback="unconstrained", max_nodes=2_000).simulate(jnp.ones(1), 2)
-    assert not np.asarray(run.complete).any()
+        run = fj.FIRHC(hard, max_nodes=2_000).simulate(jnp.ones(1), 2)
     assert bool(fj.sdfs(P, jnp.ones(1), max_nodes=10_000).complete)
 
 
