@@ -404,6 +404,9 @@ def test_a_fallback_gets_enough_of_the_budget_to_act(solver):
     batch = ctrl.simulate_batch(np.stack([HANGING, HANGING + np.array([0.2, 0.0])]), 8)
     assert not np.asarray(batch.held).any() and (np.asarray(batch.decision_nodes) <= 92).all()
     assert fj.solvers.budget_for(ctrl, 1) == 92
+    if solver == "sdfs":  # its first dive from 2 (N K M + N - 1 + M) = 38 nodes on
+        dive = fj.FIRHC(PENDULUM, solver, fallback="unconstrained", warm_start=True, max_nodes=38)
+        assert not np.asarray(dive.simulate(HANGING, 8).held).any()
 
 
 def test_a_holding_controller_says_so_at_the_first_held_step():
