@@ -18,7 +18,7 @@ import jax
 import numpy as np
 from numpy.lib import format as npy
 
-from . import plot
+from . import plot, realised
 
 # Each field's layout in a saved run: (length of the leading axis, number of axes, dtype kinds).
 _LAYOUT = {"states": ("T+1", 2, "f"), "inputs": ("T", 2, "f"), "input_indices": ("T", 1, "iu"),
@@ -63,6 +63,19 @@ class ClosedLoop(NamedTuple):
         batched run), or None."""
         bad = np.flatnonzero(~np.asarray(self.feasible).reshape(-1, np.shape(self.feasible)[-1]).all(axis=0))
         return int(bad[0]) if bad.size else None
+
+    def realised_cost(self, problem, params=None, *, terminal_cost: bool = False):
+        """What the plant paid: the sum over the run of ``problem``'s stage cost of each plant state reached
+        and the input applied to reach it, ``stage_cost(states[k+1], inputs[k][, 0][, params[k]])`` (step
+        index 0, the step each decision applies), plus, with ``terminal_cost``, ``problem``'s terminal cost
+        of the last state (``params[T-1]``). A float; ``[B]`` for a batched run.
+
+        ``problem``'s state and input must be the plant's and the applied ones (``states`` ``[n]``,
+        ``inputs`` ``[m']``): with ``with_input_memory``, price the run with the problem it was built from
+        (switching costs apart). ``params``: per step as ``simulate``'s (leading axis T; B, T for a batch).
+        Unlike ``stage_costs`` (each decision's model prediction of its first step), this is evaluated on
+        the plant's own states, so a plant that is not the model pays what it really paid."""
+        return realised.realised_cost(self, problem, params, terminal_cost)
 
     def save(self, path) -> str:
         """Write every field to ``path`` as an uncompressed ``.npz`` (``.npz``
