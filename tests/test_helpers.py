@@ -41,7 +41,7 @@ def test_index_of_refuses_inputs_it_cannot_place():
         PROBLEM.index_of([0.0, 0.0, 1.0])
     with pytest.raises(ValueError, match="u contains NaN"):
         PROBLEM.index_of([np.nan, 0.0])
-    with pytest.raises(TypeError, match="u must be real numeric"):
+    with pytest.raises(TypeError, match="u must be a real numeric input"):
         PROBLEM.index_of(["a", "b"])
 
 

@@ -73,12 +73,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..checks import as_sequence, as_state, is_tracer, positive_int
-from ..problem.formulation import _matrix
+from ..checks import as_sequence, as_state, finite, is_tracer, matrix, non_negative, numeric, positive_int
 from ..problem.problem import Problem, _check_controls
 from ..runtime.memory_cache import compiled
+from ..search.one_state import sdfs
 from ..search.result import SearchResult, raise_on_errors
-from ..search.sdfs import DEFAULT_MAX_MEMORY, node_budget, sdfs
+from ..search.sdfs import DEFAULT_MAX_MEMORY, node_budget
 from .factor import child_map, factor_memory, input_classes, psd_factor
 
 # ---------------------------------------------------------------------------
@@ -210,24 +210,24 @@ class LinearTracking:
 
     def __init__(self, A, B, controls, horizon, *, C=None, Q=None, lambda_u=0.0, max_step=None,
                  max_memory: int = DEFAULT_MAX_MEMORY):
-        A = _matrix("A", A)
+        A = matrix("A", A)
         n = A.shape[0]
         if A.shape != (n, n):
             raise ValueError(f"A must be square [n, n], got shape {A.shape}")
-        B = _matrix("B", B)
+        B = matrix("B", B)
         if B.shape[0] != n:
             raise ValueError(f"B must be [n, m] with n = {n} rows like A, got shape {B.shape}")
         m = B.shape[1]
-        C = np.eye(n) if C is None else _matrix("C", C)
+        C = np.eye(n) if C is None else matrix("C", C)
         if C.shape[1] != n:
             raise ValueError(f"C must be [p, n] with n = {n} columns like A, got shape {C.shape}")
         p = C.shape[0]
-        Q = np.eye(p) if Q is None else _matrix("Q", Q)
+        Q = np.eye(p) if Q is None else matrix("Q", Q)
         if Q.shape != (p, p):
             raise ValueError(f"Q must be [p, p] = [{p}, {p}] like the rows of C, got shape {Q.shape}")
         N = positive_int("horizon", horizon)
-        lambda_u = _scalar("lambda_u", lambda_u)
-        max_step = None if max_step is None else _scalar("max_step", max_step)
+        lambda_u = non_negative("lambda_u", lambda_u)
+        max_step = None if max_step is None else non_negative("max_step", max_step)
         max_memory = positive_int("max_memory", max_memory)
         need = factor_memory(n, m, p, N)
         if need > max_memory:
@@ -592,24 +592,10 @@ def _norm2_below(v, err):
     return sq * (1 - _gamma(v.dtype, v.shape[-1]))
 
 
-def _scalar(name, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a real number, got {value!r}") from None
-    if not np.isfinite(v) or v < 0:
-        raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
-    return v
-
-
 def _vector(name, a, shape, dtype):
     if not is_tracer(a):
-        arr = np.asarray(a)
-        if arr.dtype.kind not in "biuf":
-            raise TypeError(f"{name} must be a real array {list(shape)}, got dtype {arr.dtype}")
-        if not np.all(np.isfinite(arr)):
-            raise ValueError(f"{name} contains NaN or inf")
-        a = arr
+        a = numeric(name, a, f"array {list(shape)}")
+        finite(name, a)
     if tuple(a.shape) != shape:
         raise ValueError(f"{name} must have shape {list(shape)}, got {tuple(a.shape)}")
     return a.astype(dtype) if is_tracer(a) else np.asarray(a, dtype)  # a jitted call takes NumPy as it is

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..checks import as_state, check_params, positive_int
 from ..runtime.memory_cache import cached
-from ..search.exhaustive import exhaustive
+from ..search.one_state import exhaustive
 from .callables import check_state
 from .problem import Problem, call
 

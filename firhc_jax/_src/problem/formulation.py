@@ -28,47 +28,17 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from ..checks import is_tracer, positive_int
+from ..checks import matrix, non_negative, positive_int, real_array
 from .problem import check_target, weight, weighted_square
 
 _MAX_CONTROLS = 2**31 - 1  # the searches index inputs with int32
 
 
-def _real(name: str, a, what: str) -> np.ndarray:
-    """``a`` as a float64 array, or a ``TypeError`` naming ``name``: traced values refused (a model is built once,
-    in NumPy, before any search), complex ones too (NumPy would drop their imaginary part with only a warning)."""
-    if is_tracer(a):
-        raise TypeError(f"{name} must be concrete values, not a traced array: the model is built once, in NumPy, "
-                        "before any search (what changes between solves goes in the params)")
-    try:
-        given = np.asarray(a)
-    except ValueError:  # ragged lists
-        raise TypeError(f"{name} must be a real {what}, got {a!r}") from None
-    if given.dtype.kind == "c":
-        raise TypeError(f"{name} must be real, got complex dtype {given.dtype}")
-    try:
-        return np.array(given, dtype=float)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a real {what}, got {a!r}") from None
-
-
-def _matrix(name: str, a) -> np.ndarray:
-    """``a`` as a read-only float64 matrix (``_real``), 2-D, non-empty and finite, or a ``TypeError`` or
-    ``ValueError`` naming ``name``: the one rule for the model matrices of this module and ``LinearTracking``."""
-    arr = _real(name, a, "matrix")
-    if arr.ndim != 2 or 0 in arr.shape:
-        raise ValueError(f"{name} must be a non-empty 2-D matrix, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or inf")
-    arr.flags.writeable = False
-    return arr
-
-
 def _state_input(A, B) -> tuple[np.ndarray, np.ndarray]:
-    A = _matrix("A", A)
+    A = matrix("A", A)
     if A.shape[0] != A.shape[1]:
         raise ValueError(f"A must be square [n, n], got shape {A.shape}")
-    B = _matrix("B", np.reshape(B, (-1, 1)) if np.ndim(B) == 1 else B)
+    B = matrix("B", np.reshape(B, (-1, 1)) if np.ndim(B) == 1 else B)
     if B.shape[0] != A.shape[0]:
         raise ValueError(f"B must have n = {A.shape[0]} rows like A, got shape {B.shape}")
     return A, B
@@ -81,8 +51,8 @@ def discretize(A, B, Ts: float) -> tuple[np.ndarray, np.ndarray]:
     ``[[A, B], [0, 0]] Ts`` (float64 NumPy arrays)."""
     A, B = _state_input(A, B)
     given = Ts
-    Ts = _real("Ts", Ts, "sampling period > 0")
-    if Ts.ndim != 0 or not np.isfinite(Ts) or Ts <= 0:
+    Ts = real_array("Ts", Ts, "sampling period > 0")
+    if Ts.ndim != 0 or Ts <= 0:
         raise ValueError(f"Ts must be a finite sampling period > 0, got {given!r}")
     Ts = float(Ts)
     n, m = B.shape
@@ -106,9 +76,9 @@ def linear_dynamics(A, B, d=None) -> Callable:
     ``lambda x, u, k, p: f(x, u) + p["d"][k]``."""
     A, B = _state_input(A, B)
     if d is not None:
-        d = _real("d", d, "vector")
-        if d.shape != (A.shape[0],) or not np.all(np.isfinite(d)):
-            raise ValueError(f"d must be a finite vector of shape ({A.shape[0]},), got {d!r}")
+        d = real_array("d", d, "vector")
+        if d.shape != (A.shape[0],):
+            raise ValueError(f"d must be a vector of shape ({A.shape[0]},), got {d!r}")
 
     def dynamics(x, u, *_):
         out = jnp.asarray(A, x.dtype) @ x + jnp.asarray(B, x.dtype) @ u.astype(x.dtype)
@@ -162,11 +132,11 @@ def tracking_cost(C=None, Q=None, R=None, u_ref=None, ref: str = "ref") -> Calla
     Input changes are penalised with ``fj.with_input_memory(problem,
     fj.input_change_cost(lambda_u))``.
     """
-    C = None if C is None else _matrix("C", np.reshape(C, (1, -1)) if np.ndim(C) < 2 else C)
+    C = None if C is None else matrix("C", np.reshape(C, (1, -1)) if np.ndim(C) < 2 else C)
     Qw = weight("Q", 1.0 if Q is None else Q)
     Rw = None if R is None else weight("R", R)
-    if u_ref is not None and not np.all(np.isfinite(_real("u_ref", u_ref, "vector"))):
-        raise ValueError(f"u_ref must be finite, got {u_ref!r}")
+    if u_ref is not None:
+        real_array("u_ref", u_ref, "vector")
 
     def stage_cost(x_next, u, *rest):
         if not rest or not hasattr(rest[-1], "__getitem__") or isinstance(rest[-1], (jnp.ndarray, np.ndarray)):
@@ -209,9 +179,7 @@ def input_change_cost(lambda_u, norm: str = "squared") -> Callable:
     if norm not in ("squared", "abs"):
         raise ValueError(f"norm must be 'squared' or 'abs', got {norm!r}")
     if not isinstance(lambda_u, str):
-        lam = float(np.asarray(lambda_u, dtype=float))
-        if not np.isfinite(lam) or lam < 0:
-            raise ValueError(f"lambda_u must be a finite number >= 0 or a parameter name, got {lambda_u!r}")
+        lam = non_negative("lambda_u (a number or a parameter name)", lambda_u)
 
     def switching_cost(u, u_prev, *rest):
         if isinstance(lambda_u, str):

@@ -184,17 +184,12 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
     X, params = search_inputs(problem, X0, params, batched=True)
     B, n = X.shape
     table = solvers.get(solver)
-    if max_nodes is not None and not table.budgets:
-        raise ValueError(f"max_nodes applies to the sDFS solvers; solver={solver!r} always visits the whole tree")
-    if pop_width != 1 and "method" in table.options:
-        raise ValueError(f"pop_width applies to the sDFS solvers; solver={solver!r} expands level by level")
-    if lanes is not None and "lanes" not in table.options:
-        raise ValueError(f"lanes sizes the work pool of solver='sdfs'; solver={solver!r} has no pool")
-    given = {"pop_width": positive_int("pop_width", pop_width), "chunk_nodes": positive_int("chunk_nodes", chunk_nodes),
-             "lanes": None if lanes is None else positive_int("lanes", lanes)}
-    options = solvers.check_options(solver, {k: v for k, v in given.items() if k in table.options})
-    options.pop("max_memory"), options.pop("max_nodes", None)
-    max_memory = positive_int("max_memory", max_memory)
+    passed = {"pop_width": pop_width, "lanes": lanes, "chunk_nodes": chunk_nodes, "max_nodes": max_nodes,
+              "max_memory": max_memory}
+    options = solvers.check_options(solver, {k: v for k, v in passed.items()
+                                             if k in table.options or _given(v, _UNSET[k])})
+    max_memory = options.pop("max_memory")
+    options.pop("max_nodes", None)
     budget = node_budget(max_nodes)
     mesh = mesh_of(devices)
     traced = any(is_tracer(a) for a in (X, budget, *jax.tree_util.tree_leaves(params)))  # inside a jit
@@ -219,6 +214,15 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
     else:
         out = run(X, params, budget)
     return raise_on_errors(replicated(out, mesh) if multi else out)
+
+
+_UNSET = {"pop_width": 1, "lanes": None, "chunk_nodes": DEFAULT_CHUNK_NODES, "max_nodes": None}
+
+
+def _given(value, unset) -> bool:
+    """Whether a keyword of ``solve_batch`` was set to something other than its default (which every solver
+    takes, whether or not the option is its own)."""
+    return not (value is unset or (type(value) is type(unset) and value == unset))
 
 
 def row_memory(problem: Problem, n: int, itemsize: int, solver: str, pop_width: int = 1,
