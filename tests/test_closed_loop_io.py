@@ -141,7 +141,12 @@ def test_batched_plot_shows_how_often_each_input_level_is_used():
     matplotlib.use("Agg")
     rng = np.random.default_rng(3)
     u = rng.choice([-1.0, 0.0, 1.0], (5, 12, 1))
-    fig = _loop(rng.normal(size=(5, 13, 2)), u, times=0.1 * np.arange(13)).plot()
+    held = np.zeros((5, 12), bool)
+    held[2, 7] = True
+    fig = _loop(rng.normal(size=(5, 13, 2)), u, times=0.1 * np.arange(13), held=held).plot()
     shares = _mesh_shares(fig.axes[1])
     np.testing.assert_allclose(shares, [np.mean(u[:, :, 0] == v, axis=0) for v in (-1.0, 0.0, 1.0)])
     assert fig.axes[-1].get_xlabel() == "time [s]"
+    fig.canvas.draw()  # the legend of the held step sits beside the colour scale, not on it
+    (scale,) = fig.axes[1].child_axes
+    assert fig.axes[1].get_legend().get_window_extent().x0 > scale.get_tightbbox().x1

@@ -49,7 +49,7 @@ def draw(run, title: str, state_names, input_names):
         for j in range(len(input_names)):
             ax[1 + j].plot(t[held], np.full(held.size, 0.04), "rx", transform=ax[1 + j].get_xaxis_transform(),
                            label=None if j else ("a loop held" if B > 1 else "held") + " (no input found)")
-        _legend(ax[1])
+        _legend(ax[1], 1.16 if 0 in mapped else 1.01)  # beside the colour scale, if the first input has it
     _nodes(ax[1 + len(input_names)], t, lead(run.nodes), lead(run.fallback_nodes))
     if timed:
         ax[-1].step(t[:-1], solve_times[0], where="post", lw=0.8)
@@ -114,9 +114,9 @@ def _nodes(ax, t, nodes, fallback) -> None:
     ax.set_ylabel("nodes")
 
 
-def _legend(ax) -> None:
-    """The legend beside ``ax``, off the data."""
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize="small")
+def _legend(ax, x: float = 1.01) -> None:
+    """The legend beside ``ax`` (its left edge at ``x`` axes widths), off the data."""
+    ax.legend(loc="upper left", bbox_to_anchor=(x, 1.0), borderaxespad=0.0, fontsize="small")
 
 
 def _band(ax, x, values, name: str, color: str, steps: bool) -> None:
