@@ -23,12 +23,13 @@ fit on its own is refused before anything is compiled. Where the rows run
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
 from jax.sharding import Mesh, PartitionSpec
 
+from ..annotations import ArrayLike, PyTree
 from ..checks import is_tracer, positive_int
 from ..problem.callables import search_inputs
 from ..problem.problem import Problem
@@ -124,9 +125,10 @@ def _solve(problem: Problem, X, params, max_nodes, *, mesh: Mesh, solver: str, r
     return jax.tree_util.tree_map(lambda a: a[:B], out) if pad else out
 
 
-def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_width: int = 1,
-                lanes: int | None = None, chunk_nodes: int = DEFAULT_CHUNK_NODES, max_nodes=None,
-                max_memory: int = DEFAULT_MAX_MEMORY, devices=None, cores: int | None = None) -> SearchResult:
+def solve_batch(problem: Problem, X0: ArrayLike, *, solver: str = "sdfs", params: PyTree = None, pop_width: int = 1,
+                lanes: int | None = None, chunk_nodes: int = DEFAULT_CHUNK_NODES,
+                max_nodes: int | ArrayLike | None = None, max_memory: int = DEFAULT_MAX_MEMORY,
+                devices: Sequence[jax.Device] | jax.Device | None = None, cores: int | None = None) -> SearchResult:
     """Solve ``problem`` from every row of ``X0``; exact per row.
 
     Args:
