@@ -76,7 +76,7 @@ def _plan(problem: Problem, solver: str, options: dict, n: int, itemsize: int, B
     if fixed >= share:
         raise ValueError(f"the pool of {options['lanes']} lanes needs about {fixed:,} bytes, more than "
                          f"max_memory={max_memory:,}; lower lanes or pop_width, or raise max_memory")
-    what = "one row" if solver == "sdfs" else f"one row of solver={solver!r}"
+    what = f"one row of solver={solver!r}"
     return _Plan(parts, _rows_per_chunk(per_row, per_device, share - fixed, what), options)
 
 
@@ -231,6 +231,6 @@ def row_memory(problem: Problem, n: int, itemsize: int, solver: str, pop_width: 
                chunk_nodes: int = DEFAULT_CHUNK_NODES) -> int:
     """Estimated peak bytes one row needs under the vmapped solvers (``"sdfs-vmap"``: the sDFS stack,
     ``"exhaustive"``: the level chunks)."""
-    options = solvers.check_options(solver, {"pop_width": pop_width} if solver != "exhaustive"
-                                    else {"chunk_nodes": chunk_nodes})
+    given = {"pop_width": pop_width, "chunk_nodes": chunk_nodes}
+    options = solvers.check_options(solver, {k: v for k, v in given.items() if k in solvers.get(solver).options})
     return solvers.get(solver).memory(problem, n, itemsize, **options)
