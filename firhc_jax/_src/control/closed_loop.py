@@ -12,13 +12,19 @@ from __future__ import annotations
 import math
 import os
 import zipfile
-from typing import NamedTuple, Optional
+from typing import TYPE_CHECKING, NamedTuple, Optional, Sequence
 
 import jax
 import numpy as np
 from numpy.lib import format as npy
 
+from ..annotations import PyTree
 from . import plot, realised
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from ..problem.problem import Problem
 
 # Each field's layout in a saved run: (length of the leading axis, number of axes, dtype kinds).
 _LAYOUT = {"states": ("T+1", 2, "f"), "inputs": ("T", 2, "f"), "input_indices": ("T", 1, "iu"),
@@ -64,7 +70,8 @@ class ClosedLoop(NamedTuple):
         bad = np.flatnonzero(~np.asarray(self.feasible).reshape(-1, np.shape(self.feasible)[-1]).all(axis=0))
         return int(bad[0]) if bad.size else None
 
-    def realised_cost(self, problem, params=None, *, terminal_cost: bool = False):
+    def realised_cost(self, problem: "Problem", params: PyTree = None, *,
+                      terminal_cost: bool = False) -> float | np.ndarray:
         """What the plant paid: the sum over the run of ``problem``'s stage cost of each plant state reached
         and the input applied to reach it, ``stage_cost(states[k+1], inputs[k][, 0][, params[k]])`` (step
         index 0, the step each decision applies), plus, with ``terminal_cost``, ``problem``'s terminal cost
@@ -77,7 +84,7 @@ class ClosedLoop(NamedTuple):
         the plant's own states, so a plant that is not the model pays what it really paid."""
         return realised.realised_cost(self, problem, params, terminal_cost)
 
-    def save(self, path) -> str:
+    def save(self, path: str | os.PathLike) -> str:
         """Write every field to ``path`` as an uncompressed ``.npz`` (``.npz``
         appended if missing, as ``numpy.savez`` does); returns the path written.
         ``numpy.load(path)["states"]`` reads one field; ``ClosedLoop.load`` all."""
@@ -89,7 +96,7 @@ class ClosedLoop(NamedTuple):
         return path
 
     @classmethod
-    def load(cls, path) -> "ClosedLoop":
+    def load(cls, path: str | os.PathLike) -> "ClosedLoop":
         """A ``ClosedLoop`` of NumPy arrays from a file written by ``save``.
 
         Every array's declared shape and dtype is read from its ``.npy``
@@ -112,7 +119,8 @@ class ClosedLoop(NamedTuple):
         with np.load(path, allow_pickle=False) as data:
             return cls(**{name: data[name] for name in names})
 
-    def plot(self, title: str = "", state_names=None, input_names=None):
+    def plot(self, title: str = "", state_names: Sequence[str] | None = None,
+             input_names: Sequence[str] | None = None) -> "Figure":
         """A new matplotlib ``Figure`` of the run, one row of axes per quantity.
 
         The states; each input on its own axes (held steps marked with red

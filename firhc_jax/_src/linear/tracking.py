@@ -73,6 +73,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..annotations import ArrayLike
 from ..checks import as_sequence, as_state, finite, is_tracer, matrix, non_negative, numeric, positive_int
 from ..problem.problem import Problem, _check_controls
 from ..runtime.memory_cache import compiled
@@ -208,7 +209,8 @@ class LinearTracking:
     the dtype of the state given to it.
     """
 
-    def __init__(self, A, B, controls, horizon, *, C=None, Q=None, lambda_u=0.0, max_step=None,
+    def __init__(self, A: ArrayLike, B: ArrayLike, controls: ArrayLike, horizon: int, *, C: ArrayLike | None = None,
+                 Q: ArrayLike | None = None, lambda_u: float = 0.0, max_step: float | None = None,
                  max_memory: int = DEFAULT_MAX_MEMORY):
         A = matrix("A", A)
         n = A.shape[0]
@@ -271,7 +273,7 @@ class LinearTracking:
         """``[M]`` the class (row of ``problem.controls``) of each input (read-only)."""
         return self._class_of
 
-    def sequence(self, z0, classes, params):
+    def sequence(self, z0: ArrayLike, classes: ArrayLike, params: TrackingParams | SharedParams) -> jax.Array:
         """``[N]`` int32 indices into ``controls``: the cheapest inputs of the
         optimal class sequence ``classes`` ``[N]`` (a ``SearchResult.sequence``
         of ``problem`` or ``shared_problem``) from the search state ``z0``
@@ -281,7 +283,8 @@ class LinearTracking:
         model = params.model if isinstance(params, SharedParams) else self._on_device(z0.dtype)[0]
         return _sequence(z0, classes, _in_dtype(model, z0.dtype))
 
-    def params(self, y_ref, d=None, *, with_model: bool = False) -> TrackingParams | SharedParams:
+    def params(self, y_ref: ArrayLike, d: ArrayLike | None = None, *,
+               with_model: bool = False) -> TrackingParams | SharedParams:
         """The params of ``problem`` for a reference ``y_ref`` ``[..., N, p]``
         (y_ref[k] is the target of C x(k+1)) and disturbance ``d`` ``[..., N, n]``
         (default 0), in y_ref's floating dtype. Leading axes batch: one row per
@@ -320,7 +323,8 @@ class LinearTracking:
                 self._device[key] = _in_dtype((self._model, self._maps), key)
         return self._device[key]
 
-    def solve(self, x, u_prev, y_ref, d=None, *, warm_start=None, max_nodes=None) -> SearchResult:
+    def solve(self, x: ArrayLike, u_prev: ArrayLike, y_ref: ArrayLike, d: ArrayLike | None = None, *,
+              warm_start: ArrayLike | None = None, max_nodes: int | ArrayLike | None = None) -> SearchResult:
         """The exact minimiser of J from state ``x`` ``[n]`` after input
         ``u_prev`` ``[m]``, for ``y_ref`` ``[N, p]`` and ``d`` ``[N, n]`` (default 0).
 

@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
+from ..annotations import ArrayLike
 from ..checks import matrix, non_negative, positive_int, real_array
 from .problem import check_target, weight, weighted_square
 
@@ -44,7 +45,7 @@ def _state_input(A, B) -> tuple[np.ndarray, np.ndarray]:
     return A, B
 
 
-def discretize(A, B, Ts: float) -> tuple[np.ndarray, np.ndarray]:
+def discretize(A: ArrayLike, B: ArrayLike, Ts: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact zero-order-hold discretisation of ``dx/dt = A x + B u`` with
     sampling period ``Ts``: ``(Ad, Bd)`` with ``Ad = exp(A Ts)`` and
     ``Bd = int_0^Ts exp(A s) ds B``, both from one matrix exponential of
@@ -68,7 +69,7 @@ def discretize(A, B, Ts: float) -> tuple[np.ndarray, np.ndarray]:
     return E[:n, :n], E[:n, n:]
 
 
-def linear_dynamics(A, B, d=None) -> Callable:
+def linear_dynamics(A: ArrayLike, B: ArrayLike, d: ArrayLike | None = None) -> Callable:
     """``dynamics(x, u, ...) -> A x + B u (+ d)`` for discrete-time ``A``
     ``[n, n]``, ``B`` ``[n, m]`` (a vector: m = 1) and an optional constant
     ``d`` ``[n]``. Inputs are promoted to the state's dtype. Disturbances that
@@ -87,7 +88,7 @@ def linear_dynamics(A, B, d=None) -> Callable:
     return dynamics
 
 
-def product_controls(*levels, repeat: int = 1) -> np.ndarray:
+def product_controls(*levels: ArrayLike, repeat: int = 1) -> np.ndarray:
     """``[M, m]`` control set of every combination of the given per-component
     levels, in ``itertools.product`` order: ``product_controls([-1, 0, 1],
     repeat=3)`` is the 27 switch states of a three-level three-phase inverter,
@@ -116,7 +117,8 @@ def product_controls(*levels, repeat: int = 1) -> np.ndarray:
     return out
 
 
-def tracking_cost(C=None, Q=None, R=None, u_ref=None, ref: str = "ref") -> Callable:
+def tracking_cost(C: ArrayLike | None = None, Q: ArrayLike | None = None, R: ArrayLike | None = None,
+                  u_ref: ArrayLike | None = None, ref: str = "ref") -> Callable:
     """Stage cost ``||C x(k+1) - r(k)||_Q^2 + ||u(k) - u_ref||_R^2`` of tracking MPC.
 
     The reference is read from the parameters: with ``step_index`` it is
@@ -170,7 +172,7 @@ def tracking_cost(C=None, Q=None, R=None, u_ref=None, ref: str = "ref") -> Calla
     return stage_cost
 
 
-def input_change_cost(lambda_u, norm: str = "squared") -> Callable:
+def input_change_cost(lambda_u: float | str, norm: str = "squared") -> Callable:
     """Switching penalty for ``fj.with_input_memory``:
     ``lambda_u * ||u - u_prev||_2^2`` (``norm="squared"``) or
     ``lambda_u * ||u - u_prev||_1`` (``norm="abs"``, the FCS-MPC count of leg
@@ -195,7 +197,7 @@ def input_change_cost(lambda_u, norm: str = "squared") -> Callable:
     return switching_cost
 
 
-def horizon_windows(signal, steps: int, horizon: int, start: int = 1, *, axis: int = 0) -> np.ndarray:
+def horizon_windows(signal: ArrayLike, steps: int, horizon: int, start: int = 1, *, axis: int = 0) -> np.ndarray:
     """``[steps, N, ...]``: for the decision at step t, ``signal[t+start .. t+start+N-1]``.
 
     ``start=1`` (default): ``signal[t+1 .. t+N]``, the samples that the N

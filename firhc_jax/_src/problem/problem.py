@@ -53,15 +53,14 @@ from __future__ import annotations
 
 import dataclasses
 import weakref
-from typing import Any, Callable, Optional
+from typing import Callable, Optional
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..annotations import ArrayLike
 from ..checks import finite, input_rows, is_tracer, positive_int, real_array
-
-Array = Any
 
 
 @jax.tree_util.register_pytree_node_class
@@ -92,7 +91,7 @@ class Problem:
     """
 
     dynamics: Callable
-    controls: Array  # [M, m]
+    controls: ArrayLike  # [M, m]
     stage_cost: Callable
     horizon: int
     terminal: Optional[Callable] = None
@@ -138,7 +137,7 @@ class Problem:
         M, N = self.num_controls, self.horizon
         return N if M == 1 else (M ** (N + 1) - M) // (M - 1)
 
-    def index_of(self, u) -> int | np.ndarray:
+    def index_of(self, u: ArrayLike) -> int | np.ndarray:
         """The index of input ``u`` ``[m]`` in ``controls``, as ``warm_start``, ``SearchResult.sequence`` and
         ``ClosedLoop.input_indices`` hold it; of each input of ``[..., m]``, an int32 array ``[...]``.
 
@@ -290,7 +289,7 @@ def input_dtype(problem: Problem):
     return jax.dtypes.canonicalize_dtype(np.float64)
 
 
-def quadratic_cost(lam, x_s, beta=0.0, u_e=None) -> Callable:
+def quadratic_cost(lam: ArrayLike, x_s: ArrayLike, beta: ArrayLike = 0.0, u_e: ArrayLike | None = None) -> Callable:
     """Stage cost of eq. (2): ``dx' Q dx + du' R du`` with ``dx = x_next - x_s``
     and ``du = u - u_e`` (``u_e`` defaults to 0).
 

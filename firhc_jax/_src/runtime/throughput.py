@@ -18,13 +18,14 @@ from __future__ import annotations
 import statistics
 import sys
 import time
-from typing import Callable, NamedTuple
+from typing import Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from ..annotations import ArrayLike, PyTree
 from ..checks import positive_int
 from ..problem.callables import search_inputs
 from ..problem.problem import Problem, call
@@ -170,8 +171,9 @@ def _mark(rows: list[dict]) -> None:
         r["within_noise"] = r["seconds_min"] / r["states"] <= best["seconds_max"] / best["states"]
 
 
-def profile(problem: Problem, states, params=None, *, pop_widths=POP_WIDTHS, lanes=LANES, repeats: int = 3,
-            max_exhaustive_nodes: int = MAX_EXHAUSTIVE_NODES, progress: bool = False) -> Profile:
+def profile(problem: Problem, states: ArrayLike, params: PyTree = None, *, pop_widths: Sequence[int] = POP_WIDTHS,
+            lanes: Sequence[int] = LANES, repeats: int = 3, max_exhaustive_nodes: int = MAX_EXHAUSTIVE_NODES,
+            progress: bool = False) -> Profile:
     """Time every search setting on ``states``, interleaved and repeated; mark the default and the fastest.
 
     Args:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..annotations import ArrayLike, PyTree
 from ..checks import as_sequence
 from ..problem.callables import search_inputs
 from ..problem.problem import Problem
@@ -16,7 +17,8 @@ from .sdfs import DEFAULT_MAX_MEMORY, INT32_MAX, node_budget
 from .sdfs import search as sdfs_search
 
 
-def sdfs(problem: Problem, x0, *, params=None, pop_width: int = 1, warm_start=None, max_nodes=None,
+def sdfs(problem: Problem, x0: ArrayLike, *, params: PyTree = None, pop_width: int = 1,
+         warm_start: ArrayLike | None = None, max_nodes: int | ArrayLike | None = None,
          max_memory: int = DEFAULT_MAX_MEMORY) -> SearchResult:
     """Exact optimal input sequence by sorted depth-first search.
 
@@ -57,7 +59,7 @@ def sdfs(problem: Problem, x0, *, params=None, pop_width: int = 1, warm_start=No
     return raise_on_errors(run(x0, params, ws, node_budget(max_nodes)))
 
 
-def exhaustive(problem: Problem, x0, *, params=None, method: str = "levels",
+def exhaustive(problem: Problem, x0: ArrayLike, *, params: PyTree = None, method: str = "levels",
                chunk_nodes: int = DEFAULT_CHUNK_NODES, pop_width: int = 1) -> SearchResult:
     """Exact optimum by visiting every node of the tree (``nodes == problem.tree_size()``).
 
