@@ -139,14 +139,20 @@ def _node_parts(problem: Problem) -> dict:
 
 def _node_jobs(problem: Problem, X, params) -> tuple[list[_Job], int]:
     """A job per callable on ``ceil(CHILDREN / M)`` of the states (repeated as needed) times every input,
-    and the children of one call."""
+    and the children of one call. The first job, ``dynamics``, computes the children the others take."""
     M = problem.num_controls
     rows = np.arange(-(-CHILDREN // M)) % X.shape[0]
     x = jnp.asarray(X)[rows]
     p = jax.tree_util.tree_map(lambda a: jnp.asarray(a)[rows], params)
     parts = _node_parts(problem)
-    xs = jax.block_until_ready(parts["dynamics"](x, None, p))
-    jobs = [_Job(name, lambda f=f: [f(x, xs, p)]) for name, f in parts.items()]
+    children = {}
+
+    def dynamics():
+        children["xs"] = parts["dynamics"](x, None, p)
+        return [children["xs"]]
+
+    jobs = [_Job("dynamics", dynamics)] + [_Job(name, lambda f=f: [f(x, children["xs"], p)])
+                                           for name, f in parts.items() if name != "dynamics"]
     return jobs, rows.size * M
 
 
