@@ -214,6 +214,20 @@ def as_inputs(name: str, value, m: int, dtype, leading: tuple = (), concrete: bo
     return np.broadcast_to(a, leading + (m,)).copy() if a.shape != leading + (m,) else a
 
 
+def input_rows(name: str, value, m: int) -> np.ndarray:
+    """``value`` as concrete, finite inputs ``[..., m]`` (``numeric``; a scalar is one input when m = 1), or an
+    error naming ``name``."""
+    if is_tracer(value):
+        raise TypeError(f"{name} must be concrete inputs, not a traced array")
+    a = numeric(name, value, f"input [m] = [{m}] or inputs [..., {m}]")
+    if a.ndim == 0 and m == 1:
+        a = a[None]
+    if a.ndim == 0 or a.shape[-1] != m:
+        raise ValueError(f"{name} must be an input [m] = [{m}] or inputs [..., {m}], got shape {a.shape}")
+    finite(name, a)
+    return a
+
+
 def sample_times(dt, steps: int):
     """``[T+1]`` seconds of each state (None without ``dt``)."""
     if dt is None:

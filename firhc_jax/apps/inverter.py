@@ -31,7 +31,7 @@ from firhc_jax.models.three_level import MAX_HORIZON as THREE_LEVEL_MAX_HORIZON
 from ..solvers import SOLVERS
 from . import inverter_three_level
 from ._args import horizon_argument, number, solver_argument
-from ._inverter import InverterRun, distortion, figure, plot, report, spectrum, waveform_metrics  # noqa: F401
+from ._inverter import InverterRun, figure, plot, report, spectrum, waveform_metrics  # noqa: F401
 from ._limits import exhaustive_run
 from ._run import App
 from ._timing import timed_closed_loop

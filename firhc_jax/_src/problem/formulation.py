@@ -10,8 +10,9 @@ tracking costs along the horizon.
   with the reference ``r`` read from the parameters along the horizon.
 * ``input_change_cost(lambda_u)``: the switching penalty
   ``lambda_u ||u(k) - u(k-1)||^2`` for ``fj.with_input_memory``.
-* ``horizon_windows(signal, steps, horizon, start=1)``: a sampled reference
-  cut into the per-step parameters of a closed loop, ``[steps, N, ...]``.
+* ``horizon_windows(signal, steps, horizon, start=1, axis=0)``: a sampled reference
+  cut into the per-step parameters of a closed loop, ``[steps, N, ...]`` (of
+  B scenarios with ``axis=1``: ``[B, steps, N, ...]``).
 
 Each callable returned here ignores arguments it does not use, so it fits a
 problem with or without ``step_index`` and ``params``. Matrices are checked and
@@ -196,7 +197,7 @@ def input_change_cost(lambda_u: float | str, norm: str = "squared") -> Callable:
     return switching_cost
 
 
-def horizon_windows(signal: ArrayLike, steps: int, horizon: int, start: int = 1) -> np.ndarray:
+def horizon_windows(signal: ArrayLike, steps: int, horizon: int, start: int = 1, *, axis: int = 0) -> np.ndarray:
     """``[steps, N, ...]``: for the decision at step t, ``signal[t+start .. t+start+N-1]``.
 
     ``start=1`` (default): ``signal[t+1 .. t+N]``, the samples that the N
@@ -206,13 +207,20 @@ def horizon_windows(signal: ArrayLike, steps: int, horizon: int, start: int = 1)
     ``start=0``: ``signal[t .. t+N-1]``, the samples that go with the N inputs
     ``u(t) .. u(t+N-1)`` (prices, demands, disturbances on inputs).
     ``signal`` ``[steps + start + N - 1, ...]`` or longer, sampled at the
-    control period, ``signal[0]`` at t = 0."""
+    control period, ``signal[0]`` at t = 0.
+
+    ``axis``: the signal's time axis; the axes before it are kept in front.
+    ``axis=1`` cuts B scenarios ``[B, steps + N, ...]`` into ``[B, steps, N, ...]``,
+    the per-loop parameters of ``FIRHC.simulate_batch``."""
     steps, horizon = positive_int("steps", steps), positive_int("horizon", horizon)
     start = positive_int("start", start, minimum=0)
+    axis = positive_int("axis", axis, minimum=0)
     signal = np.asarray(signal)
+    if axis >= max(signal.ndim, 1):
+        raise ValueError(f"axis {axis} is not an axis of signal, whose shape is {signal.shape}")
     need = steps + start + horizon - 1
-    if signal.ndim == 0 or signal.shape[0] < need:
-        raise ValueError(f"signal needs at least steps + start + horizon - 1 = {need} samples along its first "
-                         f"axis, got shape {signal.shape}")
+    if signal.ndim == 0 or signal.shape[axis] < need:
+        raise ValueError(f"signal needs at least steps + start + horizon - 1 = {need} samples along axis {axis}, "
+                         f"got shape {signal.shape}")
     index = np.arange(steps)[:, None] + start + np.arange(horizon)[None, :]
-    return signal[index]
+    return np.take(signal, index, axis=axis)

@@ -60,7 +60,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..annotations import ArrayLike
-from ..checks import finite, is_tracer, positive_int, real_array
+from ..checks import finite, input_rows, is_tracer, positive_int, real_array
 
 
 @jax.tree_util.register_pytree_node_class
@@ -136,6 +136,22 @@ class Problem:
         """Child nodes of the full search tree: sum_{i=1..N} M^i."""
         M, N = self.num_controls, self.horizon
         return N if M == 1 else (M ** (N + 1) - M) // (M - 1)
+
+    def index_of(self, u: ArrayLike) -> int | np.ndarray:
+        """The index of input ``u`` ``[m]`` in ``controls``, as ``warm_start``, ``SearchResult.sequence`` and
+        ``ClosedLoop.input_indices`` hold it; of each input of ``[..., m]``, an int32 array ``[...]``.
+
+        Values match exactly, compared in the controls' dtype (a float32 set finds the float32 value of
+        ``0.1``); the first of equal rows is returned. An input that is not in the set is a ``ValueError``."""
+        u = input_rows("u", u, self.input_dim)
+        dtype = self.controls.dtype if np.issubdtype(self.controls.dtype, np.inexact) else np.float64
+        hits = np.all(u.astype(dtype)[..., None, :] == self.controls.astype(dtype), axis=-1)  # [..., M]
+        missing = ~hits.any(axis=-1)
+        if missing.any():
+            where = tuple(int(i) for i in np.argwhere(missing)[0])
+            raise ValueError(f"u{list(where) if where else ''} = {u[where].tolist()} is not in the control set")
+        index = np.argmax(hits, axis=-1).astype(np.int32)
+        return int(index) if index.ndim == 0 else index
 
     def replace(self, **changes) -> "Problem":
         """A copy with some fields changed (e.g. ``terminal=None``)."""
