@@ -107,3 +107,28 @@ def test_the_cli_keeps_a_folder_this_process_already_chose(tmp_path):
     finally:
         if before is not None:
             fj.enable_compilation_cache(before)
+
+
+@pytest.mark.slow
+def test_no_cache_reads_and_writes_nothing_in_the_folder_the_environment_names(tmp_path):
+    """A folder filled by a run, then every file in it damaged: a ``--no-cache`` run with
+    ``JAX_COMPILATION_CACHE_DIR`` naming it leaves every file as it was, adds none and warns of none."""
+    cache = tmp_path / "cache"
+    env = {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(cache)}
+
+    def tanks(*args):
+        proc = subprocess.run([sys.executable, "-m", "firhc_jax", "tanks", "--seconds", "4", "--no-progress",
+                               "--out", str(tmp_path / "out"), *args], capture_output=True, text=True, timeout=600,
+                              env=env)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        return proc.stderr
+
+    tanks()
+    files = sorted(p for p in cache.rglob("*") if p.is_file())
+    assert any(p.suffix == ".jaxexport" for p in files) and any(p.name.endswith("-cache") for p in files), files
+    for p in files:
+        p.write_bytes(b"damaged")
+    before = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in files}
+    stderr = tanks("--no-cache")
+    assert "warning" not in stderr.lower(), stderr
+    assert {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(cache.rglob("*")) if p.is_file()} == before

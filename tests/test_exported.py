@@ -167,7 +167,7 @@ def test_another_settings_program_under_this_name_is_traced_and_written_again(tm
     _exported.decision(other, "other", tmp_path, *args)
     mine = _exported.kept_path(tmp_path, _exported.key("small", args))
     _exported.kept_path(tmp_path, _exported.key("other", args)).rename(mine)
-    _traced_again(tmp_path, mine, args, "was written for another settings")
+    _traced_again(tmp_path, mine, args, "was written for another setting")
 
 
 def _forged(path, blob: bytes) -> None:
@@ -298,7 +298,7 @@ def test_the_command_line_runs_only_the_kept_program_of_its_setting(tmp_path):
     assert not np.array_equal(zero_run, fifty)  # the two settings predict other costs
     mine.write_bytes(zero.read_bytes())
     stderr, states = _tanks(cache, tmp_path / "swapped", "--switch-penalty", "50")
-    assert _kept_warnings(stderr) == [f"warning: the kept decision {str(mine)!r} was written for another settings: "
+    assert _kept_warnings(stderr) == [f"warning: the kept decision {str(mine)!r} was written for another setting: "
                                       "traced and written again"]
     np.testing.assert_array_equal(states, fifty)
     data = bytearray(mine.read_bytes())

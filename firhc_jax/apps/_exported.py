@@ -106,7 +106,7 @@ def key(settings, args) -> str:
     leaves, tree = jax.tree_util.tree_flatten(args)
     lines = {"format": FORMAT.decode().strip(), "firhc_jax": __version__, "source": source_digest(),
              "jax": jax.__version__, "jaxlib": jaxlib.__version__, "platform": jax.export.default_export_platform(),
-             "settings": canonical(settings), "arguments": str(tree),
+             "setting": canonical(settings), "arguments": str(tree),
              "shapes": " ".join(f"{np.shape(a)}{getattr(a, 'dtype', None) or np.asarray(a).dtype}" for a in leaves),
              "options": " ".join(f"{k}={getattr(jax.config, k)}" for k in TRACE_CONFIG)}
     return "\n".join(f"{name}={value}" for name, value in lines.items())
