@@ -1,6 +1,7 @@
 """The command lines check their arguments before any work: an output folder that cannot be written, a horizon
 too long for the example, a negative or NaN node budget end in argparse's one-line error (exit status 2)."""
 import os
+import re
 import subprocess
 import sys
 
@@ -161,11 +162,39 @@ def test_table_3_shows_the_papers_mean_as_a_mean():
     assert "| B max/min ours (paper) | B mean |" in hopper_table and "| 300/15 (363/15) | 181 |" in hopper_table
 
 
-def test_batch_help_says_what_states_the_built_in_plants_take(capsys):
+def _help_rows(capsys) -> dict:
+    """``{plant: (n, example row)}`` as ``batch --help`` states them."""
     with pytest.raises(SystemExit):
         cli.main(["batch", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "--plant tanks takes n = 3 (the three levels, m)" in text and "--params" in text
+    found = re.findall(r"--plant (\w+): n = (\d+)(?:(?!--plant).)*?e\.g\. a row ((?:-?[\d.]+ ?)+)", text)
+    return {plant: (int(n), [float(v) for v in row.split()]) for plant, n, row in found}
+
+
+@pytest.mark.slow
+def test_batch_runs_the_states_its_help_gives_for_every_built_in_plant(tmp_path, capsys):
+    """Each built-in plant's n and example row, as the help states them: a batch of that row is solved."""
+    from firhc_jax import distributed
+
+    rows = _help_rows(capsys)
+    assert sorted(rows) == sorted(batch.PLANTS)
+    for plant, (n, row) in rows.items():
+        assert len(row) == n, (plant, n, row)
+        np.save(tmp_path / f"{plant}.npy", np.array([row, row]))
+        out = tmp_path / f"{plant}.npz"
+        assert cli.main(["batch", "--plant", plant, "-N", "2", "--states", str(tmp_path / f"{plant}.npy"),
+                         "--out", str(out)]) == 0
+        result, _ = distributed.load_result(out)
+        assert result.feasible.all() and result.sequence.shape == (2, 2) and (result.sequence >= 0).all()
+
+
+def test_batch_help_gives_each_built_in_plants_state(capsys):
+    """The help's n for each plant is the one its problem takes (the tanks' 5-entry controller state)."""
+    from firhc_jax.models import synthetic, tanks
+
+    rows = _help_rows(capsys)
+    assert rows["tanks"][0] == len(tanks.initial_state()) == 5
+    assert rows["synthetic"][0] == len(synthetic.benchmark_state()) == 3
 
 
 # A mistake in the user's module: one line naming the module and the error; --debug: the exception itself.
@@ -246,6 +275,78 @@ def test_batch_solves_per_row_params_and_times_the_compiled_calls_only(tmp_path,
     np.savez(tmp_path / "short.npz", **{"ref/x": rows["ref"]["x"][:3], "w": rows["w"][:3]})
     with pytest.raises(SystemExit, match=r"batch: params leaf \['ref'\]\['x'\] must have leading axis B = 4"):
         cli.main([*argv[:6], str(tmp_path / "short.npz"), *argv[7:]])
+
+
+BATCH_ARRAY_USER = """
+import jax.numpy as jnp
+import firhc_jax as fj
+
+
+def tracking():
+    return fj.Problem(lambda x, u, p: 0.9 * x + u, jnp.array([-1.0, 0.0, 1.0]),
+                      lambda x, u, p: jnp.sum((x - p) ** 2) + 0.1 * u[0] ** 2, 3)
+"""
+
+
+def test_batch_reads_states_and_params_from_npy_files(tmp_path, monkeypatch):
+    """``--states X0.npy`` (the [B, n] array) and ``--params P.npy`` (one array, leading axis B)."""
+    from firhc_jax import distributed
+
+    (tmp_path / "fj_batch_array_user.py").write_text(BATCH_ARRAY_USER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    X0, refs = np.array([[0.0], [1.0], [-2.0]]), np.array([[1.0], [0.0], [-1.0]])
+    np.save(tmp_path / "X0.npy", X0)
+    np.save(tmp_path / "P.npy", refs)
+    assert cli.main(["batch", "--problem", "fj_batch_array_user:tracking", "--states", str(tmp_path / "X0.npy"),
+                     "--params", str(tmp_path / "P.npy"), "--out", str(tmp_path / "r.npz")]) == 0
+    result, _ = distributed.load_result(tmp_path / "r.npz")
+    import fj_batch_array_user
+
+    expected = fj.solve_batch(fj_batch_array_user.tracking(), X0, params=refs)
+    np.testing.assert_array_equal(result.sequence, np.asarray(expected.sequence))
+    np.testing.assert_array_equal(result.cost, np.asarray(expected.cost))
+
+
+def _unreadable(tmp_path) -> dict:
+    """Files ``batch`` cannot read, each with what its one line must say."""
+    from firhc_jax import distributed
+
+    distributed.save_states(tmp_path / "whole.npz", np.zeros((4, 5)))
+    whole = (tmp_path / "whole.npz").read_bytes()
+    np.save(tmp_path / "whole.npy", np.zeros((4, 5)))
+    files = {"truncated.npz": (whole[: len(whole) // 2], r"cannot read .*truncated\.npz \(BadZipFile: "),
+             "cut.npz": (whole[:-30], r"cannot read .*cut\.npz \("),
+             "damaged.npz": (whole[:200] + b"\xff" + whole[201:], r"cannot read .*damaged\.npz \(BadZipFile: Bad CRC"),
+             "truncated.npy": ((tmp_path / "whole.npy").read_bytes()[:-8], r"cannot read .*truncated\.npy \("),
+             "notes.txt": (b"h1 h2 h3\n0.2 0.18 0.1\n", r"notes\.txt is neither an \.npy nor an \.npz file"),
+             "empty.npz": (b"", r"empty\.npz is neither an \.npy nor an \.npz file")}
+    for name, (data, _) in files.items():
+        (tmp_path / name).write_bytes(data)
+    np.save(tmp_path / "objects.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    cases = {tmp_path / name: message for name, (_, message) in files.items()}
+    cases[tmp_path / "objects.npy"] = r"cannot read .*objects\.npy \(ValueError: Object arrays cannot be loaded"
+    cases[tmp_path / "missing.npz"] = r"cannot read --FLAG .*missing\.npz: No such file or directory"
+    cases[tmp_path] = r"cannot read --FLAG .*: Is a directory"
+    return cases
+
+
+@pytest.mark.parametrize("flag", ["--states", "--params"])
+def test_batch_names_every_file_it_cannot_read_in_one_line(flag, tmp_path, monkeypatch):
+    from firhc_jax import distributed
+
+    monkeypatch.setattr(fj, "solve_batch", lambda *a, **k: pytest.fail("solved"))
+    good = tmp_path / "good"
+    good.mkdir()
+    distributed.save_states(good / "X0.npz", np.zeros((4, 5)))
+    np.save(good / "P.npy", np.zeros(4))
+    for path, message in _unreadable(tmp_path).items():
+        files = {"--states": good / "X0.npz", "--params": good / "P.npy", flag: path}
+        with pytest.raises(SystemExit) as e:
+            cli.main(["batch", "--states", str(files["--states"]), "--params", str(files["--params"]),
+                      "--out", str(tmp_path / "r.npz")])
+        text = str(e.value.code)
+        assert text.startswith("batch: ") and "\n" not in text and flag in text, text
+        assert re.search(message.replace("--FLAG", flag), text), (message, text)
 
 
 def test_example_says_how_much_faster_sdfs_is_and_defaults_to_a_horizon_where_it_shows(tmp_path, capsys):

@@ -1,19 +1,19 @@
-"""``python -m firhc_jax batch``: solve a batch of states from an ``.npz``, on
-one process or as one process of a multi-process JAX job.
+"""``python -m firhc_jax batch``: solve a batch of states from an ``.npy`` or
+``.npz``, on one process or as one process of a multi-process JAX job.
 
     python -m firhc_jax batch --plant tanks -N 4 --states X0.npz --out result.npz
     python -m firhc_jax batch ... --launch-local 2        # 2 processes on this machine
     JAX_COORDINATOR_ADDRESS=host0:1234 JAX_NUM_PROCESSES=4 JAX_PROCESS_ID=$i \\
         python -m firhc_jax batch ...                     # on each of 4 hosts
 
-The states are the array ``X0`` ``[B, n]`` of ``--states`` (every process
-reads the same file); process 0 writes every ``SearchResult`` field and the
+The states are the array ``X0`` ``[B, n]`` of ``--states``, an ``.npy`` or an
+``.npz`` holding it as ``X0`` (every process reads the same file); process 0 writes every ``SearchResult`` field and the
 timings (``meta_*`` keys) to ``--out`` (``firhc_jax.distributed.load_result``).
 The problem is a built-in plant (``--plant``, ``--horizon``) or
 ``--problem MODULE:FUNCTION``, a function without arguments returning a
-``Problem`` (importable on every host). ``--params`` names an ``.npz`` of
-per-row parameters (every array with leading axis B; a key ``a/b`` is the
-leaf ``p["a"]["b"]``), e.g. ``np.savez("p.npz", **lt.params(Y))`` for a
+``Problem`` (importable on every host). ``--params`` names an ``.npy`` (one
+array) or ``.npz`` of per-row parameters (every array with leading axis B; a
+key ``a/b`` is the leaf ``p["a"]["b"]``), e.g. ``np.savez("p.npz", **lt.params(Y))`` for a
 ``fj.LinearTracking``'s ``lt.problem``. The time reported is that of calls
 after the first, which compiles.
 """
@@ -45,8 +45,8 @@ def _physical_memory() -> int:
         return 2 ** 40
 
 
-HELP = "solve a batch of states from an .npz (one process or a multi-process job)"
-DESCRIPTION = ("fj.solve_batch on the states X0 [B, n] of an .npz file, over every device of the job; "
+HELP = "solve a batch of states from an .npy or .npz (one process or a multi-process job)"
+DESCRIPTION = ("fj.solve_batch on the states X0 [B, n] of an .npy or .npz file, over every device of the job; "
                "process 0 writes the results as .npz. Multi-process: --launch-local P on one machine, "
                "or --coordinator/--num-processes/--process-id (or the JAX_COORDINATOR_ADDRESS, "
                "JAX_NUM_PROCESSES, JAX_PROCESS_ID environment variables) on each host.")
@@ -56,8 +56,10 @@ def register(subparsers) -> None:
     """Add the ``batch`` subcommand."""
     p = subparsers.add_parser("batch", help=HELP, description=DESCRIPTION)
     p.add_argument("--states", type=Path, required=True,
-                   help=".npz holding X0 [B, n]: --plant tanks takes n = 3 (the three levels, m), --plant synthetic "
-                        "n = 3 (position, velocity, heading); --problem the state of its dynamics")
+                   help=".npy of X0 [B, n], or .npz holding it as X0. --plant tanks: n = 5, the controller state "
+                        "[h1, h2, h3 (the levels, m), mode (0-16, the mode that led to them), toggles (actuators "
+                        "that mode switched)], e.g. a row 0.2 0.18 0.1 0 0; --plant synthetic: n = 3 (position, "
+                        "velocity, heading), e.g. a row 0.2 0.03 0.33; --problem: the state of its dynamics")
     p.add_argument("--out", type=Path, required=True,
                    help="result .npz, written by process 0 (checked before any work)")
     what = p.add_mutually_exclusive_group()
@@ -66,7 +68,8 @@ def register(subparsers) -> None:
                            "the 17-input benchmark problem")
     what.add_argument("--problem", metavar="MODULE:FUNCTION", help="a function without arguments returning a Problem")
     p.add_argument("--params", type=Path, default=None,
-                   help=".npz of per-row parameters, every array with leading axis B (key 'a/b': leaf p['a']['b'])")
+                   help=".npy (one array) or .npz of per-row parameters, every array with leading axis B "
+                        "(key 'a/b': leaf p['a']['b'])")
     p.add_argument("--horizon", "-N", type=number(int, 1, 10), default=4, help="horizon of --plant (default 4)")
     solver_argument(p, "in a batch sdfs and pool share a work pool")
     p.add_argument("--lanes", type=number(int, 1, MAX_LANES), default=None,
@@ -164,25 +167,14 @@ def make_problem(args):
     return make_problem(args.horizon, SyntheticParams(17))
 
 
-def load_params(path: Path) -> dict:
-    """The per-row parameters of ``--params``: ``{key: array}``, a key ``a/b`` nested as ``p["a"]["b"]``."""
-    import numpy as np
-
-    params: dict = {}
-    with np.load(path, allow_pickle=False) as data:
-        if not data.files:
-            raise ValueError(f"--params {path} holds no arrays")
-        for key in data.files:
-            *outer, leaf = key.split("/")
-            node = params
-            for part in outer:
-                node = node.setdefault(part, {})
-                if not isinstance(node, dict):
-                    raise ValueError(f"--params {path}: {key!r} nests under an array")
-            if leaf in node:
-                raise ValueError(f"--params {path}: {key!r} is both an array and a group")
-            node[leaf] = np.asarray(data[key])
-    return params
+def _read(flag: str, load, path: Path):
+    """``load(path)``, or a ``SystemExit`` naming ``flag`` and the file when it cannot be read."""
+    try:
+        return load(path)
+    except OSError as e:
+        raise SystemExit(f"batch: cannot read {flag} {path}: {e.strerror or e}") from None
+    except ValueError as e:
+        raise SystemExit(f"batch: {flag}: {e}") from None
 
 
 def _job_failure(done) -> str:
@@ -230,10 +222,10 @@ def _solve(args) -> int:
 
     try:
         distributed.initialize(args.coordinator, args.num_processes, args.process_id)
-        X0 = distributed.load_states(args.states)
-        params = None if args.params is None else load_params(args.params)
     except (OSError, ValueError) as e:
         raise SystemExit(f"batch: {e}") from None
+    X0 = _read("--states", distributed.load_states, args.states)
+    params = None if args.params is None else _read("--params", distributed.load_params, args.params)
 
     import jax
     import numpy as np
