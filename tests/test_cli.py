@@ -273,7 +273,8 @@ def test_batch_solves_per_row_params_and_times_the_compiled_calls_only(tmp_path,
     assert meta["times"].shape == (1,) and meta["seconds"] == meta["times"][0]
     assert meta["nodes_per_second"] == pytest.approx(result.nodes.sum() / meta["seconds"])
     np.savez(tmp_path / "short.npz", **{"ref/x": rows["ref"]["x"][:3], "w": rows["w"][:3]})
-    with pytest.raises(SystemExit, match=r"batch: params leaf \['ref'\]\['x'\] must have leading axis B = 4"):
+    with pytest.raises(SystemExit, match=r"batch: --params: every array needs leading axis B = 4 \(the rows of "
+                                         r"--states\); \['ref'\]\['x'\] has shape \(3, 1\)"):
         cli.main([*argv[:6], str(tmp_path / "short.npz"), *argv[7:]])
 
 
@@ -288,23 +289,32 @@ def tracking():
 """
 
 
-def test_batch_reads_states_and_params_from_npy_files(tmp_path, monkeypatch):
-    """``--states X0.npy`` (the [B, n] array) and ``--params P.npy`` (one array, leading axis B)."""
+def test_batch_reads_npy_files_and_shows_its_progress_and_the_time_left(tmp_path, monkeypatch, capsys):
+    """``--states X0.npy`` (the [B, n] array) and ``--params P.npy`` (one array, leading axis B); a batch of at
+    least two chunks' rows is solved in calls of equal size (the last filled up), with a bar of rows and the time
+    left after each on stderr, and the costs and sequences of one call. (Chunks of 2 rows here, 256 in use.)"""
     from firhc_jax import distributed
 
+    assert [batch.chunks(b) for b in (1, 511, 512, 601, 10_000, 10 ** 6)] == [1, 1, 2, 2, 20, 20]
+    monkeypatch.setattr(batch, "MIN_CHUNK_ROWS", 2)
     (tmp_path / "fj_batch_array_user.py").write_text(BATCH_ARRAY_USER)
     monkeypatch.syspath_prepend(str(tmp_path))
-    X0, refs = np.array([[0.0], [1.0], [-2.0]]), np.array([[1.0], [0.0], [-1.0]])
+    X0, refs = np.array([[0.0], [1.0], [-2.0], [2.5], [-0.5]]), np.array([[1.0], [0.0], [-1.0], [0.5], [0.0]])
     np.save(tmp_path / "X0.npy", X0)
     np.save(tmp_path / "P.npy", refs)
     assert cli.main(["batch", "--problem", "fj_batch_array_user:tracking", "--states", str(tmp_path / "X0.npy"),
                      "--params", str(tmp_path / "P.npy"), "--out", str(tmp_path / "r.npz")]) == 0
+    err = capsys.readouterr().err
+    for label in ("first call (compiles)", "timed call 1/1"):
+        assert re.search(re.escape(label) + r": +60%.*\| 3/5 \[\d\d:\d\d<\d\d:\d\d", err), err
+        assert re.search(re.escape(label) + r": +100%.*\| 5/5 \[", err), err
     result, _ = distributed.load_result(tmp_path / "r.npz")
     import fj_batch_array_user
 
     expected = fj.solve_batch(fj_batch_array_user.tracking(), X0, params=refs)
     np.testing.assert_array_equal(result.sequence, np.asarray(expected.sequence))
     np.testing.assert_array_equal(result.cost, np.asarray(expected.cost))
+    np.testing.assert_array_equal(result.feasible, np.asarray(expected.feasible))
 
 
 def _unreadable(tmp_path) -> dict:

@@ -35,6 +35,10 @@ MAX_LANES = 4096  # pool slots per device, each with a stack of sDFS nodes
 MAX_REPEATS = 1000
 MAX_PROCESSES = 1024
 MAX_LOCAL_PROCESSES = 64  # each a Python process with JAX: about 0.3 GB of memory
+# A pass over the rows is cut into at most this many calls, each of at least MIN_CHUNK_ROWS rows, so that a long
+# batch shows its progress and the time left; a pool of 64 lanes per core stays full in calls of that size.
+PROGRESS_CHUNKS = 20
+MIN_CHUNK_ROWS = 256
 
 
 def _physical_memory() -> int:
@@ -83,6 +87,9 @@ def register(subparsers) -> None:
                         "more; their median is meta_seconds and gives nodes/s (default 1)")
     p.add_argument("--debug", action="store_true",
                    help="let an error in --problem's module through with its traceback (default: one line)")
+    p.add_argument("--no-progress", action="store_true",
+                   help=f"no progress bar (default: a bar of rows and the time left on stderr; a batch of "
+                        f"{2 * MIN_CHUNK_ROWS} rows or more is solved in up to {PROGRESS_CHUNKS} calls for it)")
     job = p.add_argument_group("multi-process job (default: the environment, else a single process)")
     job.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0")
     job.add_argument("--num-processes", type=number(int, 1, MAX_PROCESSES), help="processes in the job")
@@ -104,7 +111,8 @@ def _child_argv(args) -> list[str]:
     for flag, value in (("--lanes", args.lanes), ("--max-memory", args.max_memory), ("--params", args.params)):
         if value is not None:
             argv += [flag, str(value)]
-    return argv + [flag for flag, on in (("--float32", args.float32), ("--debug", args.debug)) if on]
+    return argv + [flag for flag, on in (("--float32", args.float32), ("--debug", args.debug),
+                                         ("--no-progress", args.no_progress)) if on]
 
 
 def check_out(path: Path) -> Path:
@@ -177,6 +185,48 @@ def _read(flag: str, load, path: Path):
         raise SystemExit(f"batch: {flag}: {e}") from None
 
 
+def _check_rows(params, rows: int) -> None:
+    """Every ``--params`` array has leading axis B (the rows of ``--states``), before the rows are cut."""
+    import jax
+    import numpy as np
+
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        if np.shape(leaf)[:1] != (rows,):
+            raise SystemExit(f"batch: --params: every array needs leading axis B = {rows} (the rows of --states); "
+                             f"{jax.tree_util.keystr(path) or 'the array'} has shape {np.shape(leaf)}")
+
+
+def chunks(rows: int) -> int:
+    """Calls one pass over ``rows`` rows is cut into, so that progress shows between them: at most
+    ``PROGRESS_CHUNKS``, each of at least ``MIN_CHUNK_ROWS`` rows (one call below twice that)."""
+    return max(1, min(PROGRESS_CHUNKS, rows // MIN_CHUNK_ROWS))
+
+
+def solve_in_chunks(problem, X0, params, options: dict, label: str | None):
+    """``fj.solve_batch`` of every row, as NumPy arrays, in ``chunks(B)`` calls of equal size (one compilation:
+    the last is filled up with copies of its last row, dropped after), with a bar of rows and an estimate of the
+    time left on stderr (``label``; ``None``: no bar). Costs, sequences and flags are those of one call; the
+    pool's node counts are not (they depend on which rows share it)."""
+    import jax
+    import numpy as np
+    from tqdm.auto import tqdm
+
+    from .. import SearchResult, solve_batch
+
+    B = len(X0)
+    size = -(-B // chunks(B))
+    parts = []
+    with tqdm(total=B, desc=label, unit="row", disable=label is None, file=sys.stderr, dynamic_ncols=True,
+              mininterval=0) as bar:  # at most PROGRESS_CHUNKS updates: each is shown
+        for start in range(0, B, size):
+            rows = np.minimum(np.arange(start, start + size), B - 1)
+            part = solve_batch(problem, X0[rows], params=jax.tree_util.tree_map(lambda a, r=rows: a[r], params),
+                               **options)
+            parts.append([np.asarray(field)[:B - start] for field in part])
+            bar.update(min(size, B - start))
+    return SearchResult(*(np.concatenate(field) for field in zip(*parts, strict=True)))
+
+
 def _job_failure(done) -> str:
     """One line on how a launched job ended badly."""
     parts = [f"process {i} " + (f"exit {d.returncode}" if d.returncode > 0 else f"killed (signal {-d.returncode})")
@@ -231,28 +281,30 @@ def _solve(args) -> int:
     import numpy as np
     from jax.experimental import multihost_utils
 
-    from .. import solve_batch
     from ..solvers import DEFAULT_MAX_MEMORY
 
     jax.config.update("jax_enable_x64", not args.float32)
     X0 = X0.astype(np.float32 if args.float32 else np.float64)
+    _check_rows(params, len(X0))
     problem = make_problem(args)
     options = dict(solver=args.solver, lanes=args.lanes, pop_width=args.pop_width,
                    max_memory=args.max_memory or DEFAULT_MAX_MEMORY)
     many = jax.process_count() > 1
+    shown = not args.no_progress and jax.process_index() == 0
 
-    def timed():
+    def timed(label):
         if many:
             multihost_utils.sync_global_devices("firhc_jax batch")  # start the clocks together
         t0 = time.perf_counter()
-        result = jax.block_until_ready(solve_batch(problem, X0, params=params, **options))
+        result = solve_in_chunks(problem, X0, params, options, label if shown else None)
         return time.perf_counter() - t0, result
 
     try:
-        first, result = timed()
+        first, result = timed("first call (compiles)")
     except (ValueError, TypeError) as e:  # what the solver refuses (e.g. --lanes without the pool, NaN states)
         raise SystemExit(f"batch: {e}") from None
-    times = [timed()[0] for _ in range(args.repeats)]  # compiled by the first call: never in these
+    # compiled by the first call: never in these
+    times = [timed(f"timed call {i + 1}/{args.repeats}")[0] for i in range(args.repeats)]
     seconds = statistics.median(times)
     if jax.process_index() == 0:
         nodes = int(np.asarray(result.nodes, np.int64).sum())
