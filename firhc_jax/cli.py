@@ -21,10 +21,11 @@ import importlib
 import os
 import sys
 import warnings
+from pathlib import Path
 
 # Subcommand modules, in the order shown by --help.
 _APPS = ("firhc_jax.apps.example", "firhc_jax.apps.hopper", "firhc_jax.apps.tanks", "firhc_jax.apps.inverter",
-         "firhc_jax.apps.batch", "firhc_jax.apps.bench", "firhc_jax.apps.profile")
+         "firhc_jax.apps.batch", "firhc_jax.apps.bench", "firhc_jax.apps.profile", "firhc_jax.apps.cache")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -58,6 +59,17 @@ def _leaves(parser: argparse.ArgumentParser):
     for group in groups:
         for child in dict.fromkeys(group.choices.values()):  # aliases map to the same parser
             yield from _leaves(child)
+
+
+def cache_folder() -> Path:
+    """The folder the commands keep their compilations in: the one this process already set
+    (``JAX_COMPILATION_CACHE_DIR``, a caller), else ``$XDG_CACHE_HOME/firhc_jax`` or ``~/.cache/firhc_jax``."""
+    import jax
+
+    from ._src.runtime.disk_cache import default_cache_path
+
+    chosen = jax.config.jax_compilation_cache_dir
+    return Path(chosen).expanduser() if chosen else default_cache_path()
 
 
 def _use_compilation_cache() -> None:

@@ -371,3 +371,59 @@ def test_example_says_how_much_faster_sdfs_is_and_defaults_to_a_horizon_where_it
     ratio = summary["exhaustive"]["time_per_step_s"] / summary["sdfs"]["time_per_step_s"]
     assert summary["exhaustive_over_sdfs_time"] == pytest.approx(ratio)
     assert f"sDFS: {ratio:.1f}x as fast as exhaustive search" in out and "its lead grows with N" in out
+
+
+def _kept_file(path, label: str, **changed) -> None:
+    """A kept decision's file at ``path`` whose key has this installation's lines, some ``changed``."""
+    import json
+
+    from firhc_jax.apps import _exported
+
+    lines = {**_exported.installation(), **changed, "setting": repr(label)}
+    header = {"key": "\n".join(f"{k}={v}" for k, v in lines.items()), "sha256": "0" * 64, "label": label}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(_exported.FORMAT + json.dumps(header).encode() + b"\n" + bytes(5000))
+
+
+def test_cache_lists_the_kept_files_with_their_sizes_and_clears_them(tmp_path, capsys):
+    """A folder with three kept decisions (one of this installation, one of another JAX, one damaged), XLA's
+    entries and a file of the user's: each decision listed with its application, size and whether it is ever read
+    again, XLA's entries counted; ``--clear`` removes both and leaves the user's file."""
+    import jax
+
+    from firhc_jax.apps import _exported
+
+    folder = tmp_path / "cache"
+    kept = folder / _exported.FOLDER
+    _kept_file(kept / f"{'a' * 64}.jaxexport", "hopper")
+    _kept_file(kept / f"{'b' * 64}.jaxexport", "tanks", jax="0.4.1")
+    (kept / f"{'c' * 64}.jaxexport").write_bytes(b"damaged")
+    for name, size in (("jit_step-1f-cache", 250_000), ("jit_step-1f-atime", 8), ("jit_loop-2e-cache", 50_000)):
+        (folder / name).write_bytes(bytes(size))
+    (folder / "notes.txt").write_text("mine")
+    kept_bytes = sum(p.stat().st_size for p in kept.iterdir())
+    before = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(folder))  # as JAX_COMPILATION_CACHE_DIR sets it
+    try:
+        assert cli.main(["cache"]) == 0
+        listed = capsys.readouterr().out.splitlines()
+        assert cli.main(["cache", "--clear"]) == 0
+        cleared = capsys.readouterr().out
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
+    assert listed[:2] == [f"folder: {folder}",
+                          f"kept decisions ({_exported.FOLDER}/): 3 files, {kept_bytes / 1e3:.1f} kB"]
+    rows = {line.split()[0]: line for line in listed[2:5]}
+    assert re.fullmatch(r" +a{12} +hopper +5\.\d kB +\d{4}-\d\d-\d\d \d\d:\d\d", rows["a" * 12])
+    assert re.search(r" tanks +5\.\d kB .*\(never read: written by another jax\)$", rows["b" * 12])
+    assert rows["c" * 12].endswith("(never read: is not a kept decision of this version)")
+    assert listed[5:] == ["XLA's compilations: 2 entries, 0.3 MB"]
+    assert cleared.strip() == (f"removed 3 kept decisions and 3 files of XLA's compilations (0.3 MB) from "
+                               f"{folder}")
+    assert sorted(p.name for p in folder.rglob("*")) == [_exported.FOLDER, "notes.txt"]
+
+
+def test_cache_takes_no_no_cache_and_keeps_no_compilation(monkeypatch, capsys):
+    monkeypatch.setattr(cli, "_use_compilation_cache", lambda: pytest.fail("the cache command enabled the cache"))
+    message = _refused(capsys, cli.main, ["cache", "--no-cache"])
+    assert "unrecognized arguments: --no-cache" in message

@@ -78,9 +78,11 @@ def test_a_second_process_reads_the_decision_from_the_cache(tmp_path):
 def test_every_command_takes_no_cache_and_uses_the_cache_unless_told(monkeypatch):
     parser = cli.build_parser()
     leaves = list(cli._leaves(parser))
-    assert len(leaves) >= 7
+    assert len(leaves) >= 8
     for command in leaves:
-        assert "--no-cache" in command._option_string_actions, command.prog
+        keeps = command.get_default("uses_cache") is not False
+        assert ("--no-cache" in command._option_string_actions) == keeps, command.prog
+        assert keeps or command.prog.endswith(" cache"), command.prog  # only the command that lists the folder
     used = []
     monkeypatch.setattr(cli, "_use_compilation_cache", lambda: used.append(True))
     monkeypatch.setattr(cli, "build_parser", lambda: _parser_with(lambda args: 0))

@@ -37,7 +37,9 @@ import jax
 import jaxlib
 import numpy as np
 
-from .. import ControllerState, SearchResult, StepInfo, __version__
+import firhc_jax as fj
+
+from .. import ControllerState, SearchResult, StepInfo
 
 FOLDER = "firhc_jax_exported"  # inside the compilation cache's folder
 SUFFIX = ".jaxexport"
@@ -100,13 +102,23 @@ def canonical(value) -> str:
     raise TypeError(f"cannot name a setting of type {type(value).__name__} exactly")
 
 
+def installation() -> dict:
+    """The lines of every key that this installation and machine decide: a kept file whose key differs in one of
+    them is never read here."""
+    return {"format": FORMAT.decode().strip(), "firhc_jax": fj.__version__, "source": source_digest(),
+            "jax": jax.__version__, "jaxlib": jaxlib.__version__, "platform": jax.export.default_export_platform()}
+
+
+def key_lines(key_text: str) -> dict:
+    """``{name: value}`` of a key's lines."""
+    return dict(line.partition("=")[::2] for line in key_text.splitlines())
+
+
 def key(settings, args) -> str:
     """The full key of the program built from ``settings`` and traced for ``args``: one ``name=value`` line for
     everything that decides what a trace produces and where it can run."""
     leaves, tree = jax.tree_util.tree_flatten(args)
-    lines = {"format": FORMAT.decode().strip(), "firhc_jax": __version__, "source": source_digest(),
-             "jax": jax.__version__, "jaxlib": jaxlib.__version__, "platform": jax.export.default_export_platform(),
-             "setting": canonical(settings), "arguments": str(tree),
+    lines = {**installation(), "setting": canonical(settings), "arguments": str(tree),
              "shapes": " ".join(f"{np.shape(a)}{getattr(a, 'dtype', None) or np.asarray(a).dtype}" for a in leaves),
              "options": " ".join(f"{k}={getattr(jax.config, k)}" for k in TRACE_CONFIG)}
     return "\n".join(f"{name}={value}" for name, value in lines.items())
@@ -138,9 +150,8 @@ def read_header(data: bytes) -> tuple[dict, bytes]:
 
 def _difference(kept: str, wanted: str) -> str:
     """The first line of two keys that differs, by name, with both values when they are short."""
-    kept_lines = dict(line.partition("=")[::2] for line in kept.splitlines())
-    for line in wanted.splitlines():
-        name, _, value = line.partition("=")
+    kept_lines = key_lines(kept)
+    for name, value in key_lines(wanted).items():
         other = kept_lines.get(name)
         if other != value:
             return name + (f" ({other}, not {value})" if other is not None and len(other + value) <= 60 else "")
