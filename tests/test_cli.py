@@ -427,3 +427,23 @@ def test_cache_takes_no_no_cache_and_keeps_no_compilation(monkeypatch, capsys):
     monkeypatch.setattr(cli, "_use_compilation_cache", lambda: pytest.fail("the cache command enabled the cache"))
     message = _refused(capsys, cli.main, ["cache", "--no-cache"])
     assert "unrecognized arguments: --no-cache" in message
+
+
+def test_the_profile_chart_says_what_its_red_bar_means(tmp_path, monkeypatch):
+    from matplotlib.colors import to_rgba
+
+    from firhc_jax.apps import _plot
+
+    figures, drawn = [], _plot.subplots
+    monkeypatch.setattr(_plot, "subplots", lambda *a, **k: figures.append(drawn(*a, **k)) or figures[-1])
+    rows = [{"setting": f"sdfs pop_width={k}", "solves_per_second": 100.0 * k, "nodes_per_second": 1e4 * k,
+             "fastest": k == 4} for k in (1, 2, 4)]
+    profile_app.plot(rows, tmp_path / "profile.png", "case")
+    fig, _ = figures[0]
+    fastest = {bar.get_facecolor() for bar in fig.axes[0].patches if bar.get_width() == 400.0}
+    legends = [ax.get_legend() for ax in fig.axes if ax.get_legend()]
+    assert len(legends) == 1
+    entries = {t.get_text(): h.get_facecolor() for t, h in zip(legends[0].get_texts(), legends[0].legend_handles,
+                                                                strict=True)}
+    meaning = [text for text, color in entries.items() if to_rgba(color) in fastest]
+    assert len(meaning) == 1 and "fastest" in meaning[0], entries

@@ -87,6 +87,7 @@ def markdown(rows: list[dict]) -> str:
 
 def plot(rows: list[dict], path: Path, title: str) -> None:
     """Solves/s and nodes/s per setting, the fastest highlighted."""
+    from matplotlib.patches import Patch
     from matplotlib.ticker import NullFormatter
 
     from ._plot import subplots
@@ -100,6 +101,8 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
         ax.xaxis.set_minor_formatter(NullFormatter())  # decades only: minor labels overlap
         ax.invert_yaxis()
     ax2.set_yticklabels([])
+    ax1.legend(handles=[Patch(color="tab:red", label="fastest (most solves / s)"),
+                        Patch(color="tab:blue", label="the other settings")], fontsize=8, loc="lower right")
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
