@@ -441,7 +441,7 @@ def test_the_profile_chart_says_what_its_red_bar_means(tmp_path, monkeypatch):
     profile_app.plot(rows, tmp_path / "profile.png", "case")
     fig, _ = figures[0]
     fastest = {bar.get_facecolor() for bar in fig.axes[0].patches if bar.get_width() == 400.0}
-    legends = [ax.get_legend() for ax in fig.axes if ax.get_legend()]
+    legends = fig.legends + [ax.get_legend() for ax in fig.axes if ax.get_legend()]
     assert len(legends) == 1
     entries = {t.get_text(): h.get_facecolor() for t, h in zip(legends[0].get_texts(), legends[0].legend_handles,
                                                                 strict=True)}

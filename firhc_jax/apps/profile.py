@@ -101,10 +101,11 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
         ax.xaxis.set_minor_formatter(NullFormatter())  # decades only: minor labels overlap
         ax.invert_yaxis()
     ax2.set_yticklabels([])
-    ax1.legend(handles=[Patch(color="tab:red", label="fastest (most solves / s)"),
-                        Patch(color="tab:blue", label="the other settings")], fontsize=8, loc="lower right")
+    fig.legend(handles=[Patch(color="tab:red", label="fastest (most solves / s)"),
+                        Patch(color="tab:blue", label="the other settings")], fontsize=8, loc="lower center",
+               ncol=2, frameon=False)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.3 / fig.get_figheight(), 1, 1))  # 0.3 in below the axes for the legend
     fig.savefig(path, dpi=100)
 
 
