@@ -284,7 +284,7 @@ class Hopper(App):
         if args.warm and not SOLVERS[args.solver].warm_starts:
             parser.error(f"--warm needs --solver sdfs (or another solver that takes warm starts), got --solver "
                          f"{args.solver}")
-        if args.solver == "exhaustive":
+        if not SOLVERS[args.solver].prunes:  # it visits the whole tree: bound the run
             steps = max(1, int(round(args.seconds / hm.CONTROL_PERIOD)))
             exhaustive_run(parser, steps, len(hm.VALVE_B), args.horizon, EXHAUSTIVE_BUDGET,
                            "about 4 minutes at 2.3 us a node", "lower --horizon or --seconds, or use --solver sdfs")

@@ -13,11 +13,14 @@ from __future__ import annotations
 import math
 import os
 import zipfile
-from typing import NamedTuple, Optional
+from typing import TYPE_CHECKING, NamedTuple, Optional, Sequence
 
 import jax
 import numpy as np
 from numpy.lib import format as npy
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 # Each field's layout in a saved run: (length of the leading axis, number of axes, dtype kinds).
 _LAYOUT = {"states": ("T+1", 2, "f"), "inputs": ("T", 2, "f"), "input_indices": ("T", 1, "iu"),
@@ -63,7 +66,7 @@ class ClosedLoop(NamedTuple):
         bad = np.flatnonzero(~np.asarray(self.feasible).reshape(-1, np.shape(self.feasible)[-1]).all(axis=0))
         return int(bad[0]) if bad.size else None
 
-    def save(self, path) -> str:
+    def save(self, path: str | os.PathLike) -> str:
         """Write every field to ``path`` as an uncompressed ``.npz`` (``.npz``
         appended if missing, as ``numpy.savez`` does); returns the path written.
         ``numpy.load(path)["states"]`` reads one field; ``ClosedLoop.load`` all."""
@@ -75,7 +78,7 @@ class ClosedLoop(NamedTuple):
         return path
 
     @classmethod
-    def load(cls, path) -> "ClosedLoop":
+    def load(cls, path: str | os.PathLike) -> "ClosedLoop":
         """A ``ClosedLoop`` of NumPy arrays from a file written by ``save``.
 
         Every array's declared shape and dtype is read from its ``.npy``
@@ -98,7 +101,8 @@ class ClosedLoop(NamedTuple):
         with np.load(path, allow_pickle=False) as data:
             return cls(**{name: data[name] for name in names})
 
-    def plot(self, title: str = "", state_names=None, input_names=None):
+    def plot(self, title: str = "", state_names: Sequence[str] | None = None,
+             input_names: Sequence[str] | None = None) -> "Figure":
         """A new matplotlib ``Figure``: states, applied inputs (held steps
         marked), nodes per decision and solve times, against time in seconds
         when the run has ``times`` (``simulate(..., dt=)``), else the step

@@ -33,7 +33,7 @@ def default_cache_path() -> Path:
     return Path(base) / "firhc_jax"
 
 
-def enable_compilation_cache(path=None) -> Path:
+def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     """Turn on JAX's persistent compilation cache in ``path`` (default: ``default_cache_path()``) and return it.
 
     Later compilations in this process are read from, and written to, that

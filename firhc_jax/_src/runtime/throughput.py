@@ -15,12 +15,13 @@ from __future__ import annotations
 import statistics
 import sys
 import time
-from typing import Callable
+from typing import Callable, Sequence
 
 import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from ..annotations import ArrayLike, PyTree
 from ..checks import positive_int
 from ..problem.callables import search_inputs
 from ..problem.problem import Problem
@@ -82,7 +83,8 @@ def _row(solver: str, setting: str, seconds: float, first: float, results, solve
             "us_per_iteration": 1e6 * seconds / max(iterations, 1), "fastest": False}
 
 
-def profile(problem: Problem, states, params=None, *, pop_widths=POP_WIDTHS, lanes=LANES, repeats: int = 3,
+def profile(problem: Problem, states: ArrayLike, params: PyTree = None, *, pop_widths: Sequence[int] = POP_WIDTHS,
+            lanes: Sequence[int | str] = LANES, repeats: int = 3,
             max_exhaustive_nodes: int = MAX_EXHAUSTIVE_NODES, progress: bool = False) -> list[dict]:
     """Time every search setting on ``states`` and mark the fastest.
 
