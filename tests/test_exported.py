@@ -1,5 +1,7 @@
 """apps._exported: an application's decision kept on disk as a traced program, read back without tracing, and
 only when it is verifiably the program of this setting, platform and version."""
+import hashlib
+import json
 import os
 import subprocess
 import sys
@@ -92,8 +94,10 @@ def test_the_file_is_named_by_the_settings_the_arguments_the_source_and_the_plat
         _exported.key(("small", lambda x: x), (state, x, p))
     assert _name("small", (state, jnp.zeros(3, x.dtype), p)) != base
     assert _name("small", (state, x, {"ref": jnp.zeros(2)})) != base
-    assert "platform=cpu" in _exported.key("small", (state, x, p)).splitlines()
-    monkeypatch.setattr(jax.export, "default_export_platform", lambda: "cuda")
+    here = jax.export.default_export_platform()
+    assert f"platform={here}" in _exported.key("small", (state, x, p)).splitlines()
+    there = _elsewhere()
+    monkeypatch.setattr(jax.export, "default_export_platform", lambda: there)
     assert _name("small", (state, x, p)) != base
     monkeypatch.undo()
     monkeypatch.setattr(_exported, "source_digest", lambda: "another source")
@@ -124,7 +128,7 @@ def _traced_again(tmp_path, path, args, message, settings="small"):
         np.testing.assert_array_equal(a, b)
     header, blob = _exported.read_header(path.read_bytes())
     assert header["key"] == _exported.key(settings, args)
-    assert header["sha256"] == __import__("hashlib").sha256(blob).hexdigest()
+    assert header["sha256"] == hashlib.sha256(blob).hexdigest()
     traces.clear()
     _exported.decision(_controller(traces), settings, tmp_path, *args)
     assert traces == []  # the file written again is read back
@@ -173,25 +177,31 @@ def test_another_settings_program_under_this_name_is_traced_and_written_again(tm
 def _forged(path, blob: bytes) -> None:
     """Replace the program in the kept file at ``path`` by ``blob``, with a header that vouches for it."""
     header, _ = _exported.read_header(path.read_bytes())
-    header["sha256"] = __import__("hashlib").sha256(blob).hexdigest()
-    path.write_bytes(_exported.FORMAT + __import__("json").dumps(header).encode() + b"\n" + blob)
+    header["sha256"] = hashlib.sha256(blob).hexdigest()
+    path.write_bytes(_exported.FORMAT + json.dumps(header).encode() + b"\n" + blob)
+
+
+def _elsewhere() -> str:
+    """A platform other than this machine's: CUDA on a CPU, the CPU on a GPU."""
+    return "cpu" if jax.export.default_export_platform() != "cpu" else "cuda"
 
 
 def test_a_program_for_another_platform_is_traced_and_written_again(tmp_path, monkeypatch):
-    """A CUDA program under this CPU setting's name: written by a CUDA run (its key names cuda), or with a header
-    that names this platform."""
+    """A program exported for another platform (CUDA on a CPU) under this setting's name: written by a run there
+    (its key names that platform), or with a header that names this one."""
     ctrl = _controller([])
     path, args = _kept(tmp_path, ctrl)
+    here, there = jax.export.default_export_platform(), _elsewhere()
     with monkeypatch.context() as m:
-        m.setattr(jax.export, "default_export_platform", lambda: "cuda")
-        cuda_key = _exported.key("small", args)
-    cuda = bytes(jax.export.export(jax.jit(ctrl.step), platforms=["cuda"])(*args).serialize())
-    path.write_bytes(_exported.FORMAT + __import__("json").dumps(
-        {"key": cuda_key, "sha256": __import__("hashlib").sha256(cuda).hexdigest(), "label": "small"}).encode()
-        + b"\n" + cuda)
-    _traced_again(tmp_path, path, args, "was written for another platform (cuda, not cpu)")
-    _forged(path, cuda)
-    _traced_again(tmp_path, path, args, "was exported for cuda, not cpu")
+        m.setattr(jax.export, "default_export_platform", lambda: there)
+        there_key = _exported.key("small", args)
+    program = bytes(jax.export.export(jax.jit(ctrl.step), platforms=[there])(*args).serialize())
+    path.write_bytes(_exported.FORMAT + json.dumps(
+        {"key": there_key, "sha256": hashlib.sha256(program).hexdigest(), "label": "small"}).encode()
+        + b"\n" + program)
+    _traced_again(tmp_path, path, args, f"was written for another platform ({there}, not {here})")
+    _forged(path, program)
+    _traced_again(tmp_path, path, args, f"was exported for {there}, not {here}")
 
 
 def test_a_kept_program_that_fails_when_run_is_traced_and_written_again(tmp_path):

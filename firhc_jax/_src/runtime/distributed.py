@@ -139,9 +139,9 @@ def load_states(path) -> np.ndarray:
         data = data[STATES_KEY]
     X0 = np.asarray(data)
     if X0.ndim != 2:
-        raise ValueError(f"{path}: the states must be [B, n], got shape {X0.shape}")
+        raise ValueError(f"{path}: {STATES_KEY} must be [B, n], got shape {X0.shape}")
     if X0.dtype == bool or not (np.issubdtype(X0.dtype, np.integer) or np.issubdtype(X0.dtype, np.floating)):
-        raise ValueError(f"{path}: the states must hold real numbers, got dtype {X0.dtype}")
+        raise ValueError(f"{path}: {STATES_KEY} must hold real numbers, got dtype {X0.dtype}")
     return X0
 
 
