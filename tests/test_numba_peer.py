@@ -4,7 +4,8 @@ multiply-adds differently from one program to another and with its optimizations
 costs differ in their last bits (up to 4e-16 relative here), between ``fj.sdfs`` and ``fj.exhaustive`` too.
 
 Needs the bench extra (``pip install -e ".[test,bench]"``); without Numba it is skipped, so it is run where
-Numba is installed: ``python -m pytest tests/test_numba_peer.py`` (README, Tests).
+Numba is installed: ``python -m pytest --full tests/test_numba_peer.py``. Slow (JIT-compiling the peers and
+the library's searches: 20-40 s), so the quick suite leaves it out.
 """
 import sys
 from pathlib import Path
@@ -21,6 +22,7 @@ pytest.importorskip("numba", reason="the Numba peer check needs the bench extra:
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import numba_peer as peer  # noqa: E402
 
+pytestmark = pytest.mark.slow
 N = 3
 COST_RTOL = 1e-12  # relative: about 2,500 times the largest difference seen (4e-16)
 
