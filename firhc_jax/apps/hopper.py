@@ -201,8 +201,8 @@ def figures(loop: fj.ClosedLoop, X, params: hm.HopperParams, out: str) -> list:
     save(fig, "fig4_displacements")
 
     fig, ax = subplots(figsize=(5, 4.5))
-    ax.plot(X[:, 0], X[:, 1], lw=0.8)
-    ax.set(xlabel="body position x (m)", ylabel="body velocity (m/s)", title="Fig. 5: velocity against position")
+    ax.plot(100 * X[:, 0], X[:, 1], lw=0.8)  # the position in Fig. 4's unit
+    ax.set(xlabel="body position x (cm)", ylabel="body velocity (m/s)", title="Fig. 5: velocity against position")
     save(fig, "fig5_phase")
 
     fig, ax = subplots(figsize=(7, 3.5))

@@ -166,6 +166,8 @@ def _log_axis(ax, values) -> None:
 def figure(profile, title: str):
     """A ``Figure``: solves/s (the range of the runs as error bars) and nodes/s per setting, each value written
     beside its bar, the fastest highlighted, the defaults named; below, each callable's ns per child."""
+    from matplotlib.patches import Patch
+
     from ._plot import subplots
 
     rows = list(profile)
@@ -206,8 +208,11 @@ def figure(profile, title: str):
     ax4.axis("off")
     ax4.text(0.0, 0.5, f"{verdict(profile)}\n\ncompiling: {profile.compile_seconds:.1f} s of the "
              f"{profile.seconds:.1f} s this profile took", wrap=True, va="center", fontsize=9)
+    fig.legend(handles=[Patch(color="tab:red", label="fastest (most solves / s)"),
+                        Patch(color="tab:blue", label="the other settings")], fontsize=8, loc="lower center",
+               ncol=2, frameon=False)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.3 / fig.get_figheight(), 1, 1))  # 0.3 in below the axes for the legend
     return fig
 
 
