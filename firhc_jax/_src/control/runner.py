@@ -236,8 +236,10 @@ def _chunk_into(scan, carry, records: ClosedLoop, params, start):
     """``scan``'s chunk of steps from ``start``, its records written into ``records`` (donated: updated in
     place) from row ``start``, and ``[]`` int32 the chunk's first held step (of any loop; -1: none)."""
     carry, rec = scan(carry, params, start)
-    held = jnp.any(rec.held.reshape(rec.held.shape[0], -1), axis=1)  # [steps of the chunk]
-    first = jnp.where(jnp.any(held), start + jnp.argmax(held).astype(jnp.int32), -1)
+    steps = rec.held.shape[0]
+    at = jnp.where(rec.held, jnp.arange(steps, dtype=jnp.int32).reshape((steps,) + (1,) * (rec.held.ndim - 1)), steps)
+    first = jnp.min(at)  # a plain min: XLA:CPU runs an argmax as a scalar loop (nodes.first_min)
+    first = jnp.where(first < steps, start + first, -1)
     return carry, jax.tree.map(lambda whole, part: jax.lax.dynamic_update_slice_in_dim(whole, part, start, 0),
                                records, rec), first
 
