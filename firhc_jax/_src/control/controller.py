@@ -304,7 +304,8 @@ class FIRHC:
         Loop b makes the decisions of ``simulate(X0[b], steps, plant, params=params[b], u0=u0[b])``: at
         every step the B searches run as the solver's batch (``"sdfs"``, ``"pool"``: one work pool whose
         lanes take the next loop's root or steal nodes, so a long search never holds the other loops; with
-        ``max_nodes`` no loop's nodes are shared, so each is searched node for node as ``simulate`` does).
+        ``max_nodes`` no loop's nodes are shared, so each is searched node for node as ``simulate`` does:
+        ``"sdfs"`` on one slot, ``"pool"`` on a pool of ``lanes`` slots of its own).
         The loops are split into parts, one per CPU core and per local device, run side by side; in a job of
         several processes (``jax.distributed``) each runs its share and every process gets every loop.
         Costs are equal (to the last bits: XLA vectorises the batch its own way); inputs too, except at exact
