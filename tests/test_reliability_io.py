@@ -160,6 +160,17 @@ def test_a_negative_terminal_cost_is_blamed_on_terminal_cost():
         [(0, "stage_cost")]
 
 
+
+def test_a_negative_stage_cost_beside_a_nan_one_is_reported():
+    """From x = 0.3 the log cost is log 0.8 < 0 for one input and NaN for the other (the search discards that
+    node and raises on the negative cost): the check reports the negative cost."""
+    prob = fj.Problem(lambda x, u: x + u, jnp.array([0.5, -1.0]), lambda x, u: jnp.log(x[0]), 2)
+    with pytest.raises(ValueError, match="negative"):
+        fj.sdfs(prob, jnp.array([0.3]))
+    found = fj.diagnostics.check_problem(prob, jnp.array([[0.3], [2.0]]))
+    assert [(v.state, v.source) for v in found] == [(0, "stage_cost")]
+    np.testing.assert_allclose(found[0].value, np.log(0.8))
+
 # -- helpers take what they say ---------------------------------------------------------------------------------
 def _bounded(bound):
     return fj.Problem(lambda x, u, p: x + u, CONTROLS, lambda x, u, p: (x[0] - p["t"][0]) ** 2, 2,

@@ -38,7 +38,8 @@ def check_problem(problem: Problem, states, params=None, per_state: bool | None 
     the ``(state, 0, cost, 0, source)`` of each state with a negative one,
     ``source`` the callable that returned it (``"stage_cost"``: the lowest of
     the state's stage costs; ``"terminal_cost"``); empty: none found. Steps
-    that break the ``constraint`` are never searched and are skipped.
+    that break the ``constraint`` are never searched and are skipped, and so
+    are NaN costs (the searches discard those nodes).
 
     ``params``: as in ``check_lower_bound``."""
     X = _states(states)
@@ -50,7 +51,7 @@ def check_problem(problem: Problem, states, params=None, per_state: bool | None 
         def one(u, k):
             x_next = problem.next_state(x, u, k, params)
             c = problem.cost_of_step(x_next, u, k, params)
-            return jnp.where(problem.allowed(x_next, u, k, params), c, jnp.inf)
+            return jnp.where(problem.allowed(x_next, u, k, params) & ~jnp.isnan(c), c, jnp.inf)
         c = jnp.min(jax.vmap(lambda k: jax.vmap(lambda u: one(u, k))(controls))(ks))
         g = call(problem.terminal_cost, params, x) if problem.terminal_cost is not None else jnp.zeros_like(c)
         return c, g
