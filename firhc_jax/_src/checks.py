@@ -42,7 +42,27 @@ def strong(a):
     if isinstance(a, jax.Array) and not a.weak_type:
         return a
     a = np.asarray(a)
-    return a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False)
+    with np.errstate(over="ignore"):  # a value beyond the canonical dtype is refused by ``lost_in_cast``
+        return a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False)
+
+
+def lost_in_cast(name: str, given, cast) -> str | None:
+    """Why ``cast`` (``given`` as ``strong`` made it) is not what the user gave, or None: NaN or inf, or
+    values beyond the range of the narrower dtype JAX casts them to with x64 off (searched as inf, or
+    wrapped around)."""
+    a, g = np.asarray(cast), np.asarray(given)
+    if a.dtype.kind == "f":
+        if np.all(np.isfinite(a)):
+            return None
+        if g.dtype.kind != "f" or not np.all(np.isfinite(g)):
+            return f"{name} contains NaN or inf"
+        big, limit = float(np.max(np.abs(g))), float(np.finfo(a.dtype).max)
+    elif a.dtype.kind in "iu" and g.dtype != a.dtype and not np.array_equal(g, a):
+        big, limit = int(np.max(np.abs(g.astype(object)))), int(np.iinfo(a.dtype).max)
+    else:
+        return None
+    return (f"{name} holds {big:.4g}, beyond the range of {a.dtype} (largest {limit:.4g}), which JAX casts "
+            f"{g.dtype} to with x64 off: scale it, or enable jax_enable_x64")
 
 
 def check_params(params, leading: int | tuple | None = None, what: str = "params", axis: str = "B"):
@@ -71,9 +91,10 @@ def check_params(params, leading: int | tuple | None = None, what: str = "params
             if kind not in "biuf":
                 raise TypeError(f"{name} must be a real numeric or boolean array, got {type(leaf).__name__} "
                                 f"of dtype {getattr(arr, 'dtype', '?')}")
-            if kind == "f" and not np.all(np.isfinite(np.asarray(arr))):
-                raise ValueError(f"{name} contains NaN or inf")
             a = strong(arr)
+            why = lost_in_cast(name, arr, a)
+            if why:
+                raise ValueError(why)
         if isinstance(leading, tuple) and tuple(a.shape[:len(leading)]) != leading:
             raise ValueError(f"{name} must have leading axes {axis} = {list(leading)}, got shape {tuple(a.shape)}")
         if isinstance(leading, int) and (a.ndim == 0 or a.shape[0] != leading):
@@ -98,9 +119,10 @@ def as_state(x0, name: str = "x0"):
             raise TypeError(f"{name} must be real, got complex dtype {x_np.dtype}")
         if x_np.dtype.kind not in "biuf":
             raise TypeError(f"{name} must be a numeric array [n], got dtype {x_np.dtype}")
-        if x_np.dtype.kind == "f" and not np.all(np.isfinite(x_np)):
-            raise ValueError(f"{name} contains NaN or inf: {x_np}")
         x0 = strong(x0)
+        why = lost_in_cast(name, x_np, x0)
+        if why:
+            raise ValueError(f"{why}: {x_np}")
     if x0.ndim != 1:
         raise ValueError(
             f"{name} must be a 1-D state vector [n], got shape {tuple(x0.shape)}; "
@@ -146,7 +168,8 @@ def as_batch(X0, name: str = "X0"):
     if not isinstance(X, jax.core.Tracer):
         bad = np.flatnonzero(~np.all(np.isfinite(np.asarray(X)), axis=1))
         if bad.size:
-            raise ValueError(f"{name} contains NaN or inf in rows {bad[:10].tolist()}{' ...' if bad.size > 10 else ''}")
+            why = lost_in_cast(name, np.asarray(X0)[bad], np.asarray(X)[bad])
+            raise ValueError(f"{why} in rows {bad[:10].tolist()}{' ...' if bad.size > 10 else ''}")
     return X
 
 
