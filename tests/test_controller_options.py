@@ -107,3 +107,19 @@ def test_step_index_problems_run_in_the_closed_loop():
     x, u = run.states[0], CONTROLS[int(run.input_indices[0])]
     assert float(run.stage_costs[0]) == float(cost_k(dyn_k(x, u, 0), u, 0))
     np.testing.assert_array_equal(np.asarray(run.states[1]), np.asarray(dyn_k(x, u, 0)))
+
+
+@pytest.mark.parametrize("solver", ["sdfs", "pool"])
+def test_a_budget_beyond_int32_is_clamped_as_fj_sdfs_clamps_it(solver):
+    """max_nodes = 2**31 or more is more than the int32 node counter can count: the controller clamps it
+    as fj.sdfs does (one compiled decision for every such budget) and decides exactly."""
+    p = fj.Problem(dyn, CONTROLS, COST, 4)
+    x = jnp.array([1.0, -0.5])
+    huge = fj.FIRHC(p, solver, max_nodes=2**31)
+    assert huge.solver_options["max_nodes"] == 2**31 - 1
+    assert fj.FIRHC(p, solver, max_nodes=2**40).options.key == huge.options.key
+    u, info = huge(x)
+    ref = fj.sdfs(p, x, max_nodes=2**31)
+    assert bool(info.complete) and float(info.result.cost) == float(ref.cost) == float(fj.exhaustive(p, x).cost)
+    run = huge.simulate(x, 3)
+    assert np.asarray(run.complete).all()

@@ -15,6 +15,7 @@ from ..problem.callables import check_state, params_spec, shape_of
 from ..problem.problem import Problem, input_dtype
 from ..runtime.memory_cache import cached
 from ..search import solvers
+from ..search.sdfs import node_budget
 from .decision import decide, solve
 
 _DEFAULT_PLANT_HINT = ("; the default plant is the model's dynamics, which with observe set runs on model states: "
@@ -27,6 +28,8 @@ def controller_options(problem, solver, fallback, warm_start, observe, actuate, 
         raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
     table = solvers.get(solver)
     options = solvers.check_options(solver, solver_options)
+    if options.get("max_nodes") is not None:  # what the int32 node counter can count, as fj.sdfs clamps it
+        options["max_nodes"] = int(node_budget(options["max_nodes"]))
     if isinstance(fallback, Problem):
         if (fallback.horizon, fallback.num_controls) != (problem.horizon, problem.num_controls):
             raise ValueError(f"a fallback Problem needs the problem's horizon and inputs (N={problem.horizon}, "
