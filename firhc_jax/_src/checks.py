@@ -155,9 +155,12 @@ def as_batch(X0, name: str = "X0"):
         X = X0
     else:
         try:
-            X = jnp.asarray(strong(X0))
+            a = strong(X0)
         except (TypeError, ValueError) as e:
             raise TypeError(f"{name} must be a numeric array [B, n]: {e}") from None
+        if a.dtype.kind not in "biufc":
+            raise TypeError(f"{name} must be a numeric array [B, n] of floating states, got dtype {a.dtype}")
+        X = jnp.asarray(a)
     if X.ndim != 2:
         raise ValueError(f"{name} must be a 2-D batch of states [B, n], got shape {tuple(X.shape)}; "
                          "for one state use fj.sdfs")

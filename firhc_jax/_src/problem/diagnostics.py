@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..checks import as_state, check_params, positive_int
+from ..checks import as_batch, check_params, positive_int
 from ..runtime.memory_cache import cached
 from ..search.exhaustive import exhaustive
 from .callables import check_state
@@ -42,7 +42,7 @@ def check_problem(problem: Problem, states, params=None, per_state: bool | None 
     are NaN costs (the searches discard those nodes).
 
     ``params``: as in ``check_lower_bound``."""
-    X = _states(states)
+    X = as_batch(states, "states")
     params, p_axis = _params_form(problem, X, params, per_state)
     controls = jnp.asarray(problem.controls)
     ks = jnp.arange(problem.horizon if problem.step_index else 1, dtype=jnp.int32)
@@ -82,7 +82,7 @@ def check_lower_bound(problem: Problem, states, params=None, max_steps: int | No
     ``ValueError`` says they do)."""
     if problem.lower_bound is None:
         raise ValueError("problem has no lower_bound to check")
-    X = _states(states)
+    X = as_batch(states, "states")
     params, p_axis = _params_form(problem, X, params, per_state)
     max_steps = problem.horizon if max_steps is None else positive_int("max_steps", max_steps)
     steps = jnp.arange(1, max_steps + 1, dtype=jnp.int32)
@@ -155,13 +155,3 @@ def _params_form(problem: Problem, X, params, per_state):
         raise errors[per_state]
     raise type(errors[True])(f"params fit the callables neither as one pytree for every state ({errors[False]}) "
                              f"nor as one row per state with leading axis S = {S} ({errors[True]})")
-
-
-def _states(states) -> jax.Array:
-    X = jnp.asarray(states)
-    if X.ndim != 2 or X.shape[0] == 0:
-        raise ValueError(f"states must be a non-empty batch of states [S, n], got shape {tuple(X.shape)}")
-    X_np = np.asarray(X)  # row checks on a host copy (an eager slice of a device array costs a dispatch)
-    for i in range(X.shape[0]):
-        as_state(X_np[i], f"states[{i}]")
-    return X
