@@ -41,6 +41,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import inspect
+import warnings
 from typing import Any, Callable, Mapping, Optional
 
 import jax
@@ -59,6 +61,15 @@ from .runner import ready, run_compiled, run_loops, run_python, user_plant, warn
 
 class InfeasibleError(RuntimeError):
     """A one-shot decision (``FIRHC.__call__``) found no input to apply."""
+
+
+def code_of(fn):
+    """The code object behind a callable (a function, a bound method, a ``functools.partial``, a jitted or
+    wrapped function), or None."""
+    fn = inspect.unwrap(fn)
+    while isinstance(fn, functools.partial):
+        fn = inspect.unwrap(fn.func)
+    return getattr(getattr(fn, "__func__", fn), "__code__", None)
 
 
 def _hashable(value):
@@ -152,6 +163,7 @@ class FIRHC:
                  u_safe=None, **solver_options):
         self.options = Options(**controller_options(problem, solver, fallback, warm_start, observe, actuate,
                                                     u_safe, solver_options))
+        self._last_plant = None  # the plant of the last compiled closed loop (_note_plant)
 
     problem = property(lambda self: self.options.problem)
     solver = property(lambda self: self.options.solver)
@@ -280,8 +292,10 @@ class FIRHC:
         state = self.init(x0, u0)
         sample_times(dt, steps)
         plant, plant_key, default = self._plant(plant)
-        check_closed_loop(self.options, plant_key if compiled else False, plant if compiled else None, state.u, x0,
-                          params, default, drop=1)
+        fresh = check_closed_loop(self.options, plant_key if compiled else False, plant if compiled else None,
+                                  state.u, x0, params, default, drop=1)
+        if compiled:
+            self._note_plant(plant, default, fresh)
         return self._run(state, x0, steps, plant, plant_key, params, progress, None if compiled else self._decide(),
                          dt)
 
@@ -330,7 +344,8 @@ class FIRHC:
         state = ControllerState(u=u0, plan=np.full((B, self.problem.horizon), -1, np.int32))
         times = sample_times(dt, steps)
         plant, plant_key, default = self._plant(plant)
-        check_closed_loop(self.options, plant_key, plant, state.u[0], X0[0], params, default, drop=2)
+        self._note_plant(plant, default, check_closed_loop(self.options, plant_key, plant, state.u[0], X0[0], params,
+                                                           default, drop=2))
         with Progress(B * steps, f"FIRHC[{self.solver}] x {B} loops", enabled=progress):
             out = run_loops(functools.partial(decide_rows, self.options), jax.vmap(user_plant(plant)), state, X0,
                             params, steps, key=("batch", self.options.key, plant_key), progress=progress)
@@ -341,6 +356,19 @@ class FIRHC:
     def _input_form(self) -> tuple:
         """``(m, dtype)`` of the searched inputs (``u0``, ``u_safe``)."""
         return self.problem.input_dim, input_dtype(self.problem)
+
+    def _note_plant(self, plant, default: bool, compiling: bool) -> None:
+        """A compiled closed loop's ``plant`` (``compiling``: the loop compiles for it): a one-line warning when
+        it compiles for a new object with the code of the last plant (a plant defined anew for each call
+        compiles the whole loop each time)."""
+        last, self._last_plant = self._last_plant, None if default else plant
+        code = None if default or not compiling or last is None or last is plant else code_of(plant)
+        if code is None or code != code_of(last):
+            return
+        warnings.warn(f"FIRHC compiles its closed loop again for a new plant object with the code of the last one "
+                      f"({code.co_name} at {code.co_filename}:{code.co_firstlineno}): the plant is part of the "
+                      "compiled loop, keyed by the object; define it once and pass that same object to every call "
+                      "(values that change belong in params)", UserWarning, stacklevel=3)
 
     def _plant(self, plant):
         """``(plant, its cache key, whether it is the default)``: the default plant (the model's dynamics)

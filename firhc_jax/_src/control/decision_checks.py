@@ -132,13 +132,20 @@ def no_input_message(opts, info) -> str:
     return msg
 
 
-def check_closed_loop(opts, plant_key, plant, u, x0, params, default: bool, drop: int) -> None:
-    """The closed loop's checks, once per signature (``drop``: the leading axes of ``params``)."""
+def check_closed_loop(opts, plant_key, plant, u, x0, params, default: bool, drop: int) -> bool:
+    """The closed loop's checks, once per signature and plant (``drop``: the leading axes of ``params``);
+    whether they ran (a signature or plant not seen before: the loop compiles next)."""
     pkey, pspec = params_spec(params, drop_leading=drop)
     spec = lambda a: jax.ShapeDtypeStruct(np.shape(a), a.dtype)  # noqa: E731
     plan = jax.ShapeDtypeStruct((opts.problem.horizon,), np.int32)
-    cached(("closed-loop check", opts.key, plant_key, spec(x0), spec(u), pkey),
-           lambda: check_loop(opts, plant, spec(u), plan, spec(x0), pspec, default))
+    ran = []
+
+    def check():
+        check_loop(opts, plant, spec(u), plan, spec(x0), pspec, default)
+        ran.append(True)
+
+    cached(("closed-loop check", opts.key, plant_key, spec(x0), spec(u), pkey), check)
+    return bool(ran)
 
 
 def decide_checked(opts, state, x, p):
