@@ -28,6 +28,7 @@ from jax.experimental import multihost_utils
 
 from ..checks import is_tracer
 from ..problem.problem import call
+from ..runtime.collector import collector_paused
 from ..runtime.memory_cache import cached
 from ..runtime.progress import due, interval, tick_python
 from ..runtime.sharding import default_parts, join_rows, mesh_of, on_stream, same_on_every_process, split_rows
@@ -134,25 +135,27 @@ def _scan(decide, plant, carry, params, start, length):
 
 
 def run_python(decide: Callable, plant: Callable, state, x0, params, steps: int, *, progress: bool) -> ClosedLoop:
-    """``steps`` steps of the compiled ``decide`` from Python, each decision timed (``solve_times``);
-    ``plant`` is called as it is (jit it, or each of its operations is one eager dispatch a step)."""
+    """``steps`` steps of the compiled ``decide`` from Python, each decision timed (``solve_times``), with
+    Python's cyclic garbage collector paused; ``plant`` is called as it is (jit it, or each of its operations is
+    one eager dispatch a step)."""
     x = x0
     host = None if params is None else jax.tree.map(np.asarray, params)  # rows as views: no dispatch each
     rows = [None if host is None else jax.tree.map(lambda a, k=k: a[k, ...], host) for k in range(steps)]
     decide(state, x, rows[0])  # compiles the decision for these shapes, so that solve_times never count it
     records, times = [], []
-    for k in range(steps):
-        t0 = time.perf_counter()
-        u, state, info = jax.block_until_ready(decide(state, x, rows[k]))
-        times.append(time.perf_counter() - t0)
-        x_next = plant(x, u, rows[k])
-        if not hasattr(x_next, "shape") or tuple(np.shape(x_next)) != x.shape:
-            raise TypeError(f"plant(x, u[, p]) must return the next plant state of shape {tuple(x.shape)} "
-                            f"like x0, got {type(x_next).__name__} of shape {np.shape(x_next)} at step {k}")
-        x = x_next if ready(x_next) and x_next.dtype == x.dtype else np.asarray(x_next, x.dtype)
-        records.append((x, u, _kept(info)))  # each field is read back to the host once
-        if progress and due(k, steps):
-            tick_python(k)
+    with collector_paused():  # as a real-time loop runs: no collection inside a decision
+        for k in range(steps):
+            t0 = time.perf_counter()
+            u, state, info = jax.block_until_ready(decide(state, x, rows[k]))
+            times.append(time.perf_counter() - t0)
+            x_next = plant(x, u, rows[k])
+            if not hasattr(x_next, "shape") or tuple(np.shape(x_next)) != x.shape:
+                raise TypeError(f"plant(x, u[, p]) must return the next plant state of shape {tuple(x.shape)} "
+                                f"like x0, got {type(x_next).__name__} of shape {np.shape(x_next)} at step {k}")
+            x = x_next if ready(x_next) and x_next.dtype == x.dtype else np.asarray(x_next, x.dtype)
+            records.append((x, u, _kept(info)))  # each field is read back to the host once
+            if progress and due(k, steps):
+                tick_python(k)
     # Stacked on the host, one device array per field: an eager jnp.stack of T arrays compiles a
     # T-operand concatenation per field on a run's first call.
     stacked = jax.tree.map(lambda *a: jnp.asarray(np.stack(a)), *records)
