@@ -51,7 +51,6 @@ import numpy as np
 from ..checks import as_batch, as_inputs, as_sequence, as_state, check_params, is_tracer, positive_int, sample_times
 from ..problem.problem import Problem, input_dtype
 from ..runtime.memory_cache import cached
-from ..runtime.progress import Progress
 from ..search.result import SearchResult, raise_on_errors
 from .closed_loop import ClosedLoop
 from .decision import ControllerState, decide, decide_rows
@@ -262,7 +261,7 @@ class FIRHC:
 
     # -- closed loops ------------------------------------------------------------
     def simulate(self, x0, steps: int, plant: Optional[Callable] = None, *, params=None, u0=None, dt=None,
-                 progress: bool = False, compiled: bool = True) -> ClosedLoop:
+                 progress: Optional[bool] = None, compiled: bool = True) -> ClosedLoop:
         """Run the closed loop for ``steps`` steps from plant state ``x0``: ``step`` then ``plant``.
 
         Args:
@@ -273,9 +272,14 @@ class FIRHC:
             the first decision finds none); default zeros.
           dt: the sampling period in seconds: the run gets ``times`` ``[T+1]``
             (``k * dt``) and plots against time.
-          progress: a progress bar (at most ``progress.TICKS`` updates; a
-            compiled run is then one compiled chunk of steps dispatched
-            again and again, with the same results to the last bit).
+          progress: a progress bar with an estimate, on stderr or in the
+            notebook. ``None`` (default): once the run has taken 2 s.
+            ``True``: at once; ``False``: never. A compiled run reports its
+            steps when it runs as chunks of steps dispatched again and again
+            (the same results to the last bit): with ``True``, and by default
+            when the last run of this loop says this one takes 2 s or more;
+            otherwise it is one compiled program, whose bar shows the time
+            elapsed (docs/guide/realtime.md).
           compiled: ``True``: one ``lax.scan`` (everything traceable);
             ``False``: a Python loop over the compiled ``step``, for a plant
             that cannot be traced, and with each decision timed in
@@ -299,21 +303,22 @@ class FIRHC:
         return self._run(state, x0, steps, plant, plant_key, params, progress, None if compiled else self._decide(),
                          dt)
 
-    def _run(self, state, x0, steps: int, plant, plant_key, params, progress: bool, decision, dt) -> ClosedLoop:
+    def _run(self, state, x0, steps: int, plant, plant_key, params, progress: Optional[bool], decision, dt
+             ) -> ClosedLoop:
         """A checked closed loop (``simulate``'s), under its progress bar and followed by the held-input warning:
         one compiled scan where ``decision`` is None, else a Python loop of ``decision``, a compiled decision of
         this controller (``step``'s contract); ``dt`` (checked) gives its time axis."""
-        with Progress(steps, f"FIRHC[{self.solver}]", enabled=progress):
-            if decision is None:
-                out, = run_compiled(functools.partial(decide, self.options), user_plant(plant), [(state, x0, params)],
-                                    steps, key=(self.options.key, plant_key), progress=progress)
-            else:
-                out = run_python(decision, user_plant(plant), state, x0, params, steps, progress=progress)
+        label = f"FIRHC[{self.solver}]"
+        if decision is None:
+            out, = run_compiled(functools.partial(decide, self.options), user_plant(plant), [(state, x0, params)],
+                                steps, key=(self.options.key, plant_key), progress=progress, label=label)
+        else:
+            out = run_python(decision, user_plant(plant), state, x0, params, steps, progress=progress, label=label)
         warn_held(out.held, steps, self.u_safe is not None)
         return out._replace(times=sample_times(dt, steps))
 
     def simulate_batch(self, X0, steps: int, plant: Optional[Callable] = None, *, params=None, u0=None, dt=None,
-                       progress: bool = False) -> ClosedLoop:
+                       progress: Optional[bool] = None) -> ClosedLoop:
         """Run B closed loops at once, loop b from plant state ``X0[b]``: one compiled run.
 
         Loop b makes the decisions of ``simulate(X0[b], steps, plant, params=params[b], u0=u0[b])``: at
@@ -332,7 +337,8 @@ class FIRHC:
           params: optional pytree whose leaves are ``[B, steps, ...]``: loop b, step k uses ``params[b, k]``.
           u0: ``[m]`` (every loop) or ``[B, m]``: the input applied before step 0; default zeros.
           dt: the sampling period in seconds (``times`` ``[T+1]``).
-          progress: a bar counting loops x steps (compiled chunks of steps, as in ``simulate``).
+          progress: a bar counting loops x steps (compiled chunks of steps; ``None``, ``True``, ``False`` as in
+            ``simulate``).
 
         Returns a ``ClosedLoop`` with a leading axis B on every field but ``times``; ``solve_times`` NaN.
         """
@@ -346,9 +352,9 @@ class FIRHC:
         plant, plant_key, default = self._plant(plant)
         self._note_plant(plant, default, check_closed_loop(self.options, plant_key, plant, state.u[0], X0[0], params,
                                                            default, drop=2))
-        with Progress(B * steps, f"FIRHC[{self.solver}] x {B} loops", enabled=progress):
-            out = run_loops(functools.partial(decide_rows, self.options), jax.vmap(user_plant(plant)), state, X0,
-                            params, steps, key=("batch", self.options.key, plant_key), progress=progress)
+        out = run_loops(functools.partial(decide_rows, self.options), jax.vmap(user_plant(plant)), state, X0, params,
+                        steps, key=("batch", self.options.key, plant_key), progress=progress,
+                        label=f"FIRHC[{self.solver}] x {B} loops")
         warn_held(out.held, steps * B, self.u_safe is not None)
         return out._replace(times=times)
 

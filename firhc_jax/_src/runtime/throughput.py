@@ -13,13 +13,11 @@ searches are jitted once per problem and setting, in the package's cache
 from __future__ import annotations
 
 import statistics
-import sys
 import time
 from typing import Callable
 
 import jax
 import numpy as np
-from tqdm.auto import tqdm
 
 from ..checks import positive_int
 from ..problem.callables import search_inputs
@@ -28,6 +26,7 @@ from ..search import solvers
 from ..search.batch import solve_batch
 from ..search.sdfs import INT32_MAX
 from .memory_cache import cached
+from .progress import Progress
 
 POP_WIDTHS = (1, 2, 4, 8)
 LANES = (16, 64, 256)
@@ -83,7 +82,7 @@ def _row(solver: str, setting: str, seconds: float, first: float, results, solve
 
 
 def profile(problem: Problem, states, params=None, *, pop_widths=POP_WIDTHS, lanes=LANES, repeats: int = 3,
-            max_exhaustive_nodes: int = MAX_EXHAUSTIVE_NODES, progress: bool = False) -> list[dict]:
+            max_exhaustive_nodes: int = MAX_EXHAUSTIVE_NODES, progress: bool | None = None) -> list[dict]:
     """Time every search setting on ``states`` and mark the fastest.
 
     Args:
@@ -97,7 +96,10 @@ def profile(problem: Problem, states, params=None, *, pop_widths=POP_WIDTHS, lan
       repeats: timed calls after the compiling one; their median is used.
       max_exhaustive_nodes: ``fj.exhaustive`` is timed on evenly spaced states
         visiting at most this many nodes in all (none if one tree is larger).
-      progress: a bar on stderr naming the setting being compiled and timed.
+      progress: a bar counting the settings timed, with an estimate, on
+        stderr or in the notebook, naming the setting being compiled and
+        timed: ``None`` (default) once the call has taken 2 s, ``True`` at
+        once, ``False`` never.
 
     Returns one dict per setting, in the order above: ``solver`` (``"sdfs"``,
     ``"exhaustive"`` or ``"solve_batch"``), ``setting`` (e.g.
@@ -130,15 +132,15 @@ def profile(problem: Problem, states, params=None, *, pop_widths=POP_WIDTHS, lan
         settings.append(("exhaustive", "exhaustive", len(some), _each(_search(problem, "exhaustive", X), some), {}))
     for slots in lanes:
         settings.append((f"solve_batch lanes={slots}", "solve_batch", S,
-                         lambda slots=slots: [solve_batch(problem, X, params=params, lanes=slots)], {"lanes": slots}))
+                         lambda slots=slots: [solve_batch(problem, X, params=params, lanes=slots, progress=False)],
+                         {"lanes": slots}))
     rows = []
-    with tqdm(total=len(settings), desc="profile", unit="setting", disable=not progress, file=sys.stderr,
-              dynamic_ncols=True) as bar:
+    with Progress(len(settings), "profile", enabled=progress) as bar:
         for setting, solver, solves, run, options in settings:
-            bar.set_description(f"profile: {setting} (compiling, then {repeats} timed runs)")
+            bar.describe(f"profile: {setting} (compiling, then {repeats} timed runs)")
             t, first, res = _timed(run, repeats)
             rows.append(_row(solver, setting, t, first, res, solves, **options))
-            bar.update(1)
-        bar.set_description("profile")
+            bar.update(len(rows))
+        bar.describe("profile")
     max(rows, key=lambda r: r["solves_per_second"])["fastest"] = True
     return rows
