@@ -24,6 +24,7 @@ def test_a_short_call_draws_nothing(capsys):
 
 def test_long_calls_draw_a_bar_by_default(capsys, monkeypatch):
     monkeypatch.setattr(progress, "AFTER_S", 0.0)
+    monkeypatch.setattr(progress._Watcher, "POLL_S", 0.01)  # the watcher looks at once
     ctrl = fj.FIRHC(_problem(4), fallback="unconstrained")  # a controller of its own: no run of it timed yet
     x0 = np.array([1.5])
     whole = ctrl.simulate(x0, 30, progress=False)

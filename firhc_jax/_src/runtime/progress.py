@@ -80,6 +80,7 @@ class Progress:
         self.stream = stream or sys.stderr
         self._bar, self._started, self._since, self._done = None, False, 0.0, 0
         self._waiting = " (compiling)"  # said until the first step is done
+        self._closed = False  # the call is over: the watcher draws nothing more
         self._lock = threading.Lock()
 
     def update(self, done: int):
@@ -93,6 +94,8 @@ class Progress:
         """Draw the bar now, at the steps reported so far (an automatic bar: its first report after ``AFTER_S``
         seconds, or the watcher then)."""
         with self._lock:
+            if self._closed:
+                return
             if self._bar is None and self.counted:
                 self._bar = tqdm(total=self.total, desc=self.label + self._waiting, file=self.stream,
                                  mininterval=0.1, dynamic_ncols=True)
@@ -117,7 +120,7 @@ class Progress:
                 self._bar.set_description(label)
 
     def tick(self):
-        """Redraw the elapsed time (the watcher, every half second, while the call runs)."""
+        """Redraw the elapsed time (the watcher, while the call runs)."""
         with self._lock:
             if self._bar is not None:
                 self._bar.refresh()
@@ -135,40 +138,54 @@ class Progress:
         _active.remove(self)
         if self.enabled is None:  # the enclosing automatic bar, if any, is watched again
             _WATCHER.watch(next((b for b in reversed(_active) if b.enabled is None), None))
-        if self._bar is not None:
-            if exc[0] is None and self.counted:
-                self.update(self.total)
-            self._bar.close()
+        if self._bar is not None and exc[0] is None and self.counted:
+            self.update(self.total)
+        with self._lock:
+            self._closed = True
+            if self._bar is not None:
+                self._bar.close()
 
 
 class _Watcher:
     """One daemon thread that draws an automatic bar whose call has run ``AFTER_S`` seconds, and redraws its
-    elapsed time; started by the first automatic call, idle (waiting on a condition) between calls."""
+    elapsed time. It looks every ``POLL_S`` seconds while calls come, so that a call only sets ``bar`` (no
+    thread is woken: a short call costs a microsecond more), and sleeps until the next call after
+    ``IDLE_S`` seconds without one (so that it never wakes inside a user's real-time loop)."""
+
+    POLL_S, IDLE_S = 0.25, 5.0
 
     def __init__(self):
         self._cond = threading.Condition()
-        self._bar: Optional[Progress] = None
-        self._thread: Optional[threading.Thread] = None
+        self.bar: Optional[Progress] = None  # the call being watched
+        self._asleep, self._thread = True, None
+        self._last = 0.0  # when a call was last watched
 
     def watch(self, bar: Optional[Progress]) -> None:
         """Watch ``bar`` (None: the call is over)."""
-        with self._cond:
-            self._bar = bar
-            if self._thread is None:
-                self._thread = threading.Thread(target=self._run, name="firhc_jax progress", daemon=True)
-                self._thread.start()
-            self._cond.notify()
+        self.bar, self._last = bar, time.monotonic()
+        if bar is not None and self._asleep:
+            with self._cond:
+                self._asleep = False
+                if self._thread is None:
+                    self._thread = threading.Thread(target=self._run, name="firhc_jax progress", daemon=True)
+                    self._thread.start()
+                self._cond.notify()
 
     def _run(self) -> None:
-        with self._cond:
-            while True:
-                self._cond.wait_for(lambda: self._bar is not None)
-                bar = self._bar
-                over = lambda bar=bar: self._bar is not bar  # noqa: E731  the call is over (or another began)
-                if self._cond.wait_for(over, timeout=bar._since + AFTER_S - time.monotonic()):
-                    continue
-                bar.show()
-                while not self._cond.wait_for(over, timeout=0.5):
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: not self._asleep)
+            time.sleep(self.POLL_S)
+            bar, now = self.bar, time.monotonic()
+            if bar is None:
+                if now - self._last > self.IDLE_S:
+                    with self._cond:
+                        self._asleep = self.bar is None
+                continue
+            if now - bar._since >= AFTER_S:
+                if bar._bar is None:
+                    bar.show()
+                else:
                     bar.tick()
 
 
