@@ -81,6 +81,8 @@ class Progress:
         self._bar, self._started, self._since, self._done = None, False, 0.0, 0
         self._waiting = " (compiling)"  # said until the first step is done
         self._closed = False  # the call is over: the watcher draws nothing more
+        self._drawn = 0.0  # seconds into the call at the watcher's last redraw
+        self._tty = getattr(self.stream, "isatty", lambda: False)()
         self._lock = threading.Lock()
 
     def update(self, done: int):
@@ -120,10 +122,14 @@ class Progress:
                 self._bar.set_description(label)
 
     def tick(self):
-        """Redraw the elapsed time (the watcher, while the call runs)."""
+        """Redraw the elapsed time (the watcher, while the call runs): every second in a terminal, every 10 %
+        of the time elapsed in a log (a file or a pipe keeps each redraw)."""
         with self._lock:
-            if self._bar is not None:
-                self._bar.refresh()
+            elapsed = time.monotonic() - self._since
+            if self._bar is None or elapsed < self._drawn + max(1.0, 0.0 if self._tty else 0.1 * elapsed):
+                return
+            self._drawn = elapsed
+            self._bar.refresh()
 
     def __enter__(self):
         _active.append(self)
