@@ -7,7 +7,7 @@ times after one warm-up call of each (compiled before timing). The long call (``
 inverter at N = 6, a few seconds) runs in chunks under the automatic bar once its first run was timed long, and
 is compared with the one-program run; its bar goes to a discarded stream.
 
-    python benchmarks/progress_bench.py [--rounds 41] [--long-steps 20000] [--long-rounds 3] [--skip-long]
+    python benchmarks/progress_bench.py [--rounds 41] [--long-steps 40000] [--long-rounds 3] [--skip-long]
 """
 from __future__ import annotations
 
@@ -80,7 +80,7 @@ def compare(fn, rounds: int) -> tuple[float, float]:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rounds", type=int, default=41)
-    ap.add_argument("--long-steps", type=int, default=20_000)
+    ap.add_argument("--long-steps", type=int, default=40_000)
     ap.add_argument("--long-rounds", type=int, default=3)
     ap.add_argument("--skip-long", action="store_true")
     args = ap.parse_args()

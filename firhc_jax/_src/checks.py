@@ -50,11 +50,12 @@ def lost_in_cast(name: str, given, cast) -> str | None:
     """Why ``cast`` (``given`` as ``strong`` made it) is not what the user gave, or None: NaN or inf, or
     values beyond the range of the narrower dtype JAX casts them to with x64 off (searched as inf, or
     wrapped around)."""
-    a, g = np.asarray(cast), np.asarray(given)
+    a = np.asarray(cast)
+    if a.dtype.kind == "f" and np.isfinite(a).all():
+        return None
+    g = np.asarray(given)
     if a.dtype.kind == "f":
-        if np.all(np.isfinite(a)):
-            return None
-        if g.dtype.kind != "f" or not np.all(np.isfinite(g)):
+        if g.dtype.kind != "f" or not np.isfinite(g).all():
             return f"{name} contains NaN or inf"
         big, limit = float(np.max(np.abs(g))), float(np.finfo(a.dtype).max)
     elif a.dtype.kind in "iu" and g.dtype != a.dtype and not np.array_equal(g, a):
