@@ -141,8 +141,7 @@ def test_load_blames_inputs_of_four_axes_on_inputs(saved, tmp_path):
 def test_string_states_are_refused_naming_states(call):
     prob = fj.Problem(lambda x, u: 0.9 * x + u, CONTROLS, fj.quadratic_cost(1.0, 0.0), 2)
     fn = fj.profile if call == "profile" else fj.diagnostics.check_problem
-    with pytest.raises(TypeError, match=r"^states must be a numeric array \[B, n\] of floating states, got dtype "
-                                        r"<U1$"):
+    with pytest.raises(TypeError, match=r"^states must be a real numeric batch of states \[B, n\], got dtype <U1$"):
         fn(prob, np.array([["a"], ["b"]]))
 
 
