@@ -7,7 +7,7 @@ times after one warm-up call of each (compiled before timing). The long call (``
 inverter at N = 6, a few seconds) runs in chunks under the automatic bar once its first run was timed long, and
 is compared with the one-program run; its bar goes to a discarded stream.
 
-    python benchmarks/progress_bench.py [--rounds 41] [--long-steps 40000] [--long-rounds 3] [--skip-long]
+    python benchmarks/progress_bench.py [--rounds 61] [--long-steps 40000] [--long-rounds 3] [--skip-long] [--publish]
 """
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _results import published
 
 import firhc_jax as fj
 from firhc_jax.models import inverter
@@ -79,12 +80,19 @@ def compare(fn, rounds: int) -> tuple[float, float]:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rounds", type=int, default=41)
+    ap.add_argument("--rounds", type=int, default=61)
     ap.add_argument("--long-steps", type=int, default=40_000)
     ap.add_argument("--long-rounds", type=int, default=3)
     ap.add_argument("--skip-long", action="store_true")
+    ap.add_argument("--publish", action="store_true", help="also write the tables to benchmarks/results/progress.md")
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
+    with published("progress", args.publish, "python benchmarks/progress_bench.py --publish"):
+        tables(args)
+
+
+def tables(args):
+    """Both tables, printed."""
     print(f"# {platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}, float64, load "
           f"{os.getloadavg()[0]:.1f}\n")
     print(f"## Short calls: `progress=False` against the default `progress=None` ({args.rounds} rounds)\n")

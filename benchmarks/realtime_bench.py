@@ -22,7 +22,7 @@ threads, so XLA's threads share that core with Python. ``loaded``: this script f
 per core (pure Python loops) and stops them after. The machine's own load (other users) is printed with
 each row: "quiet" only means no load of this script's.
 
-    python benchmarks/realtime_bench.py [--horizon 1] [--steps 2000] [--rounds 3] [--repeats 2]
+    python benchmarks/realtime_bench.py [--horizon 1] [--steps 2000] [--rounds 3] [--repeats 2] [--publish]
 """
 from __future__ import annotations
 
@@ -141,12 +141,21 @@ def main():
     ap.add_argument("--steps", type=int, default=2000, help="decisions per way and round")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=2, help="fresh processes per setting")
+    ap.add_argument("--publish", action="store_true", help="also write the table to benchmarks/results/realtime.md")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--pin", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
         print(json.dumps(worker(args.horizon, args.steps, args.rounds, args.pin)))
         return
+    from _results import published  # here: a worker pins itself before anything imports JAX
+
+    with published("realtime", args.publish, "python benchmarks/realtime_bench.py --publish"):
+        table(args)
+
+
+def table(args):
+    """Every setting's row, printed."""
     import jax
 
     print(f"# {platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}, float64; inverter N = "
