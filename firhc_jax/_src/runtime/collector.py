@@ -1,7 +1,7 @@
 """Python's cyclic garbage collector kept out of a real-time loop.
 
 A collection of the oldest generation walks every object the process holds
-(about 125,000 once JAX and a controller are loaded): 0.1-0.2 s, inside
+(about 128,000 once JAX and a controller are loaded): 0.07-0.4 s, inside
 whichever decision allocated the object that set it off. A decision
 (``FIRHC.step``) leaves no reference cycles, so its objects are freed as
 they go whether the collector runs or not: pausing it for a loop of decisions
