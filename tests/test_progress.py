@@ -15,10 +15,11 @@ def _problem(N=3):
 
 
 def test_a_short_call_draws_nothing(capsys):
-    ctrl = fj.FIRHC(_problem())
+    problem = _problem()
+    ctrl = fj.FIRHC(problem)
     for default in (False, True):  # compiled first (a first call that compiles for 2 s draws the time elapsed)
         ctrl.simulate(np.array([1.0]), 5, **({} if default else {"progress": False}))
-        fj.solve_batch(_problem(), np.ones((3, 1)), **({} if default else {"progress": False}))
+        fj.solve_batch(problem, np.ones((3, 1)), **({} if default else {"progress": False}))
     assert capsys.readouterr().err == ""
 
 
