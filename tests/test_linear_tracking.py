@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from reference import same_cost
 
@@ -125,6 +125,26 @@ def test_the_problem_searches_the_classes_and_applies_an_optimal_first_input(cas
     assert same_cost(float(classes.cost), best) and bool(classes.feasible) == np.isfinite(best)
     if bool(classes.feasible):
         assert same_cost(best_starting_with(case, classes.first_input), best)
+
+
+@settings(SETTINGS, max_examples=4)  # lt.problem holds its model as constants: each example compiles its search
+@given(cases, st.integers(0, 2**32 - 1), st.sampled_from([None, 40, 400]))
+@example(Case("common", True, 0), 1, None)
+def test_solve_and_the_problem_expand_the_same_nodes(case, seed, max_nodes):
+    """lt.solve (shared_problem, the model in the params) and fj.sdfs on lt.problem (the model as constants)
+    are one search: the same nodes, iterations and result on the same decision, with or without a warm start
+    and a budget (lt.solve without max_nodes ran a budgeted search, whose seeding cost nodes)."""
+    lt = case.tracker()
+    rng = np.random.default_rng(seed)
+    ws = rng.integers(0, len(case.controls), case.N) if rng.random() < 0.5 else NONE
+    solved = lt.solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=ws, max_nodes=max_nodes)
+    classes = np.where(ws >= 0, lt.class_of[np.maximum(ws, 0)], -1)
+    searched = fj.sdfs(lt.problem, lt.observe(case.x, case.u_prev), params=lt.params(case.y_ref, case.d),
+                       warm_start=classes, max_nodes=max_nodes)
+    for field in ("nodes", "iterations", "cost", "feasible", "complete"):
+        assert np.asarray(getattr(solved, field)) == np.asarray(getattr(searched, field)), field
+    np.testing.assert_array_equal(lt.class_of[np.asarray(solved.sequence)][np.asarray(solved.sequence) >= 0],
+                                  np.asarray(searched.sequence)[np.asarray(searched.sequence) >= 0])
 
 
 def _plain_dynamics(z, u, k, p):

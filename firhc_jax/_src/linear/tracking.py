@@ -340,8 +340,10 @@ class LinearTracking:
         # One compiled call (observe, params, search, members), shared by trackers of equal shapes: the model
         # travels as an argument, so a new A, B, Q or lambda_u of the same shapes reuses it.
         run = compiled(_solve, self.shared_problem, observe=self.observe)
+        # No budget is no budget (None): fj.sdfs seeds a budgeted search first, which costs nodes
+        budget = None if max_nodes is None else node_budget(max_nodes)
         return raise_on_errors(run(*self._on_device(x.dtype), self._controls, self._class_of, x, u_prev, y_ref, d,
-                                   warm_start, node_budget(max_nodes)))
+                                   warm_start, budget))
 
 
 def _solve(problem, model, maps, controls, class_of, x, u_prev, y_ref, d, warm_start, budget, *, observe):
