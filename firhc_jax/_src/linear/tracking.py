@@ -6,7 +6,8 @@ every u(k) a row of ``controls``, and
 
     J(U) = sum_{k=0}^{N-1} ||y_ref[k] - C x(k+1)||_Q^2 + lambda_u ||u(k) - u(k-1)||^2,   u(-1) = u_prev,
 
-optionally with |u_i(k) - u_i(k-1)| <= max_step for every component and step.
+or with the switching term lambda_u ||u(k) - u(k-1)||_1 (``norm="abs"``: for unit steps the count of switch
+changes, FCS-MPC's usual term), optionally with |u_i(k) - u_i(k-1)| <= max_step for every component and step.
 
 Why this is the sphere decoder (Geyer and Quevedo, IEEE TPEL 29(12), 2014).
 Stacking the horizon, J(U) = ||F U - g||^2 with F static (A, B, C, Q,
@@ -81,6 +82,8 @@ from ..search.result import SearchResult, raise_on_errors
 from ..search.sdfs import DEFAULT_MAX_MEMORY, node_budget, sdfs
 from .factor import child_map, factor_memory, input_classes, psd_factor
 
+NORMS = ("squared", "abs")  # the switching term: lambda_u ||du||^2 or lambda_u ||du||_1
+
 # ---------------------------------------------------------------------------
 # Named structures. Shapes are one decision's: n states, m inputs, p outputs, N steps, C classes of at most R
 # inputs; params and a batch of nodes take leading axes (one per row, step or loop) in front.
@@ -118,13 +121,16 @@ class TrackingModel(NamedTuple):
     have models of equal shapes, whatever their values, Q and lambda_u."""
     M: jax.Array             # [N, 2n + p + m, n + m] step k's map of [x; u]: x(k+1), -sqrt(Q) C x(k+1), W's residual
     M_norm: jax.Array        # [N] Frobenius norm of M's rows of W's residual: a bound on their rounding
-    lambda_u: jax.Array      # [] the weight of ||u(k) - u(k-1)||^2
+    lambda_u: jax.Array      # [] the weight of the switching term
+    l1: jax.Array            # [] 1: the switching term is lambda_u ||u(k) - u(k-1)||_1; 0: lambda_u ||...||^2
     Tu: jax.Array            # [N, n + m, m] how W's residual moves with the child's input (the other members)
     Tu_norm: jax.Array       # [N] Frobenius norm of Tu
     err_s: jax.Array         # [N] the factorisation's error in sqrt(W_{k+1}) per unit of ||[x(k+1); u]||
     members: jax.Array       # [C, R, m] each class's inputs (padding repeats the first)
     member_index: jax.Array  # [C, R] their indices into controls, as numbers of the model's dtype
     member_ok: jax.Array     # [C, R] 1 for a member, 0 for padding
+    inputs: jax.Array        # [M, m] the controls in lexicographic order (``_class`` searches them)
+    input_class: jax.Array   # [M] the class of each, as numbers of the model's dtype
     max_step: Optional[jax.Array] = None  # [] the bound on |u_i(k) - u_i(k-1)|; None: no bound
 
 
@@ -172,7 +178,10 @@ class LinearTracking:
       horizon: N >= 1.
       C: ``[p, n]`` output matrix (default I).
       Q: ``[p, p]`` symmetric positive semidefinite output weight (default I).
-      lambda_u: weight (>= 0) of ||u(k) - u(k-1)||^2, the first step against u_prev.
+      lambda_u: weight (>= 0) of the switching term, the first step against u_prev.
+      norm: the switching term: ``"squared"`` (default), lambda_u ||u(k) - u(k-1)||^2, or ``"abs"``,
+        lambda_u ||u(k) - u(k-1)||_1 (for unit steps, the count of switch changes), as
+        ``fj.input_change_cost``'s ``norm``.
       max_step: optional bound (>= 0) on |u_i(k) - u_i(k-1)|, every component
         and step, the first against u_prev: a hard constraint.
       max_memory: bytes the factorisation may take (``factor_memory``, which
@@ -208,7 +217,7 @@ class LinearTracking:
     the dtype of the state given to it.
     """
 
-    def __init__(self, A, B, controls, horizon, *, C=None, Q=None, lambda_u=0.0, max_step=None,
+    def __init__(self, A, B, controls, horizon, *, C=None, Q=None, lambda_u=0.0, norm: str = "squared", max_step=None,
                  max_memory: int = DEFAULT_MAX_MEMORY):
         A = _matrix("A", A)
         n = A.shape[0]
@@ -227,6 +236,8 @@ class LinearTracking:
             raise ValueError(f"Q must be [p, p] = [{p}, {p}] like the rows of C, got shape {Q.shape}")
         N = positive_int("horizon", horizon)
         lambda_u = _scalar("lambda_u", lambda_u)
+        if norm not in NORMS:
+            raise ValueError(f"norm must be one of {NORMS}, got {norm!r}")
         max_step = None if max_step is None else _scalar("max_step", max_step)
         max_memory = positive_int("max_memory", max_memory)
         need = factor_memory(n, m, p, N)
@@ -235,7 +246,7 @@ class LinearTracking:
                              f"about {need:,} bytes, more than max_memory={max_memory:,} (it grows as N^3); "
                              "shorten the horizon or raise max_memory")
         self.A, self.B, self.C, self.Q = A, B, C, Q
-        self.lambda_u, self.max_step, self.horizon = lambda_u, max_step, N
+        self.lambda_u, self.norm, self.max_step, self.horizon = lambda_u, norm, max_step, N
         self.n, self.m, self.p = n, m, p
         controls = _check_controls(controls)
         if controls.shape[1] != m:
@@ -246,13 +257,17 @@ class LinearTracking:
         self._class_of = np.zeros(len(controls), np.int32)  # [M] the class of each input
         for j, row in enumerate(members):
             self._class_of[row[row >= 0]] = j
-        M, M_data, Ms, Tu, err_s, err_d = child_map(A, B, C, psd_factor("Q", Q), lambda_u, N)
+        M, M_data, Ms, Tu, err_s, err_d = child_map(A, B, C, psd_factor("Q", Q), _squared_weight(
+            lambda_u, norm, controls, max_step), N)
         filled = np.where(members >= 0, members, members[:, :1])  # padding repeats the first member
+        order = np.lexsort(controls.T[::-1])  # lexicographic: the first component first
         # float64, NumPy: the constants of problem's callables, and what params applies to the data
         self._model = TrackingModel(
-            M=M, M_norm=np.linalg.norm(M[:, n + p:], axis=(1, 2)), lambda_u=np.float64(lambda_u), Tu=Tu,
+            M=M, M_norm=np.linalg.norm(M[:, n + p:], axis=(1, 2)), lambda_u=np.float64(lambda_u),
+            l1=np.float64(norm == "abs"), Tu=Tu,
             Tu_norm=np.linalg.norm(Tu, axis=(1, 2)), err_s=err_s, members=controls.astype(float)[filled],
             member_index=filled.astype(float), member_ok=(members >= 0).astype(float),
+            inputs=controls.astype(float)[order], input_class=self._class_of[order].astype(float),
             max_step=None if max_step is None else np.float64(max_step))
         self._maps = _DataMaps(M_data, Ms, err_d)
         self._device = {}  # dtype -> the model and the data maps on the device
@@ -421,22 +436,54 @@ def _node(z, model: TrackingModel) -> Node:
 
 def _switch(u_from, o_from, u_to, ok_to, model: TrackingModel):
     """One min-plus step of the switching costs: for each member ``u_to`` ``[R', m]`` the cheapest
-    o_from[e] + lambda_u ||u_to - u_from[e]||^2 over the allowed predecessors e (``[R', R]``; +inf where there
+    o_from[e] + the switching from u_from[e] to u_to over the allowed predecessors e (``[R', R]``; +inf where there
     is none), and the argmin."""
     du = u_to[:, None, :] - u_from[None, :, :]
     allowed = ok_to[:, None] & (o_from[None, :] >= 0)
     if model.max_step is not None:
         allowed &= jnp.all(jnp.abs(du) <= model.max_step, axis=-1)
-    S = jnp.where(allowed, o_from[None, :] + model.lambda_u * jnp.sum(du * du, axis=-1), jnp.inf)
+    S = jnp.where(allowed, o_from[None, :] + _switching(du, model), jnp.inf)
     return jnp.min(S, axis=1), jnp.argmin(S, axis=1)
 
 
+def _switching(du, model: TrackingModel):
+    """The switching term of input changes ``du`` ``[..., m]``: lambda_u ||du||_1 or lambda_u ||du||^2."""
+    return model.lambda_u * jnp.where(model.l1 > 0, jnp.sum(jnp.abs(du), axis=-1), jnp.sum(du * du, axis=-1))
+
+
+def _squared_weight(lambda_u, norm, controls, max_step) -> float:
+    """The weight of ||du||^2 in the cost-to-go W. For ``norm="abs"``: lambda_u / D, where D bounds every
+    component's change between two controls (their range, capped by max_step): |du_i| <= D gives
+    |du_i| >= du_i^2 / D, so the squared term is below the L1 term on every input sequence, and W, the
+    continuous minimum of the squared problem, stays a lower bound (equal where every step is 0 or D: the
+    inverters' unit steps under max_step = 1)."""
+    if norm == "squared":
+        return lambda_u
+    D = float(np.max(np.ptp(controls, axis=0)))
+    if max_step is not None:
+        D = min(D, max_step)
+    return lambda_u / D if D > 0 else lambda_u  # D = 0: no input ever changes, any weight is a bound
+
+
 def _class(u, model: TrackingModel):
-    """``(class, found)``: the first class whose members include input ``u`` ``[m]``, and whether one does."""
-    hit = jnp.any(jnp.all(model.members == u.astype(model.members.dtype), axis=-1) & (model.member_ok > 0),
-                  axis=-1)
-    C = hit.shape[0]
-    return jnp.minimum(jnp.min(jnp.where(hit, jnp.arange(C), C)), C - 1), jnp.any(hit)
+    """``(class, found)``: the class of input ``u`` ``[m]``, and whether ``u`` is one of the controls.
+
+    A binary search over the controls in lexicographic order (``model.inputs``), unrolled: log2(M) steps of
+    one row each, where comparing ``u`` with every member of every class cost C R m comparisons a child (the
+    five-level inverter's 61 classes of 5: most of a node's time)."""
+    inputs = model.inputs
+    M = inputs.shape[0]
+    u = u.astype(inputs.dtype)
+    lo, hi = jnp.zeros((), jnp.int32), jnp.full((), M, jnp.int32)
+    for _ in range(M.bit_length()):  # the first row not below u: lo == hi after at most log2(M) + 1 halvings
+        mid = (lo + hi) // 2
+        row = inputs[jnp.minimum(mid, M - 1)]
+        differ = row != u
+        first = jnp.argmax(differ)
+        below = (lo < hi) & jnp.any(differ) & (row[first] < u[first])
+        lo, hi = jnp.where(below, mid + 1, lo), jnp.where(below | (lo == hi), hi, mid)
+    at = jnp.minimum(lo, M - 1)
+    return model.input_class[at].astype(jnp.int32), jnp.all(inputs[at] == u)
 
 
 def _dynamics(z, u, k, data: TrackingParams, model: TrackingModel):
@@ -528,7 +575,7 @@ def _first_input(z0, classes, data, model: TrackingModel):
     allowed = ok[:-1, :, None] & ok[1:, None, :]
     if model.max_step is not None:
         allowed &= jnp.all(jnp.abs(du) <= model.max_step, axis=-1)
-    chain = jnp.where(allowed, model.lambda_u * jnp.sum(du * du, axis=-1), jnp.inf)  # [N-1, R, R]
+    chain = jnp.where(allowed, _switching(du, model), jnp.inf)  # [N-1, R, R]
     while chain.shape[0] > 1:  # min-plus products of neighbours; an odd one out waits a level
         pairs = chain.shape[0] // 2 * 2
         product = jnp.min(chain[:pairs:2, :, :, None] + chain[1:pairs:2, None, :, :], axis=2)
