@@ -38,7 +38,7 @@ def decisions(N: int, steps: int):
     lt = grid_converter.make_problem(N)
     A, B, _ = grid_converter.model()
     Y, D = grid_converter.decision_data(steps, N)
-    x, u, plan = grid_converter.initial_state(), np.zeros(3), np.full(N, -1)
+    x, u, plan = grid_converter.initial_state(), np.zeros(3), np.full(N, -1, np.int32)
     records = []
     for k in range(steps):
         ws = np.concatenate([plan[1:], plan[-1:]])

@@ -493,9 +493,11 @@ def _dynamics(z, u, k, data: TrackingParams, model: TrackingModel):
     j, found = _class(u, model)  # an input of no class (not a control) has no child
     U, ok = model.members[j].astype(z.dtype), (model.member_ok[j] > 0) & found  # [R, m], [R]
     xu = jnp.concatenate([node.x, U[0]])
-    out = model.M[k] @ xu + data.off[k]  # [x(k+1) (n), sqrt(Q) (y_ref[k] - C x(k+1)) (p), W's residual v (n + m)]
+    # The two products as sums of elementwise products: XLA:CPU runs a batch of these tiny matrix products as
+    # library calls, one kernel each, which cost a node more than the arithmetic (docs/applications/inverter.md)
+    out = jnp.sum(model.M[k] * xu, axis=1) + data.off[k]  # [x(k+1) (n), sqrt(Q) (y_ref[k] - C x(k+1)) (p), W's v]
     dU = U - U[0]
-    v = out[n + p:] + dU @ model.Tu[k].T  # [R, n + m] the residual of W_{k+1}(x(k+1), member)
+    v = out[n + p:] + jnp.sum(dU[:, None, :] * model.Tu[k], axis=2)  # [R, n + m] W_{k+1}'s residual, per member
     # W = ||v||^2 + s, rounded down by a bound on the rounding of v (its terms nearly cancel, and W must stay
     # admissible): ||v_true|| >= ||v|| - ||v - v_true||, with ||v - v_true|| <= gamma (||M_v|| ||[x; u]|| + ||off_v||
     # + ||Tu|| ||du||) + the rounding of off_v.
