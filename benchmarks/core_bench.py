@@ -4,17 +4,17 @@ Prints one table: nodes, loop iterations, median time, time per iteration, and
 each time as a ratio to the vectorised exhaustive search measured in the same
 process, plus a hand-written ``vmap`` exhaustive baseline (throughput yardstick).
 
-    python benchmarks/core_bench.py [--f32] [--repeats 30] [--horizon 5]
+    python benchmarks/core_bench.py [--f32] [--repeats 30] [--horizon 5] [--publish]
 """
 from __future__ import annotations
 
 import argparse
-import platform
 import statistics
 import time
 
 import jax
 import jax.numpy as jnp
+from _results import machine, published
 
 
 def median_time(fn, repeats):
@@ -46,7 +46,13 @@ def main(argv=None):
     ap.add_argument("--f32", action="store_true", help="float32 (default float64)")
     ap.add_argument("--repeats", type=int, default=30)
     ap.add_argument("--horizon", type=int, default=5)
+    ap.add_argument("--publish", action="store_true", help="also write the table to benchmarks/results/core.md")
     args = ap.parse_args(argv)
+    with published("core", args.publish, "python benchmarks/core_bench.py --publish"):
+        run(args)
+
+
+def run(args):
     jax.config.update("jax_enable_x64", not args.f32)
     import firhc_jax as fj
     from firhc_jax.models.synthetic import SyntheticParams, benchmark_state, make_problem
@@ -71,8 +77,7 @@ def main(argv=None):
     add("sdfs K=1 inside jit", lambda: jitted(x0))
 
     base = rows[0][3]
-    print(f"# M=17, n=3, N={args.horizon}, {jnp.dtype(dtype).name}; tree {problem.tree_size():,} nodes; "
-          f"jax {jax.__version__}; {platform.processor() or platform.machine()}")
+    print(f"M=17, n=3, N={args.horizon}, {jnp.dtype(dtype).name}; tree {problem.tree_size():,} nodes; {machine()}\n")
     print("| search | nodes | % of tree | iterations | median time | us / iteration | time / exhaustive |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     for name, nodes, iters, t in rows:

@@ -42,7 +42,6 @@ import numpy as np
 from matplotlib.figure import Figure
 
 import firhc_jax as fj
-from firhc_jax.apps.inverter import distortion
 from firhc_jax.models import inverter as two_level
 from firhc_jax.models import three_level
 
@@ -61,9 +60,8 @@ def references(phase, steps: int, horizon: int):
 def metrics(currents, inputs) -> tuple[float, float]:
     """``(THD, switching frequency per leg in Hz)`` of one loop: ``currents`` ``[T+1, 2]``, ``inputs`` ``[T, 3]``."""
     phases = two_level.to_phases(currents[:-1])
-    thd = np.mean([distortion(phases[:, x], PARAMS)[1] for x in range(3)])
-    changes = np.abs(np.diff(inputs, axis=0)).sum(axis=0)
-    return float(thd), float(changes.mean() / (2.0 * inputs.shape[0] * PARAMS.ts))
+    thd = np.mean([two_level.distortion(phases[:, x], PARAMS)[1] for x in range(3)])
+    return float(thd), two_level.switching_frequency(inputs, PARAMS)
 
 
 def plot(lambdas, thd, fsw, N: int, path: Path) -> None:

@@ -26,10 +26,9 @@ from ._src.runtime.disk_cache import enable_compilation_cache
 from ._src.runtime.memory_cache import cache_info, clear_cache, set_cache_size
 from ._src.runtime.throughput import profile
 from ._src.search.batch import solve_batch
-from ._src.search.exhaustive import exhaustive
 from ._src.search.nodes import rollout_cost
+from ._src.search.one_state import exhaustive, sdfs
 from ._src.search.result import SearchResult
-from ._src.search.sdfs import sdfs
 
 __all__ = ["Problem", "quadratic_cost", "discretize", "linear_dynamics", "product_controls", "tracking_cost",
            "input_change_cost", "horizon_windows", "LinearTracking", "sdfs", "exhaustive", "SearchResult", "FIRHC",

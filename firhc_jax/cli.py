@@ -8,19 +8,24 @@ Every command keeps its compilations in JAX's persistent compilation cache
 (``firhc_jax.enable_compilation_cache``), so a second run skips XLA's
 compilation, and the applications keep their traced decisions beside it
 (``apps/_exported.py``), so it skips tracing and lowering too; ``--no-cache``
-turns both off for one run.
+turns both off for one run: nothing is read or written, whatever folder the
+environment names (``JAX_COMPILATION_CACHE_DIR``). A command that sets
+``uses_cache=False`` on its parser (``cache``, which lists and clears that
+folder) takes no ``--no-cache``. Warnings are shown on one line each.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import sys
 import warnings
+from pathlib import Path
 
 # Subcommand modules, in the order shown by --help.
 _APPS = ("firhc_jax.apps.example", "firhc_jax.apps.hopper", "firhc_jax.apps.tanks", "firhc_jax.apps.inverter",
-         "firhc_jax.apps.batch", "firhc_jax.apps.bench", "firhc_jax.apps.profile")
+         "firhc_jax.apps.batch", "firhc_jax.apps.bench", "firhc_jax.apps.profile", "firhc_jax.apps.cache")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -38,9 +43,11 @@ def build_parser() -> argparse.ArgumentParser:
             continue
         module.register(sub)
     for command in _leaves(parser):
-        command.add_argument("--no-cache", action="store_true",
-                             help="do not read or write the persistent compilation cache "
-                                  "($XDG_CACHE_HOME/firhc_jax, else ~/.cache/firhc_jax)")
+        if command.get_default("uses_cache") is not False:
+            command.add_argument("--no-cache", action="store_true",
+                                 help="read and write nothing in the compilation cache and the kept decisions "
+                                      "($JAX_COMPILATION_CACHE_DIR, else $XDG_CACHE_HOME/firhc_jax, else "
+                                      "~/.cache/firhc_jax; 'python -m firhc_jax cache' lists them)")
     return parser
 
 
@@ -52,6 +59,17 @@ def _leaves(parser: argparse.ArgumentParser):
     for group in groups:
         for child in dict.fromkeys(group.choices.values()):  # aliases map to the same parser
             yield from _leaves(child)
+
+
+def cache_folder() -> Path:
+    """The folder the commands keep their compilations in: the one this process already set
+    (``JAX_COMPILATION_CACHE_DIR``, a caller), else ``$XDG_CACHE_HOME/firhc_jax`` or ``~/.cache/firhc_jax``."""
+    import jax
+
+    from ._src.runtime.disk_cache import default_cache_path
+
+    chosen = jax.config.jax_compilation_cache_dir
+    return Path(chosen).expanduser() if chosen else default_cache_path()
 
 
 def _use_compilation_cache() -> None:
@@ -68,6 +86,21 @@ def _use_compilation_cache() -> None:
         warnings.warn(f"{e}; running without the persistent compilation cache", stacklevel=2)
 
 
+def _one_line(message, category, filename, lineno, line=None) -> str:
+    return f"warning: {message}\n"
+
+
+@contextlib.contextmanager
+def _warnings_on_one_line():
+    """Python's warnings shown as ``warning: <message>``, without the file, line and source they come from."""
+    shown = warnings.formatwarning
+    warnings.formatwarning = _one_line
+    try:
+        yield
+    finally:
+        warnings.formatwarning = shown
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -76,9 +109,15 @@ def main(argv=None) -> int:
         return 0
     if getattr(args, "check", None):  # limits on what the options size together, before any work
         args.check(args)
-    if not getattr(args, "no_cache", False):
-        _use_compilation_cache()
-    return int(args.func(args) or 0)
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(_warnings_on_one_line())
+        if getattr(args, "no_cache", False):
+            from ._src.runtime.disk_cache import compilation_cache_off
+
+            stack.enter_context(compilation_cache_off())
+        elif getattr(args, "uses_cache", True):
+            _use_compilation_cache()
+        return int(args.func(args) or 0)
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ def test_throughput_quick_writes_tables_csv_and_plots(tmp_path):
     for name in ("throughput.md", "throughput.csv", "throughput.png", "time_vs_horizon.png"):
         assert (out / name).stat().st_size > 0
     assert "synthetic(work=0) N = 3: sdfs K=2 (compiling, then 1 x 4 searches): done in" in proc.stderr
+    assert (out / "throughput.md").read_text().startswith(f"**{bench.SMOKE}.**") and bench.SMOKE in proc.stdout
 
 
 @pytest.mark.slow
@@ -40,6 +41,8 @@ def test_tables_quick_is_table_3_at_one_horizon_with_every_stage_announced(tmp_p
     proc = _bench_quick("tables", out)
     rows = json.loads((out / "tables.json").read_text())
     assert [(r["plant"], r["N"], r["best_pop_width"]) for r in rows] == [("tanks", 3, 1)]
+    text = (out / "tables.md").read_text()
+    assert text.startswith(f"{bench.SMOKE}.") and "### Table 3: three tanks, 20 s closed loop" in text
     for stage in ("tanks N = 3: the closed loop that gives the states searched",
                   "tanks N = 3: sdfs warm (compiling", "tanks N = 3: exhaustive levels (compiling"):
         assert stage in proc.stderr, proc.stderr[-2000:]
@@ -100,3 +103,53 @@ def test_the_monte_carlo_bench_quick_makes_the_same_decisions_every_way():
     assert len(lines) == 3 and all(" 0 of " in line for line in lines), lines
     worst = re.search(r"fj.exhaustive on \d+ decisions of \(d\): cost rel. diff. max ([0-9.e+-]+)", proc.stdout)
     assert worst and float(worst.group(1)) < 1e-9, proc.stdout[-1500:]
+
+
+def _rows(plant="synthetic(work=0)"):
+    """Rows of a quick throughput run, made up: every rate within one decade, as a smoke run's often are."""
+    profile = [{"plant": plant, "N": 3, "search": search, "batch": b, "pop_width": k, "nodes_per_s": rate}
+               for search, b, k, rate in (("sdfs", 1, 1, 1.3e5), ("sdfs K=2", 1, 2, 2.1e5),
+                                          ("vmap sdfs", 1, 1, 1.1e5), ("vmap sdfs", 8, 1, 3.2e5),
+                                          ("vmap exhaustive levels", 1, None, 2.5e5),
+                                          ("vmap exhaustive levels", 8, None, 6.4e5))]
+    sweep = [{"plant": plant, "N": n, "search": search, "ms_per_step": ms}
+             for n, search, ms in ((2, "sdfs", 4.0), (3, "sdfs", 0.27), (2, "exhaustive dfs", 0.5),
+                                   (3, "exhaustive dfs", 1.2), (2, "exhaustive levels", 0.3),
+                                   (3, "exhaustive levels", 0.9))]
+    return profile, sweep
+
+
+@pytest.mark.parametrize("smoke", [False, True])
+def test_throughput_figures_label_ticks_in_plain_numbers_and_smoke_runs_as_such(smoke, tmp_path, monkeypatch):
+    """Counts on the x axes labelled by themselves ("2", not "2x10^0"), rates and times in plain numbers, and a
+    smoke run's figures titled as one."""
+    from firhc_jax.apps import _plot
+
+    figures = []
+    drawn = _plot.subplots
+    monkeypatch.setattr(_plot, "subplots", lambda *a, **k: figures.append(drawn(*a, **k)) or figures[-1])
+    paths = bench.plot_profile(*_rows(), tmp_path, smoke=smoke)
+    assert [p.name for p in paths] == ["throughput.png", "time_vs_horizon.png"]
+    labels = []
+    for fig, _ in figures:
+        for ax in fig.axes:
+            for axis in (ax.xaxis, ax.yaxis):
+                labels += [t.get_text() for t in axis.get_ticklabels(minor=False) + axis.get_ticklabels(minor=True)]
+        title = fig._suptitle.get_text() if fig._suptitle else ""
+        assert (bench.SMOKE in title) == smoke, title
+    assert labels and not [t for t in labels if "times" in t or "^" in t or "$" in t], labels
+    throughput = figures[0][0].axes
+    assert [t.get_text() for t in throughput[0].xaxis.get_ticklabels()] == ["1", "2"]
+    assert [t.get_text() for t in throughput[1].xaxis.get_ticklabels()] == ["1", "8"]
+    assert {"200,000", "300,000"} <= set(labels)  # between the decades, in plain numbers
+
+
+def test_a_quick_tables_run_is_labelled_a_smoke_run_under_its_own_length():
+    row = {"plant": "tanks", "N": 3, "A": 5219, "B_max": 3145, "B_min": 51, "B_mean": 181.4, "C_dfs_pct": 10.0,
+           "C_levels_pct": 9.0, "sdfs_ms": 0.6, "dfs_ms": 5.0, "levels_ms": 5.1, "us_per_iteration": 3.0,
+           "warm_nodes_mean": 100.0, "warm_ms": 0.5, "best_pop_width": 1, "best_pop_width_ms": 0.6, "es_steps": 10,
+           "steps": 10}
+    quick = bench.tables_markdown([row], quick=True).splitlines()
+    assert quick[:3] == ["### Table 3: three tanks, 20 s closed loop", "", f"**{bench.SMOKE}.**"]
+    full = bench.tables_markdown([row])
+    assert full.startswith("### Table 3: three tanks, 200 s closed loop\n") and "SMOKE" not in full

@@ -1,6 +1,7 @@
 """The command lines check their arguments before any work: an output folder that cannot be written, a horizon
 too long for the example, a negative or NaN node budget end in argparse's one-line error (exit status 2)."""
 import os
+import re
 import subprocess
 import sys
 
@@ -161,11 +162,39 @@ def test_table_3_shows_the_papers_mean_as_a_mean():
     assert "| B max/min ours (paper) | B mean |" in hopper_table and "| 300/15 (363/15) | 181 |" in hopper_table
 
 
-def test_batch_help_says_what_states_the_built_in_plants_take(capsys):
+def _help_rows(capsys) -> dict:
+    """``{plant: (n, example row)}`` as ``batch --help`` states them."""
     with pytest.raises(SystemExit):
         cli.main(["batch", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "--plant tanks takes n = 3 (the three levels, m)" in text and "--params" in text
+    found = re.findall(r"--plant (\w+): n = (\d+)(?:(?!--plant).)*?e\.g\. a row ((?:-?[\d.]+ ?)+)", text)
+    return {plant: (int(n), [float(v) for v in row.split()]) for plant, n, row in found}
+
+
+@pytest.mark.slow
+def test_batch_runs_the_states_its_help_gives_for_every_built_in_plant(tmp_path, capsys):
+    """Each built-in plant's n and example row, as the help states them: a batch of that row is solved."""
+    from firhc_jax import distributed
+
+    rows = _help_rows(capsys)
+    assert sorted(rows) == sorted(batch.PLANTS)
+    for plant, (n, row) in rows.items():
+        assert len(row) == n, (plant, n, row)
+        np.save(tmp_path / f"{plant}.npy", np.array([row, row]))
+        out = tmp_path / f"{plant}.npz"
+        assert cli.main(["batch", "--plant", plant, "-N", "2", "--states", str(tmp_path / f"{plant}.npy"),
+                         "--out", str(out)]) == 0
+        result, _ = distributed.load_result(out)
+        assert result.feasible.all() and result.sequence.shape == (2, 2) and (result.sequence >= 0).all()
+
+
+def test_batch_help_gives_each_built_in_plants_state(capsys):
+    """The help's n for each plant is the one its problem takes (the tanks' 5-entry controller state)."""
+    from firhc_jax.models import synthetic, tanks
+
+    rows = _help_rows(capsys)
+    assert rows["tanks"][0] == len(tanks.initial_state()) == 5
+    assert rows["synthetic"][0] == len(synthetic.benchmark_state()) == 3
 
 
 # A mistake in the user's module: one line naming the module and the error; --debug: the exception itself.
@@ -244,8 +273,90 @@ def test_batch_solves_per_row_params_and_times_the_compiled_calls_only(tmp_path,
     assert meta["times"].shape == (1,) and meta["seconds"] == meta["times"][0]
     assert meta["nodes_per_second"] == pytest.approx(result.nodes.sum() / meta["seconds"])
     np.savez(tmp_path / "short.npz", **{"ref/x": rows["ref"]["x"][:3], "w": rows["w"][:3]})
-    with pytest.raises(SystemExit, match=r"batch: params leaf \['ref'\]\['x'\] must have leading axis B = 4"):
+    with pytest.raises(SystemExit, match=r"batch: --params: every array needs leading axis B = 4 \(the rows of "
+                                         r"--states\); \['ref'\]\['x'\] has shape \(3, 1\)"):
         cli.main([*argv[:6], str(tmp_path / "short.npz"), *argv[7:]])
+
+
+BATCH_ARRAY_USER = """
+import jax.numpy as jnp
+import firhc_jax as fj
+
+
+def tracking():
+    return fj.Problem(lambda x, u, p: 0.9 * x + u, jnp.array([-1.0, 0.0, 1.0]),
+                      lambda x, u, p: jnp.sum((x - p) ** 2) + 0.1 * u[0] ** 2, 3)
+"""
+
+
+def test_batch_reads_npy_files_and_shows_its_progress_and_the_time_left(tmp_path, monkeypatch, capsys):
+    """``--states X0.npy`` (the [B, n] array) and ``--params P.npy`` (one array, leading axis B); a batch of at
+    least two chunks' rows is solved in calls of equal size (the last filled up), with a bar of rows and the time
+    left after each on stderr, and the costs and sequences of one call. (Chunks of 2 rows here, 256 in use.)"""
+    from firhc_jax import distributed
+
+    assert [batch.chunks(b) for b in (1, 511, 512, 601, 10_000, 10 ** 6)] == [1, 1, 2, 2, 20, 20]
+    monkeypatch.setattr(batch, "MIN_CHUNK_ROWS", 2)
+    (tmp_path / "fj_batch_array_user.py").write_text(BATCH_ARRAY_USER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    X0, refs = np.array([[0.0], [1.0], [-2.0], [2.5], [-0.5]]), np.array([[1.0], [0.0], [-1.0], [0.5], [0.0]])
+    np.save(tmp_path / "X0.npy", X0)
+    np.save(tmp_path / "P.npy", refs)
+    assert cli.main(["batch", "--problem", "fj_batch_array_user:tracking", "--states", str(tmp_path / "X0.npy"),
+                     "--params", str(tmp_path / "P.npy"), "--out", str(tmp_path / "r.npz")]) == 0
+    err = capsys.readouterr().err
+    for label in ("first call (compiles)", "timed call 1/1"):
+        assert re.search(re.escape(label) + r": +60%.*\| 3/5 \[\d\d:\d\d<\d\d:\d\d", err), err
+        assert re.search(re.escape(label) + r": +100%.*\| 5/5 \[", err), err
+    result, _ = distributed.load_result(tmp_path / "r.npz")
+    import fj_batch_array_user
+
+    expected = fj.solve_batch(fj_batch_array_user.tracking(), X0, params=refs)
+    np.testing.assert_array_equal(result.sequence, np.asarray(expected.sequence))
+    np.testing.assert_array_equal(result.cost, np.asarray(expected.cost))
+    np.testing.assert_array_equal(result.feasible, np.asarray(expected.feasible))
+
+
+def _unreadable(tmp_path) -> dict:
+    """Files ``batch`` cannot read, each with what its one line must say."""
+    from firhc_jax import distributed
+
+    distributed.save_states(tmp_path / "whole.npz", np.zeros((4, 5)))
+    whole = (tmp_path / "whole.npz").read_bytes()
+    np.save(tmp_path / "whole.npy", np.zeros((4, 5)))
+    files = {"truncated.npz": (whole[: len(whole) // 2], r"cannot read .*truncated\.npz \(BadZipFile: "),
+             "cut.npz": (whole[:-30], r"cannot read .*cut\.npz \("),
+             "damaged.npz": (whole[:200] + b"\xff" + whole[201:], r"cannot read .*damaged\.npz \(BadZipFile: Bad CRC"),
+             "truncated.npy": ((tmp_path / "whole.npy").read_bytes()[:-8], r"cannot read .*truncated\.npy \("),
+             "notes.txt": (b"h1 h2 h3\n0.2 0.18 0.1\n", r"notes\.txt is neither an \.npy nor an \.npz file"),
+             "empty.npz": (b"", r"empty\.npz is neither an \.npy nor an \.npz file")}
+    for name, (data, _) in files.items():
+        (tmp_path / name).write_bytes(data)
+    np.save(tmp_path / "objects.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    cases = {tmp_path / name: message for name, (_, message) in files.items()}
+    cases[tmp_path / "objects.npy"] = r"cannot read .*objects\.npy \(ValueError: Object arrays cannot be loaded"
+    cases[tmp_path / "missing.npz"] = r"cannot read --FLAG .*missing\.npz: No such file or directory"
+    cases[tmp_path] = r"cannot read --FLAG .*: Is a directory"
+    return cases
+
+
+@pytest.mark.parametrize("flag", ["--states", "--params"])
+def test_batch_names_every_file_it_cannot_read_in_one_line(flag, tmp_path, monkeypatch):
+    from firhc_jax import distributed
+
+    monkeypatch.setattr(fj, "solve_batch", lambda *a, **k: pytest.fail("solved"))
+    good = tmp_path / "good"
+    good.mkdir()
+    distributed.save_states(good / "X0.npz", np.zeros((4, 5)))
+    np.save(good / "P.npy", np.zeros(4))
+    for path, message in _unreadable(tmp_path).items():
+        files = {"--states": good / "X0.npz", "--params": good / "P.npy", flag: path}
+        with pytest.raises(SystemExit) as e:
+            cli.main(["batch", "--states", str(files["--states"]), "--params", str(files["--params"]),
+                      "--out", str(tmp_path / "r.npz")])
+        text = str(e.value.code)
+        assert text.startswith("batch: ") and "\n" not in text and flag in text, text
+        assert re.search(message.replace("--FLAG", flag), text), (message, text)
 
 
 def test_example_says_how_much_faster_sdfs_is_and_defaults_to_a_horizon_where_it_shows(tmp_path, capsys):
@@ -260,3 +371,81 @@ def test_example_says_how_much_faster_sdfs_is_and_defaults_to_a_horizon_where_it
     ratio = summary["exhaustive"]["time_per_step_s"] / summary["sdfs"]["time_per_step_s"]
     assert summary["exhaustive_over_sdfs_time"] == pytest.approx(ratio)
     assert f"sDFS: {ratio:.1f}x as fast as exhaustive search" in out and "its lead grows with N" in out
+
+
+def _kept_file(path, label: str, **changed) -> None:
+    """A kept decision's file at ``path`` whose key has this installation's lines, some ``changed``."""
+    import json
+
+    from firhc_jax.apps import _exported
+
+    lines = {**_exported.installation(), **changed, "setting": repr(label)}
+    header = {"key": "\n".join(f"{k}={v}" for k, v in lines.items()), "sha256": "0" * 64, "label": label}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(_exported.FORMAT + json.dumps(header).encode() + b"\n" + bytes(5000))
+
+
+def test_cache_lists_the_kept_files_with_their_sizes_and_clears_them(tmp_path, capsys):
+    """A folder with three kept decisions (one of this installation, one of another JAX, one damaged), XLA's
+    entries and a file of the user's: each decision listed with its application, size and whether it is ever read
+    again, XLA's entries counted; ``--clear`` removes both and leaves the user's file."""
+    import jax
+
+    from firhc_jax.apps import _exported
+
+    folder = tmp_path / "cache"
+    kept = folder / _exported.FOLDER
+    _kept_file(kept / f"{'a' * 64}.jaxexport", "hopper")
+    _kept_file(kept / f"{'b' * 64}.jaxexport", "tanks", jax="0.4.1")
+    (kept / f"{'c' * 64}.jaxexport").write_bytes(b"damaged")
+    for name, size in (("jit_step-1f-cache", 250_000), ("jit_step-1f-atime", 8), ("jit_loop-2e-cache", 50_000)):
+        (folder / name).write_bytes(bytes(size))
+    (folder / "notes.txt").write_text("mine")
+    kept_bytes = sum(p.stat().st_size for p in kept.iterdir())
+    before = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(folder))  # as JAX_COMPILATION_CACHE_DIR sets it
+    try:
+        assert cli.main(["cache"]) == 0
+        listed = capsys.readouterr().out.splitlines()
+        assert cli.main(["cache", "--clear"]) == 0
+        cleared = capsys.readouterr().out
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
+    assert listed[:2] == [f"folder: {folder}",
+                          f"kept decisions ({_exported.FOLDER}/): 3 files, {kept_bytes / 1e3:.1f} kB"]
+    rows = {line.split()[0]: line for line in listed[2:5]}
+    assert re.fullmatch(r" +a{12} +hopper +5\.\d kB +\d{4}-\d\d-\d\d \d\d:\d\d", rows["a" * 12])
+    assert re.search(r" tanks +5\.\d kB .*\(never read: written by another jax\)$", rows["b" * 12])
+    assert rows["c" * 12].endswith("(never read: is not a kept decision of this version)")
+    assert listed[5:] == ["XLA's compilations: 2 entries, 0.3 MB"]
+    assert cleared.strip() == (f"removed 3 kept decisions and 3 files of XLA's compilations (0.3 MB) from "
+                               f"{folder}")
+    assert sorted(p.name for p in folder.rglob("*")) == [_exported.FOLDER, "notes.txt"]
+
+
+def test_cache_takes_no_no_cache_and_keeps_no_compilation(monkeypatch, capsys):
+    monkeypatch.setattr(cli, "_use_compilation_cache", lambda: pytest.fail("the cache command enabled the cache"))
+    message = _refused(capsys, cli.main, ["cache", "--no-cache"])
+    assert "unrecognized arguments: --no-cache" in message
+
+
+def test_the_profile_chart_says_what_its_red_bar_means(tmp_path, monkeypatch):
+    from matplotlib.colors import to_rgba
+
+    from firhc_jax._src.runtime.throughput import Profile
+
+    rows = [{"setting": f"sdfs pop_width={k}", "solver": "sdfs", "solves_per_second": 100.0 * k, "states": 3,
+             "seconds": 0.03 / k, "seconds_min": 0.03 / k, "seconds_max": 0.03 / k, "nodes": 300,
+             "nodes_per_second": 1e4 * k, "fastest": k == 4, "default": k == 1, "within_noise": k == 4}
+            for k in (1, 2, 4)]
+    costs = [{"callable": "dynamics", "ns": 500.0, "ns_min": 450.0, "ns_max": 550.0, "children": 1024,
+              "compile_s": 0.1}]
+    fig = profile_app.figure(Profile(rows, costs, 3, 1.0, 2.0), "case")
+    fig.savefig(tmp_path / "profile.png")
+    fastest = {bar.get_facecolor() for bar in fig.axes[0].patches if bar.get_width() == 400.0}
+    legends = fig.legends + [ax.get_legend() for ax in fig.axes if ax.get_legend()]
+    assert len(legends) == 1
+    entries = {t.get_text(): h.get_facecolor() for t, h in zip(legends[0].get_texts(), legends[0].legend_handles,
+                                                                strict=True)}
+    meaning = [text for text, color in entries.items() if to_rgba(color) in fastest]
+    assert len(meaning) == 1 and "fastest" in meaning[0], entries

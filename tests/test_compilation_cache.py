@@ -78,9 +78,11 @@ def test_a_second_process_reads_the_decision_from_the_cache(tmp_path):
 def test_every_command_takes_no_cache_and_uses_the_cache_unless_told(monkeypatch):
     parser = cli.build_parser()
     leaves = list(cli._leaves(parser))
-    assert len(leaves) >= 7
+    assert len(leaves) >= 8
     for command in leaves:
-        assert "--no-cache" in command._option_string_actions, command.prog
+        keeps = command.get_default("uses_cache") is not False
+        assert ("--no-cache" in command._option_string_actions) == keeps, command.prog
+        assert keeps or command.prog.endswith(" cache"), command.prog  # only the command that lists the folder
     used = []
     monkeypatch.setattr(cli, "_use_compilation_cache", lambda: used.append(True))
     monkeypatch.setattr(cli, "build_parser", lambda: _parser_with(lambda args: 0))
@@ -107,3 +109,28 @@ def test_the_cli_keeps_a_folder_this_process_already_chose(tmp_path):
     finally:
         if before is not None:
             fj.enable_compilation_cache(before)
+
+
+@pytest.mark.slow
+def test_no_cache_reads_and_writes_nothing_in_the_folder_the_environment_names(tmp_path):
+    """A folder filled by a run, then every file in it damaged: a ``--no-cache`` run with
+    ``JAX_COMPILATION_CACHE_DIR`` naming it leaves every file as it was, adds none and warns of none."""
+    cache = tmp_path / "cache"
+    env = {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(cache)}
+
+    def tanks(*args):
+        proc = subprocess.run([sys.executable, "-m", "firhc_jax", "tanks", "--seconds", "4", "--no-progress",
+                               "--out", str(tmp_path / "out"), *args], capture_output=True, text=True, timeout=600,
+                              env=env)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        return proc.stderr
+
+    tanks()
+    files = sorted(p for p in cache.rglob("*") if p.is_file())
+    assert any(p.suffix == ".jaxexport" for p in files) and any(p.name.endswith("-cache") for p in files), files
+    for p in files:
+        p.write_bytes(b"damaged")
+    before = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in files}
+    stderr = tanks("--no-cache")
+    assert "warning" not in stderr.lower(), stderr
+    assert {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(cache.rglob("*")) if p.is_file()} == before

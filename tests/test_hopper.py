@@ -197,6 +197,26 @@ def test_cli_runs_the_timed_loop_of_the_compiled_one_and_writes_its_results(sdfs
     np.testing.assert_allclose(timed.times, np.arange(121) * hm.CONTROL_PERIOD, rtol=1e-15)
 
 
+@pytest.mark.slow
+def test_figs_4_and_5_show_the_body_position_in_one_unit(sdfs_loop, tmp_path, monkeypatch):
+    """Fig. 4's body displacement and Fig. 5's body position: the same numbers under the same unit."""
+    import re
+
+    from firhc_jax.apps import _plot
+
+    figures, drawn = [], _plot.subplots
+    monkeypatch.setattr(_plot, "subplots", lambda *a, **k: figures.append(drawn(*a, **k)) or figures[-1])
+    loop, X = sdfs_loop
+    app.figures(loop, X, P, str(tmp_path))
+    (_, fig4), (_, fig5) = figures[:2]
+    assert fig4.get_title() == "Fig. 4: displacements" and fig5.get_title().startswith("Fig. 5")
+    unit4, = re.findall(r"\((\w+)\)", fig4.get_ylabel())
+    unit5, = re.findall(r"\((\w+)\)", fig5.get_xlabel())
+    assert unit4 == unit5 == "cm"
+    body = next(line for line in fig4.get_lines() if line.get_label() == "body x")
+    np.testing.assert_array_equal(fig5.get_lines()[0].get_xdata(), body.get_ydata())
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--horizon", "0"], "--horizon: must be an integer between 1 and 12"),
     (["--horizon", "six"], "--horizon: must be an integer"),

@@ -104,13 +104,13 @@ def test_switching_penalty_lowers_switching_frequency():
 def test_distortion_of_a_pure_sine_and_of_a_known_harmonic():
     t = np.arange(P.steps_per_cycle * 2) * P.ts
     w = 2 * math.pi * P.frequency
-    fundamental, thd = app.distortion(3.0 * np.cos(w * t + 0.3), P)
+    fundamental, thd = model.distortion(3.0 * np.cos(w * t + 0.3), P)
     assert fundamental == pytest.approx(3.0, rel=1e-12) and thd < 1e-12
-    fundamental, thd = app.distortion(3.0 * np.cos(w * t) + 0.15 * np.sin(5 * w * t) + 0.5, P)
+    fundamental, thd = model.distortion(3.0 * np.cos(w * t) + 0.15 * np.sin(5 * w * t) + 0.5, P)
     assert fundamental == pytest.approx(3.0, rel=1e-12) and thd == pytest.approx(0.05, rel=1e-12)
     f, amp = app.spectrum(3.0 * np.cos(w * t) + 0.15 * np.sin(5 * w * t), P.ts)  # the DFT agrees over whole cycles
     assert amp[np.argmin(abs(f - P.frequency))] == pytest.approx(3.0, rel=1e-12)
-    fundamental, thd = app.distortion(3.0 * np.cos(w * t[:300] - 1.0) + 0.5, P)  # 3/8 of a cycle
+    fundamental, thd = model.distortion(3.0 * np.cos(w * t[:300] - 1.0) + 0.5, P)  # 3/8 of a cycle
     assert fundamental == pytest.approx(3.0, rel=1e-9) and thd < 1e-9
 
 

@@ -74,7 +74,7 @@ def test_budget_stops_a_search_that_would_never_end():
 
 # ---------------------------------------------------------------- memory and horizon limits
 def test_sizes_are_checked_before_allocation():
-    with pytest.raises(ValueError, match="sDFS stack .* needs about"):
+    with pytest.raises(ValueError, match="solver='sdfs' on N=.* needs about"):
         fj.sdfs(fj.Problem(_dyn, np.linspace(-1, 1, 64), fj.quadratic_cost(1.0, 0.0), 20_000), jnp.ones(1))
     with pytest.raises(ValueError, match="max_memory"):
         fj.sdfs(P, jnp.ones(1), max_memory=100)
@@ -162,8 +162,10 @@ def test_every_count_argument_refuses_non_positive_ints_by_name(name):
 
 
 def test_options_a_solver_does_not_use_are_refused():
-    with pytest.raises(ValueError, match="lanes"):
+    with pytest.raises(TypeError, match="lanes is an option of solvers 'sdfs', 'pool'"):
         fj.solve_batch(P, jnp.ones((2, 1)), solver="sdfs-vmap", lanes=8)
+    with pytest.raises(TypeError, match="max_nodes is an option of solvers 'sdfs', 'pool', 'sdfs-vmap'"):
+        fj.solve_batch(P, jnp.ones((2, 1)), solver="exhaustive", max_nodes=100)
     with pytest.raises(ValueError, match="pop_width"):
         fj.solve_batch(P, jnp.ones((2, 1)), solver="exhaustive", pop_width=2)
     with pytest.raises(ValueError, match="pop_width"):

@@ -126,8 +126,8 @@ def test_plot_names_the_curves_and_labels_the_time_axis_in_seconds(saved):
     run = fj.ClosedLoop.load(saved[1])
     fig = run.plot(state_names=["position [m]", "speed [m/s]"], input_names=["force [N]"])
     assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == ["position [m]", "speed [m/s]"]
-    assert [t.get_text() for t in fig.axes[1].get_legend().get_texts()] == ["force [N]"]
-    assert fig.axes[3].get_xlabel() == "time [s]" and plt.get_fignums() == figures
+    assert fig.axes[1].get_ylabel() == "force [N]"  # each input on its own axes, named
+    assert fig.axes[-1].get_xlabel() == "time [s]" and plt.get_fignums() == figures
     assert fig.axes[0].lines[0].get_xdata()[-1] == pytest.approx(0.6)  # seconds, not steps
     assert [t.get_text() for t in run._replace(times=None).plot().axes[0].get_legend().get_texts()] == \
         ["x[0]", "x[1]"]

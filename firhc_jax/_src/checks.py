@@ -32,6 +32,59 @@ def positive_int(name: str, value, minimum: int = 1) -> int:
     return out
 
 
+def finite(name: str, array, detail: str = "") -> None:
+    """A ``ValueError`` naming ``name`` where the concrete ``array`` holds NaN or inf (integers always pass)."""
+    a = np.asarray(array)
+    if a.dtype.kind in "fc" and not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or inf{detail}")
+
+
+def numeric(name: str, value, what: str = "array") -> np.ndarray:
+    """``value`` as a NumPy array of real numbers or booleans (its own dtype), or a ``TypeError`` naming ``name``:
+    ragged, complex (NumPy would drop the imaginary part with only a warning) and non-numeric values refused."""
+    try:
+        a = np.asarray(value)
+    except ValueError:  # ragged lists
+        raise TypeError(f"{name} must be a real {what}, got {value!r}") from None
+    if a.dtype.kind == "c":
+        raise TypeError(f"{name} must be real, got complex dtype {a.dtype}")
+    if a.dtype.kind not in "biuf":
+        raise TypeError(f"{name} must be a real numeric {what}, got dtype {a.dtype}")
+    return a
+
+
+def real_array(name: str, value, what: str = "array") -> np.ndarray:
+    """``value`` as a float64 NumPy array (``numeric``), finite, or an error naming ``name``. Traced values are
+    refused: models and weights are built once, in NumPy, before any search."""
+    if is_tracer(value):
+        raise TypeError(f"{name} must be concrete values, not a traced array: the model is built once, in NumPy, "
+                        "before any search (what changes between solves goes in the params)")
+    a = numeric(name, value, what).astype(float)
+    finite(name, a)
+    return a
+
+
+def matrix(name: str, value) -> np.ndarray:
+    """``value`` as a read-only, finite, non-empty float64 matrix (``real_array``), or an error naming ``name``:
+    the one rule for model matrices."""
+    a = real_array(name, value, "matrix")
+    if a.ndim != 2 or 0 in a.shape:
+        raise ValueError(f"{name} must be a non-empty 2-D matrix, got shape {a.shape}")
+    a.flags.writeable = False
+    return a
+
+
+def non_negative(name: str, value) -> float:
+    """``value`` as a finite float >= 0, or an error naming ``name``."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a real number, got {value!r}") from None
+    if not np.isfinite(v) or v < 0:
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    return v
+
+
 def strong(a):
     """``a`` without weak type: a weakly typed array (from a Python scalar,
     ``jnp.full(n, 0.2)``) would compile a second search for the same shapes
@@ -66,13 +119,10 @@ def check_params(params, leading: int | tuple | None = None, what: str = "params
         if is_tracer(leaf):
             a = leaf
         else:
-            arr = np.asarray(leaf) if not isinstance(leaf, jax.Array) else leaf
-            kind = arr.dtype.kind if hasattr(arr, "dtype") else "O"
-            if kind not in "biuf":
-                raise TypeError(f"{name} must be a real numeric or boolean array, got {type(leaf).__name__} "
-                                f"of dtype {getattr(arr, 'dtype', '?')}")
-            if kind == "f" and not np.all(np.isfinite(np.asarray(arr))):
-                raise ValueError(f"{name} contains NaN or inf")
+            arr = leaf if isinstance(leaf, jax.Array) else numeric(name, leaf)
+            if arr.dtype.kind not in "biuf":
+                raise TypeError(f"{name} must be a real numeric or boolean array, got dtype {arr.dtype}")
+            finite(name, arr)
             a = strong(arr)
         if isinstance(leading, tuple) and tuple(a.shape[:len(leading)]) != leading:
             raise ValueError(f"{name} must have leading axes {axis} = {list(leading)}, got shape {tuple(a.shape)}")
@@ -90,16 +140,8 @@ def as_state(x0, name: str = "x0"):
     if x0 is None:
         raise TypeError(f"{name} is None: pass the current state as an array [n]")
     if not is_tracer(x0):
-        try:
-            x_np = np.asarray(x0)
-        except ValueError as e:
-            raise ValueError(f"{name} must be a 1-D numeric array [n]: {e}") from None
-        if x_np.dtype.kind == "c":
-            raise TypeError(f"{name} must be real, got complex dtype {x_np.dtype}")
-        if x_np.dtype.kind not in "biuf":
-            raise TypeError(f"{name} must be a numeric array [n], got dtype {x_np.dtype}")
-        if x_np.dtype.kind == "f" and not np.all(np.isfinite(x_np)):
-            raise ValueError(f"{name} contains NaN or inf: {x_np}")
+        x_np = numeric(name, x0, "state vector [n]")
+        finite(name, x_np, f": {x_np}")
         x0 = strong(x0)
     if x0.ndim != 1:
         raise ValueError(
@@ -145,8 +187,7 @@ def as_batch(X0, name: str = "X0"):
         raise TypeError(f"{name} must have a floating dtype, got {X.dtype}")
     if not isinstance(X, jax.core.Tracer):
         bad = np.flatnonzero(~np.all(np.isfinite(np.asarray(X)), axis=1))
-        if bad.size:
-            raise ValueError(f"{name} contains NaN or inf in rows {bad[:10].tolist()}{' ...' if bad.size > 10 else ''}")
+        finite(name, np.asarray(X), f" in rows {bad[:10].tolist()}{' ...' if bad.size > 10 else ''}")
     return X
 
 
@@ -169,9 +210,22 @@ def as_inputs(name: str, value, m: int, dtype, leading: tuple = (), concrete: bo
     if a.shape != (m,) and a.shape != leading + (m,):
         also = f" (every loop) or {leading + (m,)} (one per loop)" if leading else ""
         raise ValueError(f"{name} must be one input of shape ({m},){also}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains NaN or inf: {a}")
+    finite(name, a, f": {a}")
     return np.broadcast_to(a, leading + (m,)).copy() if a.shape != leading + (m,) else a
+
+
+def input_rows(name: str, value, m: int) -> np.ndarray:
+    """``value`` as concrete, finite inputs ``[..., m]`` (``numeric``; a scalar is one input when m = 1), or an
+    error naming ``name``."""
+    if is_tracer(value):
+        raise TypeError(f"{name} must be concrete inputs, not a traced array")
+    a = numeric(name, value, f"input [m] = [{m}] or inputs [..., {m}]")
+    if a.ndim == 0 and m == 1:
+        a = a[None]
+    if a.ndim == 0 or a.shape[-1] != m:
+        raise ValueError(f"{name} must be an input [m] = [{m}] or inputs [..., {m}], got shape {a.shape}")
+    finite(name, a)
+    return a
 
 
 def sample_times(dt, steps: int):

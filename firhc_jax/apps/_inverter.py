@@ -36,46 +36,25 @@ def spectrum(signal: np.ndarray, ts: float) -> tuple[np.ndarray, np.ndarray]:
     return np.fft.rfftfreq(n, ts), amp
 
 
-def distortion(signal: np.ndarray, params: model.InverterParams) -> tuple[float, float]:
-    """``(fundamental peak amplitude (A), THD)`` of a record sampled at ``params.ts``.
-
-    The fundamental is the least-squares fit of dc + cos + sin at the reference
-    frequency; THD is the rms of what the fit leaves over the rms of the
-    fundamental. Over whole cycles this is the DFT definition with every
-    non-fundamental bin up to the Nyquist frequency counted (harmonics and the
-    inter-harmonics of the variable switching pattern), dc excluded; unlike
-    the DFT it stays meaningful for records of part of a cycle.
-    """
-    w = 2.0 * np.pi * params.frequency * params.ts * np.arange(signal.shape[0])
-    basis = np.stack([np.ones_like(w), np.cos(w), np.sin(w)], axis=1)  # [T, 3]
-    coef, *_ = np.linalg.lstsq(basis, signal, rcond=None)
-    amplitude = float(np.hypot(coef[1], coef[2]))
-    residual = signal - basis @ coef
-    return amplitude, float(np.sqrt(np.mean(residual**2)) / (amplitude / np.sqrt(2.0)))
-
-
 def waveform_metrics(run: InverterRun, params: model.InverterParams) -> dict:
     """The phase currents' figures of a run, as both summaries report them (currents in A, frequencies in Hz).
 
-    Switching frequency per leg: the legs' level changes within the run (a
-    two-level leg's 0 <-> 1, a three-level leg's unit steps, one commutation
-    each) over the run, divided by two (a switching period has two), averaged
-    over the legs. THD: ``distortion`` of each phase over the run.
+    Switching frequency per leg and leg changes: ``model.switching_frequency`` and ``model.commutations``
+    of the applied levels; THD: ``model.distortion`` of each phase over the run.
     """
     steps = run.inputs.shape[0]
     seconds = steps * params.ts
     phases = model.to_phases(run.currents[:-1])  # [T, 3], one record of whole cycles
     errors = model.to_phases(run.references - run.currents)  # [T+1, 3]
-    fundamentals, thds = zip(*(distortion(phases[:, x], params) for x in range(3)), strict=True)
-    changes = np.abs(np.diff(run.inputs, axis=0)).sum(axis=0)  # [3] leg changes within the run
+    fundamentals, thds = zip(*(model.distortion(phases[:, x], params) for x in range(3)), strict=True)
     return {
         "rms_tracking_error": float(np.sqrt(np.mean(errors**2))),
         "current_amplitude": float(np.mean(fundamentals)),
-        "switching_frequency_hz": float(changes.mean() / (2.0 * seconds)),
+        "switching_frequency_hz": model.switching_frequency(run.inputs, params),
         "thd": float(np.mean(thds)),
         "thd_phases": list(thds),
         "current_amplitudes": list(fundamentals),
-        "leg_changes": changes.astype(int).tolist(),
+        "leg_changes": model.commutations(run.inputs).tolist(),
         "steps": steps,
         "seconds": seconds,
         "parameters": {"vdc": params.vdc, "r": params.r, "l": params.l, "ts": params.ts,
@@ -103,7 +82,7 @@ def plot(run: InverterRun, path: Path, params: model.InverterParams, title: str 
     phase_a = model.to_phases(run.currents[:-1])[:, 0]
     whole = phase_a.shape[0] // params.steps_per_cycle * params.steps_per_cycle  # spectrum over whole cycles
     f, amp = spectrum(phase_a[:whole or None], params.ts)
-    fundamental, thd = distortion(phase_a, params)
+    fundamental, thd = model.distortion(phase_a, params)
     ax_s.semilogy(f[1:] * 1e-3, np.maximum(amp[1:] / fundamental * 100.0, 1e-4), color="tab:blue", lw=0.7)
     ax_s.set_ylim(1e-3, 200)
     ax_s.set_xlim(0, f[-1] * 1e-3)

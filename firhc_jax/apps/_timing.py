@@ -62,7 +62,8 @@ def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None,
     and ``compile_s`` the seconds to trace and compile one decision (``ctrl.step``) for these shapes.
 
     ``settings``: all that built ``ctrl`` besides the package's code
-    (``_exported.decision``). With the compilation cache on, the decision is
+    (``_exported.decision``). With the compilation cache on (a folder set and
+    ``jax_enable_compilation_cache`` true), the decision is
     then kept in its folder as a traced program, and a later run with the
     same settings neither traces nor lowers it (its ``compile_s`` is reading
     it back). Otherwise the loop runs the controller's own compiled decision.
@@ -78,7 +79,7 @@ def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None,
     p0 = None if params is None else jax.tree_util.tree_map(lambda a: a[0], params)
     with compile_events() as seen, stage("compiling the decision"):
         t0 = time.perf_counter()
-        folder = jax.config.jax_compilation_cache_dir
+        folder = jax.config.jax_compilation_cache_dir if jax.config.jax_enable_compilation_cache else None
         decide = decision(ctrl, settings, folder, state, x0, p0) if settings and folder else ctrl._decide()
         jax.block_until_ready(decide(state, x0, p0))
         first = time.perf_counter() - t0

@@ -1,19 +1,19 @@
-"""``python -m firhc_jax batch``: solve a batch of states from an ``.npz``, on
-one process or as one process of a multi-process JAX job.
+"""``python -m firhc_jax batch``: solve a batch of states from an ``.npy`` or
+``.npz``, on one process or as one process of a multi-process JAX job.
 
     python -m firhc_jax batch --plant tanks -N 4 --states X0.npz --out result.npz
     python -m firhc_jax batch ... --launch-local 2        # 2 processes on this machine
     JAX_COORDINATOR_ADDRESS=host0:1234 JAX_NUM_PROCESSES=4 JAX_PROCESS_ID=$i \\
         python -m firhc_jax batch ...                     # on each of 4 hosts
 
-The states are the array ``X0`` ``[B, n]`` of ``--states`` (every process
-reads the same file); process 0 writes every ``SearchResult`` field and the
+The states are the array ``X0`` ``[B, n]`` of ``--states``, an ``.npy`` or an
+``.npz`` holding it as ``X0`` (every process reads the same file); process 0 writes every ``SearchResult`` field and the
 timings (``meta_*`` keys) to ``--out`` (``firhc_jax.distributed.load_result``).
 The problem is a built-in plant (``--plant``, ``--horizon``) or
 ``--problem MODULE:FUNCTION``, a function without arguments returning a
-``Problem`` (importable on every host). ``--params`` names an ``.npz`` of
-per-row parameters (every array with leading axis B; a key ``a/b`` is the
-leaf ``p["a"]["b"]``), e.g. ``np.savez("p.npz", **lt.params(Y))`` for a
+``Problem`` (importable on every host). ``--params`` names an ``.npy`` (one
+array) or ``.npz`` of per-row parameters (every array with leading axis B; a
+key ``a/b`` is the leaf ``p["a"]["b"]``), e.g. ``np.savez("p.npz", **lt.params(Y))`` for a
 ``fj.LinearTracking``'s ``lt.problem``. The time reported is that of calls
 after the first, which compiles.
 """
@@ -35,6 +35,10 @@ MAX_LANES = 4096  # pool slots per device, each with a stack of sDFS nodes
 MAX_REPEATS = 1000
 MAX_PROCESSES = 1024
 MAX_LOCAL_PROCESSES = 64  # each a Python process with JAX: about 0.3 GB of memory
+# A pass over the rows is cut into at most this many calls, each of at least MIN_CHUNK_ROWS rows, so that a long
+# batch shows its progress and the time left; a pool of 64 lanes per core stays full in calls of that size.
+PROGRESS_CHUNKS = 20
+MIN_CHUNK_ROWS = 256
 
 
 def _physical_memory() -> int:
@@ -45,8 +49,8 @@ def _physical_memory() -> int:
         return 2 ** 40
 
 
-HELP = "solve a batch of states from an .npz (one process or a multi-process job)"
-DESCRIPTION = ("fj.solve_batch on the states X0 [B, n] of an .npz file, over every device of the job; "
+HELP = "solve a batch of states from an .npy or .npz (one process or a multi-process job)"
+DESCRIPTION = ("fj.solve_batch on the states X0 [B, n] of an .npy or .npz file, over every device of the job; "
                "process 0 writes the results as .npz. Multi-process: --launch-local P on one machine, "
                "or --coordinator/--num-processes/--process-id (or the JAX_COORDINATOR_ADDRESS, "
                "JAX_NUM_PROCESSES, JAX_PROCESS_ID environment variables) on each host.")
@@ -56,8 +60,10 @@ def register(subparsers) -> None:
     """Add the ``batch`` subcommand."""
     p = subparsers.add_parser("batch", help=HELP, description=DESCRIPTION)
     p.add_argument("--states", type=Path, required=True,
-                   help=".npz holding X0 [B, n]: --plant tanks takes n = 3 (the three levels, m), --plant synthetic "
-                        "n = 3 (position, velocity, heading); --problem the state of its dynamics")
+                   help=".npy of X0 [B, n], or .npz holding it as X0. --plant tanks: n = 5, the controller state "
+                        "[h1, h2, h3 (the levels, m), mode (0-16, the mode that led to them), toggles (actuators "
+                        "that mode switched)], e.g. a row 0.2 0.18 0.1 0 0; --plant synthetic: n = 3 (position, "
+                        "velocity, heading), e.g. a row 0.2 0.03 0.33; --problem: the state of its dynamics")
     p.add_argument("--out", type=Path, required=True,
                    help="result .npz, written by process 0 (checked before any work)")
     what = p.add_mutually_exclusive_group()
@@ -66,7 +72,8 @@ def register(subparsers) -> None:
                            "the 17-input benchmark problem")
     what.add_argument("--problem", metavar="MODULE:FUNCTION", help="a function without arguments returning a Problem")
     p.add_argument("--params", type=Path, default=None,
-                   help=".npz of per-row parameters, every array with leading axis B (key 'a/b': leaf p['a']['b'])")
+                   help=".npy (one array) or .npz of per-row parameters, every array with leading axis B "
+                        "(key 'a/b': leaf p['a']['b'])")
     p.add_argument("--horizon", "-N", type=number(int, 1, 10), default=4, help="horizon of --plant (default 4)")
     solver_argument(p, "in a batch sdfs and pool share a work pool")
     p.add_argument("--lanes", type=number(int, 1, MAX_LANES), default=None,
@@ -80,6 +87,9 @@ def register(subparsers) -> None:
                         "more; their median is meta_seconds and gives nodes/s (default 1)")
     p.add_argument("--debug", action="store_true",
                    help="let an error in --problem's module through with its traceback (default: one line)")
+    p.add_argument("--no-progress", action="store_true",
+                   help=f"no progress bar (default: a bar of rows and the time left on stderr; a batch of "
+                        f"{2 * MIN_CHUNK_ROWS} rows or more is solved in up to {PROGRESS_CHUNKS} calls for it)")
     job = p.add_argument_group("multi-process job (default: the environment, else a single process)")
     job.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0")
     job.add_argument("--num-processes", type=number(int, 1, MAX_PROCESSES), help="processes in the job")
@@ -101,7 +111,8 @@ def _child_argv(args) -> list[str]:
     for flag, value in (("--lanes", args.lanes), ("--max-memory", args.max_memory), ("--params", args.params)):
         if value is not None:
             argv += [flag, str(value)]
-    return argv + [flag for flag, on in (("--float32", args.float32), ("--debug", args.debug)) if on]
+    return argv + [flag for flag, on in (("--float32", args.float32), ("--debug", args.debug),
+                                         ("--no-progress", args.no_progress)) if on]
 
 
 def check_out(path: Path) -> Path:
@@ -164,25 +175,56 @@ def make_problem(args):
     return make_problem(args.horizon, SyntheticParams(17))
 
 
-def load_params(path: Path) -> dict:
-    """The per-row parameters of ``--params``: ``{key: array}``, a key ``a/b`` nested as ``p["a"]["b"]``."""
+def _read(flag: str, load, path: Path):
+    """``load(path)``, or a ``SystemExit`` naming ``flag`` and the file when it cannot be read."""
+    try:
+        return load(path)
+    except OSError as e:
+        raise SystemExit(f"batch: cannot read {flag} {path}: {e.strerror or e}") from None
+    except ValueError as e:
+        raise SystemExit(f"batch: {flag}: {e}") from None
+
+
+def _check_rows(params, rows: int) -> None:
+    """Every ``--params`` array has leading axis B (the rows of ``--states``), before the rows are cut."""
+    import jax
     import numpy as np
 
-    params: dict = {}
-    with np.load(path, allow_pickle=False) as data:
-        if not data.files:
-            raise ValueError(f"--params {path} holds no arrays")
-        for key in data.files:
-            *outer, leaf = key.split("/")
-            node = params
-            for part in outer:
-                node = node.setdefault(part, {})
-                if not isinstance(node, dict):
-                    raise ValueError(f"--params {path}: {key!r} nests under an array")
-            if leaf in node:
-                raise ValueError(f"--params {path}: {key!r} is both an array and a group")
-            node[leaf] = np.asarray(data[key])
-    return params
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        if np.shape(leaf)[:1] != (rows,):
+            raise SystemExit(f"batch: --params: every array needs leading axis B = {rows} (the rows of --states); "
+                             f"{jax.tree_util.keystr(path) or 'the array'} has shape {np.shape(leaf)}")
+
+
+def chunks(rows: int) -> int:
+    """Calls one pass over ``rows`` rows is cut into, so that progress shows between them: at most
+    ``PROGRESS_CHUNKS``, each of at least ``MIN_CHUNK_ROWS`` rows (one call below twice that)."""
+    return max(1, min(PROGRESS_CHUNKS, rows // MIN_CHUNK_ROWS))
+
+
+def solve_in_chunks(problem, X0, params, options: dict, label: str | None):
+    """``fj.solve_batch`` of every row, as NumPy arrays, in ``chunks(B)`` calls of equal size (one compilation:
+    the last is filled up with copies of its last row, dropped after), with a bar of rows and an estimate of the
+    time left on stderr (``label``; ``None``: no bar). Costs, sequences and flags are those of one call; the
+    pool's node counts are not (they depend on which rows share it)."""
+    import jax
+    import numpy as np
+    from tqdm.auto import tqdm
+
+    from .. import SearchResult, solve_batch
+
+    B = len(X0)
+    size = -(-B // chunks(B))
+    parts = []
+    with tqdm(total=B, desc=label, unit="row", disable=label is None, file=sys.stderr, dynamic_ncols=True,
+              mininterval=0) as bar:  # at most PROGRESS_CHUNKS updates: each is shown
+        for start in range(0, B, size):
+            rows = np.minimum(np.arange(start, start + size), B - 1)
+            part = solve_batch(problem, X0[rows], params=jax.tree_util.tree_map(lambda a, r=rows: a[r], params),
+                               **options)
+            parts.append([np.asarray(field)[:B - start] for field in part])
+            bar.update(min(size, B - start))
+    return SearchResult(*(np.concatenate(field) for field in zip(*parts, strict=True)))
 
 
 def _job_failure(done) -> str:
@@ -230,37 +272,39 @@ def _solve(args) -> int:
 
     try:
         distributed.initialize(args.coordinator, args.num_processes, args.process_id)
-        X0 = distributed.load_states(args.states)
-        params = None if args.params is None else load_params(args.params)
     except (OSError, ValueError) as e:
         raise SystemExit(f"batch: {e}") from None
+    X0 = _read("--states", distributed.load_states, args.states)
+    params = None if args.params is None else _read("--params", distributed.load_params, args.params)
 
     import jax
     import numpy as np
     from jax.experimental import multihost_utils
 
-    from .. import solve_batch
     from ..solvers import DEFAULT_MAX_MEMORY
 
     jax.config.update("jax_enable_x64", not args.float32)
     X0 = X0.astype(np.float32 if args.float32 else np.float64)
+    _check_rows(params, len(X0))
     problem = make_problem(args)
     options = dict(solver=args.solver, lanes=args.lanes, pop_width=args.pop_width,
                    max_memory=args.max_memory or DEFAULT_MAX_MEMORY)
     many = jax.process_count() > 1
+    shown = not args.no_progress and jax.process_index() == 0
 
-    def timed():
+    def timed(label):
         if many:
             multihost_utils.sync_global_devices("firhc_jax batch")  # start the clocks together
         t0 = time.perf_counter()
-        result = jax.block_until_ready(solve_batch(problem, X0, params=params, **options))
+        result = solve_in_chunks(problem, X0, params, options, label if shown else None)
         return time.perf_counter() - t0, result
 
     try:
-        first, result = timed()
+        first, result = timed("first call (compiles)")
     except (ValueError, TypeError) as e:  # what the solver refuses (e.g. --lanes without the pool, NaN states)
         raise SystemExit(f"batch: {e}") from None
-    times = [timed()[0] for _ in range(args.repeats)]  # compiled by the first call: never in these
+    # compiled by the first call: never in these
+    times = [timed(f"timed call {i + 1}/{args.repeats}")[0] for i in range(args.repeats)]
     seconds = statistics.median(times)
     if jax.process_index() == 0:
         nodes = int(np.asarray(result.nodes, np.int64).sum())

@@ -39,6 +39,10 @@ PAPER = {
               6: (25646166, 124066, 7310, None)},
 }
 HORIZONS = {"hopper": (5, 6, 7, 8), "tanks": (3, 4, 5, 6)}
+SECONDS = {"hopper": 2.0, "tanks": 200.0}  # the paper's closed loops
+QUICK_SECONDS = {"hopper": 0.5, "tanks": 20.0}
+SMOKE = ("SMOKE RUN (--quick): a few short runs, timed once, to check that the command works; its figures mean "
+         "nothing")
 MAX_REPEATS = 100
 MAX_ES_NODES = 1e9  # nodes, spent once per repeat: about 8 minutes at the tanks' 0.47 us a node
 POP_WIDTHS = (1, 2, 4, 8, 16)
@@ -199,14 +203,18 @@ def _announced(name: str, fn, case: Case, rows: np.ndarray, repeats: int) -> Tim
         return time_search(fn, case, rows, repeats)
 
 
-def tables_markdown(rows: list[dict], bound: bool = False) -> str:
+def tables_markdown(rows: list[dict], bound: bool = False, quick: bool = False) -> str:
+    """Tables 2 and 3 of ``rows``; ``quick``: of a smoke run, labelled as one above each table."""
     lines = []
-    for plant, title in (("hopper", "Table 2: hopper, 2 s closed loop"), ("tanks", "Table 3: three tanks, 200 s")):
+    seconds = QUICK_SECONDS if quick else SECONDS
+    for plant, title in (("hopper", f"Table 2: hopper, {seconds['hopper']:g} s closed loop"),
+                         ("tanks", f"Table 3: three tanks, {seconds['tanks']:g} s closed loop")):
         mine = [r for r in rows if r["plant"] == plant]
         if not mine:
             continue
         stat = PAPER_B[plant]
         lines += [f"### {title}{', sDFS with the lower bound (docs/guide/bounds.md)' if bound else ''}", "",
+                  *([f"**{SMOKE}.**", ""] if quick else []),
                   f"| N | A ours (paper) | B max/{stat} ours (paper) | B {'min' if stat == 'mean' else 'mean'} | "
                   "C vs ES-dfs ours (paper) | C vs ES-levels "
                   "| sDFS ms/step | ES-dfs ms | ES-levels ms | us/iter | warm nodes / ms | fastest K (ms) | ES steps |",
@@ -272,11 +280,13 @@ def run_tables(args) -> int:
     with tqdm(total=len(todo), desc="tables", file=sys.stderr) as bar:
         for plant, n in todo:
             with stage(f"{plant} N = {n}: the closed loop that gives the states searched"):
-                case = (hopper_case(n, 0.5 if args.quick else 2.0, args.bound) if plant == "hopper"
-                        else tanks_case(n, 20.0 if args.quick else 200.0, args.bound))
+                seconds = (QUICK_SECONDS if args.quick else SECONDS)[plant]
+                case = (hopper_case(n, seconds, args.bound) if plant == "hopper"
+                        else tanks_case(n, seconds, args.bound))
             rows.append(table_row(case, 1 if args.quick else args.repeats, args.max_es_nodes, widths))
             bar.update(1)
-    text = f"Measured on {machine()}, float64, {time.strftime('%Y-%m-%d')}.\n\n" + tables_markdown(rows, args.bound)
+    text = (f"{SMOKE}.\n\n" if args.quick else "") + f"Measured on {machine()}, float64, " \
+        f"{time.strftime('%Y-%m-%d')}.\n\n" + tables_markdown(rows, args.bound, args.quick)
     _write(args.out, "tables-bound" if args.bound else "tables", text, rows)
     print(text)
     return 0
@@ -335,8 +345,31 @@ def horizon_sweep(make: Callable[[int], Case], horizons, repeats: int, max_es_no
     return out
 
 
-def plot_profile(profile: list[dict], sweep: list[dict], out: Path) -> list[Path]:
+def _integer_log_axis(axis, values) -> None:
+    """A log axis of counts labelled with the counts themselves ("2", not "2x10^0"), and nothing between them."""
+    from matplotlib.ticker import FixedLocator, NullFormatter, NullLocator, StrMethodFormatter
 
+    axis.set_major_locator(FixedLocator(sorted(set(values))))
+    axis.set_major_formatter(StrMethodFormatter("{x:,.0f}"))
+    axis.set_minor_locator(NullLocator())
+    axis.set_minor_formatter(NullFormatter())
+
+
+def _value_log_axis(axis) -> None:
+    """A log axis of measured values labelled where matplotlib labels one, in plain numbers ("0.2", "20,000", not
+    "2x10^-1")."""
+    from matplotlib.ticker import LogFormatter
+
+    class Plain(LogFormatter):
+        def __call__(self, x, pos=None):
+            return "" if not super().__call__(x, pos) else f"{x:,.0f}" if x >= 10 else f"{x:.3g}"
+
+    axis.set_major_formatter(Plain())
+    axis.set_minor_formatter(Plain(labelOnlyBase=False))
+
+
+def plot_profile(profile: list[dict], sweep: list[dict], out: Path, smoke: bool = False) -> list[Path]:
+    """``throughput.png`` and ``time_vs_horizon.png`` in ``out``; ``smoke``: titled as a smoke run's."""
     from ._plot import subplots
 
     paths = []
@@ -351,8 +384,12 @@ def plot_profile(profile: list[dict], sweep: list[dict], out: Path) -> list[Path
                      label=f"{plant}: jax.vmap of {'fj.sdfs' if 'sdfs' in name else 'fj.exhaustive (levels)'}")
     ax1.set(xscale="log", yscale="log", xlabel="pop_width K", ylabel="nodes / s", title="sDFS, one state at a time")
     ax2.set(xscale="log", yscale="log", xlabel="batch size B", ylabel="nodes / s", title="vmap over B states")
+    for ax in (ax1, ax2):
+        _integer_log_axis(ax.xaxis, [x for line in ax.get_lines() for x in line.get_xdata()])
+        _value_log_axis(ax.yaxis)
     ax1.legend(fontsize=8)
     ax2.legend(fontsize=7)
+    _smoke_title(fig, smoke)
     fig.tight_layout()
     paths.append(out / "throughput.png")
     fig.savefig(paths[-1], dpi=100)
@@ -364,11 +401,18 @@ def plot_profile(profile: list[dict], sweep: list[dict], out: Path) -> list[Path
             ax.plot([r["N"] for r in rs], [r["ms_per_step"] for r in rs], style, label=name)
         ax.set(yscale="log", xlabel="horizon N", ylabel="ms per decision (median)", title=plant)
         ax.xaxis.get_major_locator().set_params(integer=True)
+        _value_log_axis(ax.yaxis)
         ax.legend(fontsize=8)
+    _smoke_title(fig, smoke)
     fig.tight_layout()
     paths.append(out / "time_vs_horizon.png")
     fig.savefig(paths[-1], dpi=100)
     return paths
+
+
+def _smoke_title(fig, smoke: bool) -> None:
+    if smoke:
+        fig.suptitle(SMOKE, color="tab:red", fontsize=9)
 
 
 def run_throughput(args) -> int:
@@ -392,7 +436,7 @@ def run_throughput(args) -> int:
         for make, horizons in sweep_plan:
             sweep += horizon_sweep(make, horizons, repeats, args.max_es_nodes)
             bar.update(1)
-    lines = [f"Measured on {machine()}, float64.", "",
+    lines = [*([f"**{SMOKE}.**", ""] if args.quick else []), f"Measured on {machine()}, float64.", "",
              "| plant | N | search | batch | nodes/s | solves/s | us/iteration |", "|---|---|---|---|---|---|---|"]
     for r in profile:
         us = f"{r['us_per_iteration']:.2f}" if r["us_per_iteration"] else ""
@@ -401,7 +445,7 @@ def run_throughput(args) -> int:
     lines += ["", "| plant | N | search | ms/step |", "|---|---|---|---|"]
     lines += [f"| {r['plant']} | {r['N']} | {r['search']} | {r['ms_per_step']:.3f} |" for r in sweep]
     text = "\n".join(lines) + "\n"
-    paths = plot_profile(profile, sweep, args.out)
+    paths = plot_profile(profile, sweep, args.out, smoke=args.quick)
     _write(args.out, "throughput", text, profile + sweep)
     print(text)
     print("wrote " + ", ".join(str(p) for p in paths))
@@ -426,7 +470,8 @@ def register(subparsers) -> None:
     for name, func, help_ in (("tables", run_tables, "Tables 2 (hopper) and 3 (tanks), paper figures beside ours"),
                               ("throughput", run_throughput, "nodes/s by pop_width and batch size; time vs horizon")):
         q = sub.add_parser(name, help=help_, description=help_)
-        q.add_argument("--quick", action="store_true", help="a smoke run: short runs, few cases")
+        q.add_argument("--quick", action="store_true",
+                       help="a smoke run: short runs, few cases, timed once; labelled so, its figures mean nothing")
         q.add_argument("--out", type=output_dir, default=f"out/bench-{name}", help="output folder")
         q.add_argument("--repeats", type=number(int, 1, MAX_REPEATS), default=3,
                        help=f"timing repeats, median taken (default 3, at most {MAX_REPEATS})")

@@ -201,8 +201,8 @@ def figures(loop: fj.ClosedLoop, X, params: hm.HopperParams, out: str) -> list:
     save(fig, "fig4_displacements")
 
     fig, ax = subplots(figsize=(5, 4.5))
-    ax.plot(X[:, 0], X[:, 1], lw=0.8)
-    ax.set(xlabel="body position x (m)", ylabel="body velocity (m/s)", title="Fig. 5: velocity against position")
+    ax.plot(100 * X[:, 0], X[:, 1], lw=0.8)  # the position in Fig. 4's unit
+    ax.set(xlabel="body position x (cm)", ylabel="body velocity (m/s)", title="Fig. 5: velocity against position")
     save(fig, "fig5_phase")
 
     fig, ax = subplots(figsize=(7, 3.5))
@@ -284,7 +284,7 @@ class Hopper(App):
         if args.warm and not SOLVERS[args.solver].warm_starts:
             parser.error(f"--warm needs --solver sdfs (or another solver that takes warm starts), got --solver "
                          f"{args.solver}")
-        if args.solver == "exhaustive":
+        if not SOLVERS[args.solver].prunes:  # it visits the whole tree: bound the run
             steps = max(1, int(round(args.seconds / hm.CONTROL_PERIOD)))
             exhaustive_run(parser, steps, len(hm.VALVE_B), args.horizon, EXHAUSTIVE_BUDGET,
                            "about 4 minutes at 2.3 us a node", "lower --horizon or --seconds, or use --solver sdfs")

@@ -28,9 +28,10 @@ import firhc_jax as fj
 from firhc_jax.models import inverter as model
 from firhc_jax.models.three_level import MAX_HORIZON as THREE_LEVEL_MAX_HORIZON
 
+from ..solvers import SOLVERS
 from . import inverter_three_level
 from ._args import horizon_argument, number, solver_argument
-from ._inverter import InverterRun, distortion, figure, plot, report, spectrum, waveform_metrics  # noqa: F401
+from ._inverter import InverterRun, figure, plot, report, spectrum, waveform_metrics  # noqa: F401
 from ._limits import exhaustive_run
 from ._run import App
 from ._timing import timed_closed_loop
@@ -153,7 +154,7 @@ class Inverter(App):
             return inverter_three_level.APP.check(parser, args)
         if args.horizon > MAX_HORIZON:
             parser.error(f"--horizon must be between 1 and {MAX_HORIZON} with --levels 2, got {args.horizon}")
-        if args.solver == "exhaustive":
+        if not SOLVERS[args.solver].prunes:  # it visits the whole tree: bound the run
             exhaustive_run(parser, steps, len(model.SWITCH_STATES), args.horizon, EXHAUSTIVE_BUDGET,
                            "about 4 minutes at 26 ns a node", "lower --horizon or --cycles, or use --solver sdfs")
 

@@ -25,6 +25,7 @@ import numpy as np
 import firhc_jax as fj
 from firhc_jax.models import tanks as model
 
+from ..solvers import SOLVERS
 from ._args import horizon_argument, number, solver_argument
 from ._limits import exhaustive_run
 from ._run import App
@@ -185,7 +186,7 @@ class Tanks(App):
         steps = int(args.seconds // ts)
         if steps < 1:
             parser.error(f"--seconds must be at least one sample ({ts:g} s), got {args.seconds:g}")
-        if args.solver == "exhaustive":
+        if not SOLVERS[args.solver].prunes:  # it visits the whole tree: bound the run
             exhaustive_run(parser, steps, model.NUM_MODES, args.horizon, EXHAUSTIVE_BUDGET,
                            "about 4 minutes at 0.47 us a node", "lower --horizon or --seconds, or use --solver sdfs")
 

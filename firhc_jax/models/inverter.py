@@ -24,6 +24,10 @@ model state is the currents ``[i_alpha, i_beta]`` (A) alone; a new reference
 never recompiles. The switching penalty ``p["lambda_u"]`` (A^2 per leg change)
 acts on the previous input through ``fj.with_input_memory`` and
 ``fj.input_change_cost``.
+
+``distortion`` (fundamental and THD of a phase current), ``commutations`` and
+``switching_frequency`` (of the applied leg levels) measure a run; they hold
+for legs of any number of levels.
 """
 from __future__ import annotations
 
@@ -110,6 +114,41 @@ def to_phases(i_ab) -> np.ndarray:
     i_ab = np.asarray(i_ab)
     al, be = i_ab[..., 0], i_ab[..., 1]
     return np.stack([al, -0.5 * al + 0.5 * math.sqrt(3.0) * be, -0.5 * al - 0.5 * math.sqrt(3.0) * be], axis=-1)
+
+
+def distortion(signal, params: InverterParams = InverterParams()) -> tuple[float, float]:
+    """``(fundamental peak amplitude, THD)`` of a phase current ``signal`` ``[T]`` (A) sampled at ``params.ts``.
+
+    The fundamental is the least-squares fit of dc + cos + sin at ``params.frequency``; THD is the rms of what
+    the fit leaves over the rms of the fundamental. Over whole cycles this is the DFT definition with every
+    non-fundamental bin up to the Nyquist frequency counted (harmonics and the inter-harmonics of a variable
+    switching pattern), dc excluded; unlike the DFT it stays meaningful for records of part of a cycle (of more
+    than three samples: the fit has three unknowns).
+    """
+    signal = np.asarray(signal, dtype=float)
+    if signal.ndim != 1 or signal.shape[0] == 0 or not np.all(np.isfinite(signal)):
+        raise ValueError(f"signal must be a finite record [T] of one phase, got shape {signal.shape}")
+    w = 2.0 * np.pi * params.frequency * params.ts * np.arange(signal.shape[0])
+    basis = np.stack([np.ones_like(w), np.cos(w), np.sin(w)], axis=1)  # [T, 3]
+    coef, *_ = np.linalg.lstsq(basis, signal, rcond=None)
+    amplitude = float(np.hypot(coef[1], coef[2]))
+    residual = signal - basis @ coef
+    return amplitude, float(np.sqrt(np.mean(residual**2)) / (amplitude / np.sqrt(2.0)))
+
+
+def commutations(inputs) -> np.ndarray:
+    """``[legs]`` int: each leg's level changes within ``inputs`` ``[T, legs]`` (a run's applied leg levels),
+    a change by l levels counted as l commutations (two-level 0 <-> 1: one; a multilevel leg's unit steps)."""
+    inputs = np.asarray(inputs, dtype=float)
+    if inputs.ndim != 2 or not np.all(np.isfinite(inputs)):
+        raise ValueError(f"inputs must be finite leg levels [T, legs], got shape {inputs.shape}")
+    return np.rint(np.abs(np.diff(inputs, axis=0)).sum(axis=0)).astype(int)
+
+
+def switching_frequency(inputs, params: InverterParams = InverterParams()) -> float:
+    """Switching frequency per leg (Hz) of ``inputs`` ``[T, legs]`` applied every ``params.ts``: the legs'
+    mean ``commutations`` over the run's T samples, divided by two (a switching period has two)."""
+    return float(commutations(inputs).mean() / (2.0 * np.shape(inputs)[0] * params.ts))
 
 
 def current_bound(horizon: int, params: InverterParams = InverterParams(), method: str = "exact"):

@@ -202,7 +202,7 @@ def initial_state(levels=INITIAL_LEVELS, mode: int = 0) -> np.ndarray:
     return np.array([*levels, float(mode), 0.0])
 
 
-def make_problem(horizon: int, params: TankParams = TankParams(), set_point=SET_POINT,
+def make_problem(horizon: int, params: TankParams = TankParams(), set_point: np.ndarray = SET_POINT,
                  switch_penalty: float = 0.0, terminal_tol: float | None = None, bound: bool = False) -> fj.Problem:
     """The FIRHC problem: ``sum_i sum_tanks ((h - h_s) / 1 mm)^2 + switch_penalty * toggles``.
 

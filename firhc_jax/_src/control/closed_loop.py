@@ -4,20 +4,27 @@
 stacked over T steps, with the plant states and the applied inputs.
 ``run.save(path)`` writes them to one ``.npz`` (``numpy.load`` reads it, one
 array per field); ``ClosedLoop.load(path)`` reads it back. ``run.plot()``
-draws states, inputs, nodes and solve times into a new matplotlib ``Figure``
-without touching pyplot, so the caller's backend and open figures are left as
-they are.
+draws it into a new matplotlib ``Figure`` (``plot.py``) without touching
+pyplot, so the caller's backend and open figures are left as they are.
 """
 from __future__ import annotations
 
 import math
 import os
 import zipfile
-from typing import NamedTuple, Optional
+from typing import TYPE_CHECKING, NamedTuple, Optional, Sequence
 
 import jax
 import numpy as np
 from numpy.lib import format as npy
+
+from ..annotations import PyTree
+from . import plot, realised
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from ..problem.problem import Problem
 
 # Each field's layout in a saved run: (length of the leading axis, number of axes, dtype kinds).
 _LAYOUT = {"states": ("T+1", 2, "f"), "inputs": ("T", 2, "f"), "input_indices": ("T", 1, "iu"),
@@ -63,7 +70,21 @@ class ClosedLoop(NamedTuple):
         bad = np.flatnonzero(~np.asarray(self.feasible).reshape(-1, np.shape(self.feasible)[-1]).all(axis=0))
         return int(bad[0]) if bad.size else None
 
-    def save(self, path) -> str:
+    def realised_cost(self, problem: "Problem", params: PyTree = None, *,
+                      terminal_cost: bool = False) -> float | np.ndarray:
+        """What the plant paid: the sum over the run of ``problem``'s stage cost of each plant state reached
+        and the input applied to reach it, ``stage_cost(states[k+1], inputs[k][, 0][, params[k]])`` (step
+        index 0, the step each decision applies), plus, with ``terminal_cost``, ``problem``'s terminal cost
+        of the last state (``params[T-1]``). A float; ``[B]`` for a batched run.
+
+        ``problem``'s state and input must be the plant's and the applied ones (``states`` ``[n]``,
+        ``inputs`` ``[m']``): with ``with_input_memory``, price the run with the problem it was built from
+        (switching costs apart). ``params``: per step as ``simulate``'s (leading axis T; B, T for a batch).
+        Unlike ``stage_costs`` (each decision's model prediction of its first step), this is evaluated on
+        the plant's own states, so a plant that is not the model pays what it really paid."""
+        return realised.realised_cost(self, problem, params, terminal_cost)
+
+    def save(self, path: str | os.PathLike) -> str:
         """Write every field to ``path`` as an uncompressed ``.npz`` (``.npz``
         appended if missing, as ``numpy.savez`` does); returns the path written.
         ``numpy.load(path)["states"]`` reads one field; ``ClosedLoop.load`` all."""
@@ -75,7 +96,7 @@ class ClosedLoop(NamedTuple):
         return path
 
     @classmethod
-    def load(cls, path) -> "ClosedLoop":
+    def load(cls, path: str | os.PathLike) -> "ClosedLoop":
         """A ``ClosedLoop`` of NumPy arrays from a file written by ``save``.
 
         Every array's declared shape and dtype is read from its ``.npy``
@@ -98,108 +119,25 @@ class ClosedLoop(NamedTuple):
         with np.load(path, allow_pickle=False) as data:
             return cls(**{name: data[name] for name in names})
 
-    def plot(self, title: str = "", state_names=None, input_names=None):
-        """A new matplotlib ``Figure``: states, applied inputs (held steps
-        marked), nodes per decision and solve times, against time in seconds
-        when the run has ``times`` (``simulate(..., dt=)``), else the step
-        index. ``state_names`` ``[n]`` and ``input_names`` ``[m']`` (e.g.
-        ``"i_a [A]"``, units included) label the curves in legends; default
-        ``x[0]``, ``u[0]``, ... Built without pyplot: the backend is never
-        switched; show it with ``fig.savefig`` or display it in a notebook.
-        A batched run (``simulate_batch``) draws, per step, the median over
-        the loops and the band between the 10th and 90th percentiles (the
-        extremes dotted) of every state and input, and the nodes' spread."""
-        from matplotlib.figure import Figure
+    def plot(self, title: str = "", state_names: Sequence[str] | None = None,
+             input_names: Sequence[str] | None = None) -> "Figure":
+        """A new matplotlib ``Figure`` of the run, one row of axes per quantity.
 
-        if self.batched:
-            return self._plot_batch(title, state_names, input_names)
-        states, inputs = np.asarray(self.states), np.asarray(self.inputs)
-        state_names = _names("state_names", state_names, states.shape[1], "x", "states [T+1, n]")
-        input_names = _names("input_names", input_names, inputs.shape[1], "u", "inputs [T, m']")
-        T = inputs.shape[0]
-        t = np.arange(T + 1) if self.times is None else np.asarray(self.times)
-        unit = "step" if self.times is None else "time [s]"
-        fig = Figure(figsize=(8, 8), layout="constrained")
-        ax = fig.subplots(4, 1, sharex=True)
-        ax[0].plot(t, states, label=state_names)
-        ax[0].set_ylabel("states")
-        ax[0].legend(loc="best")
-        ax[1].step(t[:-1], inputs, where="post", label=input_names)
-        held = np.flatnonzero(np.asarray(self.held))
-        if held.size:
-            ax[1].plot(t[held], inputs[held, 0], "rx", label="held (no input found)")
-        ax[1].legend(loc="best")
-        ax[1].set_ylabel("inputs")
-        ax[2].step(t[:-1], np.asarray(self.nodes), where="post", label="constrained search")
-        if np.any(np.asarray(self.fallback_nodes)):
-            ax[2].step(t[:-1], np.asarray(self.decision_nodes), where="post", label="with the fallback")
-            ax[2].legend(loc="best")
-        ax[2].set_ylabel("nodes")
-        times = np.asarray(self.solve_times, float)
-        if np.all(np.isnan(times)):
-            ax[3].text(0.5, 0.5, "not timed (compiled scan; simulate(..., compiled=False) times each decision)",
-                       ha="center", va="center", transform=ax[3].transAxes)
-        else:
-            ax[3].step(t[:-1], 1e3 * times, where="post")
-        ax[3].set_ylabel("solve time [ms]")
-        ax[3].set_xlabel(unit)
-        if title:
-            fig.suptitle(title)
-        return fig
-
-
-    def _plot_batch(self, title: str, state_names, input_names):
-        """``plot`` of B loops: percentile bands over the loops, step by step."""
-        from matplotlib.figure import Figure
-
-        states, inputs = np.asarray(self.states), np.asarray(self.inputs)  # [B, T+1, n], [B, T, m']
-        B, T = inputs.shape[:2]
-        state_names = _names("state_names", state_names, states.shape[2], "x", "states [B, T+1, n]")
-        input_names = _names("input_names", input_names, inputs.shape[2], "u", "inputs [B, T, m']")
-        t = np.arange(T + 1) if self.times is None else np.asarray(self.times)
-        fig = Figure(figsize=(8, 8), layout="constrained")
-        ax = fig.subplots(3, 1, sharex=True)
-        for a, values, names, x, held_over in ((ax[0], states, state_names, t, False),
-                                               (ax[1], inputs, input_names, t[:-1], True)):
-            for j, name in enumerate(names):
-                _band(a, x, values[:, :, j], name, f"C{j % 10}", held_over)
-            a.legend(loc="best", fontsize="small")
-        ax[0].set_ylabel(f"states ({B} loops)")
-        ax[1].set_ylabel("inputs")
-        held = np.asarray(self.held).sum(axis=0)
-        if held.any():
-            steps = np.flatnonzero(held)
-            ax[1].plot(t[steps], np.median(inputs[:, steps, 0], axis=0), "rx", label="a loop held (no input found)")
-            ax[1].legend(loc="best", fontsize="small")
-        _band(ax[2], t[:-1], np.asarray(self.decision_nodes, float), "nodes per decision", "C0", True)
-        ax[2].set_ylabel("nodes")
-        ax[2].legend(loc="best", fontsize="small")
-        ax[2].set_xlabel("step" if self.times is None else "time [s]")
-        fig.suptitle(title or f"{B} closed loops: median, 10-90 % band, extremes dotted")
-        return fig
-
-
-def _band(ax, x, values, name: str, color: str, steps: bool) -> None:
-    """The median of ``values`` ``[B, len(x)]`` over the loops, its 10-90 % band and its extremes;
-    ``steps``: held over each step (inputs, nodes) rather than joined (states)."""
-    low, mid, high = np.percentile(values, [10, 50, 90], axis=0)
-    draw = {"drawstyle": "steps-post"} if steps else {}
-    ax.plot(x, mid, color=color, label=f"{name} (median)", **draw)
-    ax.fill_between(x, low, high, color=color, alpha=0.25, linewidth=0, step="post" if steps else None)
-    ax.plot(x, values.min(axis=0), color=color, linestyle=":", linewidth=0.8, **draw)
-    ax.plot(x, values.max(axis=0), color=color, linestyle=":", linewidth=0.8, **draw)
-
-
-def _names(arg: str, names, count: int, symbol: str, what: str) -> list[str]:
-    """``count`` curve labels: the user's, checked, else ``symbol[i]``."""
-    if names is None:
-        return [f"{symbol}[{i}]" for i in range(count)]
-    if isinstance(names, str) or not all(isinstance(n, str) for n in names):
-        raise TypeError(f"{arg} must be a sequence of {count} strings, got {names!r}")
-    names = list(names)
-    if len(names) != count:
-        raise ValueError(f"{arg} must name the run's {count} columns of {what}, got {len(names)}: {names}")
-    return names
+        The states; each input on its own axes (held steps marked with red
+        crosses); the nodes of each decision; and the solve times when the
+        run was timed (``simulate(..., compiled=False)``). The time axis is in
+        seconds when the run has ``times`` (``simulate(..., dt=)``), else in
+        steps. An input of at most 8 levels is a step line while its switches
+        can be told apart; where one loop switches more often, and in a
+        batched run (``simulate_batch``), it is a map of how often each level
+        is used over time. A batched run draws, per step, the median over the
+        loops and the band between the 10th and 90th percentiles (extremes
+        dotted) of every state, every other input and the nodes.
+        ``state_names`` ``[n]`` and ``input_names`` ``[m']`` (e.g.
+        ``"i_a [A]"``, units included) label them; default ``x[0]``,
+        ``u[0]``, ... Built without pyplot: the backend is never switched;
+        show it with ``fig.savefig`` or display it in a notebook."""
+        return plot.draw(self, title, state_names, input_names)
 
 
 def _declared_arrays(path: str) -> dict:

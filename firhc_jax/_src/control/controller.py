@@ -46,13 +46,14 @@ from typing import Any, Callable, Mapping, Optional
 import jax
 import numpy as np
 
+from ..annotations import ArrayLike, PyTree
 from ..checks import as_batch, as_inputs, as_sequence, as_state, check_params, is_tracer, positive_int, sample_times
 from ..problem.problem import Problem, input_dtype
 from ..runtime.memory_cache import cached
 from ..runtime.progress import Progress
 from ..search.result import SearchResult, raise_on_errors
 from .closed_loop import ClosedLoop
-from .decision import ControllerState, decide, decide_rows
+from .decision import ControllerState, StepInfo, decide, decide_rows
 from .decision_checks import check_closed_loop, controller_options, decide_checked, no_input_message, solve_checked
 from .runner import ready, run_compiled, run_loops, run_python, user_plant, warn_held
 
@@ -135,7 +136,10 @@ class FIRHC:
         -1: none) picks the seed itself (``previous``: the last decision's
         sequence; ``problem``: the one being searched, main or fallback).
         Exactness unchanged: a seed only sets the first incumbent.
-      observe, actuate: plant/model maps of the closed loop (module docstring).
+      observe: ``observe(x, u_prev[, p]) -> x_model``: what the controller sees
+        of the plant state (module docstring); default the plant state.
+      actuate: ``actuate(x, u[, p]) -> u_plant``: the input the plant receives
+        for the searched input (module docstring); default ``u``.
       u_safe: ``[m]`` the searched input applied (through ``actuate``) when a
         decision finds no input; default: hold the input applied last.
       **solver_options: the solver's options (``SOLVERS[solver].options``):
@@ -146,9 +150,9 @@ class FIRHC:
         first one left.
     """
 
-    def __init__(self, problem: Problem, solver: str = "sdfs", *, fallback=None,
-                 warm_start=False, observe: Optional[Callable] = None, actuate: Optional[Callable] = None,
-                 u_safe=None, **solver_options):
+    def __init__(self, problem: Problem, solver: str = "sdfs", *, fallback: str | Problem | None = None,
+                 warm_start: bool | Callable = False, observe: Optional[Callable] = None,
+                 actuate: Optional[Callable] = None, u_safe: ArrayLike | None = None, **solver_options: Any):
         self.options = Options(**controller_options(problem, solver, fallback, warm_start, observe, actuate,
                                                     u_safe, solver_options))
 
@@ -162,7 +166,7 @@ class FIRHC:
     u_safe = property(lambda self: self.options.u_safe)
 
     # -- one decision --------------------------------------------------------------
-    def init(self, x0, u0=None) -> ControllerState:
+    def init(self, x0: ArrayLike, u0: ArrayLike | None = None) -> ControllerState:
         """The state before the first decision at plant state ``x0``.
 
         ``u0``: the input applied before it (``observe``'s first ``u_prev``,
@@ -174,7 +178,8 @@ class FIRHC:
         u0 = as_inputs("u0", u0, *self._input_form)
         return ControllerState(u=u0, plan=np.full((self.problem.horizon,), -1, np.int32))
 
-    def step(self, state: ControllerState, x, params=None):
+    def step(self, state: ControllerState, x: ArrayLike,
+             params: PyTree = None) -> tuple[jax.Array, ControllerState, StepInfo]:
         """One decision at plant state ``x``: ``(u, state, info)``.
 
         Observe (``observe(x, state.u, params)``), search (warm start from
@@ -208,7 +213,8 @@ class FIRHC:
         """The jitted decision of this controller's key (checked while traced: once per signature)."""
         return cached(("step", self.options.key), lambda: jax.jit(functools.partial(decide_checked, self.options)))
 
-    def __call__(self, x, params=None, *, u_prev=None):
+    def __call__(self, x: ArrayLike, params: PyTree = None, *,
+                 u_prev: ArrayLike | None = None) -> tuple[jax.Array, StepInfo]:
         """One-shot decision at plant state ``x``: ``(u, info)``.
 
         The first decision from scratch, ``step(init(x, u_prev), x, params)``
@@ -227,7 +233,8 @@ class FIRHC:
                 raise InfeasibleError(no_input_message(self.options, info))
         return u, info
 
-    def solve(self, x, params=None, previous_sequence=None) -> tuple[SearchResult, jax.Array]:
+    def solve(self, x: ArrayLike, params: PyTree = None,
+              previous_sequence: ArrayLike | None = None) -> tuple[SearchResult, jax.Array]:
         """The searches of one decision at *model* state ``x`` (no ``observe``,
         ``actuate`` or safe input): ``(result, used_fallback)``.
 
@@ -248,7 +255,8 @@ class FIRHC:
         return raise_on_errors(result), used
 
     # -- closed loops ------------------------------------------------------------
-    def simulate(self, x0, steps: int, plant: Optional[Callable] = None, *, params=None, u0=None, dt=None,
+    def simulate(self, x0: ArrayLike, steps: int, plant: Optional[Callable] = None, *, params: PyTree = None,
+                 u0: ArrayLike | None = None, dt: float | None = None,
                  progress: bool = False, compiled: bool = True) -> ClosedLoop:
         """Run the closed loop for ``steps`` steps from plant state ``x0``: ``step`` then ``plant``.
 
@@ -297,7 +305,8 @@ class FIRHC:
         warn_held(out.held, steps, self.u_safe is not None)
         return out._replace(times=sample_times(dt, steps))
 
-    def simulate_batch(self, X0, steps: int, plant: Optional[Callable] = None, *, params=None, u0=None, dt=None,
+    def simulate_batch(self, X0: ArrayLike, steps: int, plant: Optional[Callable] = None, *, params: PyTree = None,
+                       u0: ArrayLike | None = None, dt: float | None = None,
                        progress: bool = False) -> ClosedLoop:
         """Run B closed loops at once, loop b from plant state ``X0[b]``: one compiled run.
 

@@ -74,12 +74,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..checks import as_sequence, as_state, is_tracer, positive_int
-from ..problem.formulation import _matrix
+from ..annotations import ArrayLike
+from ..checks import as_sequence, as_state, finite, is_tracer, matrix, non_negative, numeric, positive_int
 from ..problem.problem import Problem, _check_controls
 from ..runtime.memory_cache import compiled
+from ..search.one_state import sdfs
 from ..search.result import SearchResult, raise_on_errors
-from ..search.sdfs import DEFAULT_MAX_MEMORY, node_budget, sdfs
+from ..search.sdfs import DEFAULT_MAX_MEMORY, node_budget
 from .factor import child_map, factor_memory, input_classes, psd_factor
 
 NORMS = ("squared", "abs")  # the switching term: lambda_u ||du||^2 or lambda_u ||du||_1
@@ -217,28 +218,29 @@ class LinearTracking:
     the dtype of the state given to it.
     """
 
-    def __init__(self, A, B, controls, horizon, *, C=None, Q=None, lambda_u=0.0, norm: str = "squared", max_step=None,
-                 max_memory: int = DEFAULT_MAX_MEMORY):
-        A = _matrix("A", A)
+    def __init__(self, A: ArrayLike, B: ArrayLike, controls: ArrayLike, horizon: int, *, C: ArrayLike | None = None,
+                 Q: ArrayLike | None = None, lambda_u: float = 0.0, norm: str = "squared",
+                 max_step: float | None = None, max_memory: int = DEFAULT_MAX_MEMORY):
+        A = matrix("A", A)
         n = A.shape[0]
         if A.shape != (n, n):
             raise ValueError(f"A must be square [n, n], got shape {A.shape}")
-        B = _matrix("B", B)
+        B = matrix("B", B)
         if B.shape[0] != n:
             raise ValueError(f"B must be [n, m] with n = {n} rows like A, got shape {B.shape}")
         m = B.shape[1]
-        C = np.eye(n) if C is None else _matrix("C", C)
+        C = np.eye(n) if C is None else matrix("C", C)
         if C.shape[1] != n:
             raise ValueError(f"C must be [p, n] with n = {n} columns like A, got shape {C.shape}")
         p = C.shape[0]
-        Q = np.eye(p) if Q is None else _matrix("Q", Q)
+        Q = np.eye(p) if Q is None else matrix("Q", Q)
         if Q.shape != (p, p):
             raise ValueError(f"Q must be [p, p] = [{p}, {p}] like the rows of C, got shape {Q.shape}")
         N = positive_int("horizon", horizon)
-        lambda_u = _scalar("lambda_u", lambda_u)
+        lambda_u = non_negative("lambda_u", lambda_u)
         if norm not in NORMS:
             raise ValueError(f"norm must be one of {NORMS}, got {norm!r}")
-        max_step = None if max_step is None else _scalar("max_step", max_step)
+        max_step = None if max_step is None else non_negative("max_step", max_step)
         max_memory = positive_int("max_memory", max_memory)
         need = factor_memory(n, m, p, N)
         if need > max_memory:
@@ -286,7 +288,7 @@ class LinearTracking:
         """``[M]`` the class (row of ``problem.controls``) of each input (read-only)."""
         return self._class_of
 
-    def sequence(self, z0, classes, params):
+    def sequence(self, z0: ArrayLike, classes: ArrayLike, params: TrackingParams | SharedParams) -> jax.Array:
         """``[N]`` int32 indices into ``controls``: the cheapest inputs of the
         optimal class sequence ``classes`` ``[N]`` (a ``SearchResult.sequence``
         of ``problem`` or ``shared_problem``) from the search state ``z0``
@@ -296,7 +298,8 @@ class LinearTracking:
         model = params.model if isinstance(params, SharedParams) else self._on_device(z0.dtype)[0]
         return _sequence(z0, classes, _in_dtype(model, z0.dtype))
 
-    def params(self, y_ref, d=None, *, with_model: bool = False) -> TrackingParams | SharedParams:
+    def params(self, y_ref: ArrayLike, d: ArrayLike | None = None, *,
+               with_model: bool = False) -> TrackingParams | SharedParams:
         """The params of ``problem`` for a reference ``y_ref`` ``[..., N, p]``
         (y_ref[k] is the target of C x(k+1)) and disturbance ``d`` ``[..., N, n]``
         (default 0), in y_ref's floating dtype. Leading axes batch: one row per
@@ -335,7 +338,8 @@ class LinearTracking:
                 self._device[key] = _in_dtype((self._model, self._maps), key)
         return self._device[key]
 
-    def solve(self, x, u_prev, y_ref, d=None, *, warm_start=None, max_nodes=None) -> SearchResult:
+    def solve(self, x: ArrayLike, u_prev: ArrayLike, y_ref: ArrayLike, d: ArrayLike | None = None, *,
+              warm_start: ArrayLike | None = None, max_nodes: int | ArrayLike | None = None) -> SearchResult:
         """The exact minimiser of J from state ``x`` ``[n]`` after input
         ``u_prev`` ``[m]``, for ``y_ref`` ``[N, p]`` and ``d`` ``[N, n]`` (default 0).
 
@@ -648,24 +652,10 @@ def _norm2_below(v, err):
     return sq * (1 - _gamma(v.dtype, v.shape[-1]))
 
 
-def _scalar(name, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a real number, got {value!r}") from None
-    if not np.isfinite(v) or v < 0:
-        raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
-    return v
-
-
 def _vector(name, a, shape, dtype):
     if not is_tracer(a):
-        arr = np.asarray(a)
-        if arr.dtype.kind not in "biuf":
-            raise TypeError(f"{name} must be a real array {list(shape)}, got dtype {arr.dtype}")
-        if not np.all(np.isfinite(arr)):
-            raise ValueError(f"{name} contains NaN or inf")
-        a = arr
+        a = numeric(name, a, f"array {list(shape)}")
+        finite(name, a)
     if tuple(a.shape) != shape:
         raise ValueError(f"{name} must have shape {list(shape)}, got {tuple(a.shape)}")
     return a.astype(dtype) if is_tracer(a) else np.asarray(a, dtype)  # a jitted call takes NumPy as it is

@@ -15,9 +15,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..annotations import ArrayLike, PyTree
 from ..checks import as_state, check_params, positive_int
 from ..runtime.memory_cache import cached
-from ..search.exhaustive import exhaustive
+from ..search.one_state import exhaustive
 from .callables import check_state
 from .problem import Problem, call
 
@@ -32,7 +33,8 @@ class Violation(NamedTuple):
     source: str = ""  # the callable that broke its promise: "stage_cost", "terminal_cost" or "lower_bound"
 
 
-def check_problem(problem: Problem, states, params=None, per_state: bool | None = None) -> list[Violation]:
+def check_problem(problem: Problem, states: ArrayLike, params: PyTree = None,
+                  per_state: bool | None = None) -> list[Violation]:
     """Stage costs of every input from every state ``[S, n]`` (at every step
     index with ``step_index``) and the terminal cost of each state; returns
     the ``(state, 0, cost, 0, source)`` of each state with a negative one,
@@ -60,7 +62,7 @@ def check_problem(problem: Problem, states, params=None, per_state: bool | None 
                   + [Violation(int(s), 0, float(g[s]), 0.0, "terminal_cost") for s in np.flatnonzero(g < 0)])
 
 
-def check_lower_bound(problem: Problem, states, params=None, max_steps: int | None = None,
+def check_lower_bound(problem: Problem, states: ArrayLike, params: PyTree = None, max_steps: int | None = None,
                       rtol: float | None = None, per_state: bool | None = None) -> list[Violation]:
     """Compare ``problem.lower_bound(x, s)`` with the exact optimal cost of the
     remaining ``s`` steps (an exhaustive search of horizon ``s`` from ``x``,

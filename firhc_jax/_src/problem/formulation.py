@@ -10,8 +10,9 @@ tracking costs along the horizon.
   with the reference ``r`` read from the parameters along the horizon.
 * ``input_change_cost(lambda_u)``: the switching penalty
   ``lambda_u ||u(k) - u(k-1)||^2`` for ``fj.with_input_memory``.
-* ``horizon_windows(signal, steps, horizon, start=1)``: a sampled reference
-  cut into the per-step parameters of a closed loop, ``[steps, N, ...]``.
+* ``horizon_windows(signal, steps, horizon, start=1, axis=0)``: a sampled reference
+  cut into the per-step parameters of a closed loop, ``[steps, N, ...]`` (of
+  B scenarios with ``axis=1``: ``[B, steps, N, ...]``).
 
 Each callable returned here ignores arguments it does not use, so it fits a
 problem with or without ``step_index`` and ``params``. Matrices are checked and
@@ -27,61 +28,32 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from ..checks import is_tracer, positive_int
+from ..annotations import ArrayLike
+from ..checks import matrix, non_negative, positive_int, real_array
 from .problem import check_target, weight, weighted_square
 
 _MAX_CONTROLS = 2**31 - 1  # the searches index inputs with int32
 
 
-def _real(name: str, a, what: str) -> np.ndarray:
-    """``a`` as a float64 array, or a ``TypeError`` naming ``name``: traced values refused (a model is built once,
-    in NumPy, before any search), complex ones too (NumPy would drop their imaginary part with only a warning)."""
-    if is_tracer(a):
-        raise TypeError(f"{name} must be concrete values, not a traced array: the model is built once, in NumPy, "
-                        "before any search (what changes between solves goes in the params)")
-    try:
-        given = np.asarray(a)
-    except ValueError:  # ragged lists
-        raise TypeError(f"{name} must be a real {what}, got {a!r}") from None
-    if given.dtype.kind == "c":
-        raise TypeError(f"{name} must be real, got complex dtype {given.dtype}")
-    try:
-        return np.array(given, dtype=float)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a real {what}, got {a!r}") from None
-
-
-def _matrix(name: str, a) -> np.ndarray:
-    """``a`` as a read-only float64 matrix (``_real``), 2-D, non-empty and finite, or a ``TypeError`` or
-    ``ValueError`` naming ``name``: the one rule for the model matrices of this module and ``LinearTracking``."""
-    arr = _real(name, a, "matrix")
-    if arr.ndim != 2 or 0 in arr.shape:
-        raise ValueError(f"{name} must be a non-empty 2-D matrix, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or inf")
-    arr.flags.writeable = False
-    return arr
-
-
 def _state_input(A, B) -> tuple[np.ndarray, np.ndarray]:
-    A = _matrix("A", A)
+    A = matrix("A", A)
     if A.shape[0] != A.shape[1]:
         raise ValueError(f"A must be square [n, n], got shape {A.shape}")
-    B = _matrix("B", np.reshape(B, (-1, 1)) if np.ndim(B) == 1 else B)
+    B = matrix("B", np.reshape(B, (-1, 1)) if np.ndim(B) == 1 else B)
     if B.shape[0] != A.shape[0]:
         raise ValueError(f"B must have n = {A.shape[0]} rows like A, got shape {B.shape}")
     return A, B
 
 
-def discretize(A, B, Ts: float) -> tuple[np.ndarray, np.ndarray]:
+def discretize(A: ArrayLike, B: ArrayLike, Ts: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact zero-order-hold discretisation of ``dx/dt = A x + B u`` with
     sampling period ``Ts``: ``(Ad, Bd)`` with ``Ad = exp(A Ts)`` and
     ``Bd = int_0^Ts exp(A s) ds B``, both from one matrix exponential of
     ``[[A, B], [0, 0]] Ts`` (float64 NumPy arrays)."""
     A, B = _state_input(A, B)
     given = Ts
-    Ts = _real("Ts", Ts, "sampling period > 0")
-    if Ts.ndim != 0 or not np.isfinite(Ts) or Ts <= 0:
+    Ts = real_array("Ts", Ts, "sampling period > 0")
+    if Ts.ndim != 0 or Ts <= 0:
         raise ValueError(f"Ts must be a finite sampling period > 0, got {given!r}")
     Ts = float(Ts)
     n, m = B.shape
@@ -97,7 +69,7 @@ def discretize(A, B, Ts: float) -> tuple[np.ndarray, np.ndarray]:
     return E[:n, :n], E[:n, n:]
 
 
-def linear_dynamics(A, B, d=None) -> Callable:
+def linear_dynamics(A: ArrayLike, B: ArrayLike, d: ArrayLike | None = None) -> Callable:
     """``dynamics(x, u, ...) -> A x + B u (+ d)`` for discrete-time ``A``
     ``[n, n]``, ``B`` ``[n, m]`` (a vector: m = 1) and an optional constant
     ``d`` ``[n]``. Inputs are promoted to the state's dtype. Disturbances that
@@ -105,9 +77,9 @@ def linear_dynamics(A, B, d=None) -> Callable:
     ``lambda x, u, k, p: f(x, u) + p["d"][k]``."""
     A, B = _state_input(A, B)
     if d is not None:
-        d = _real("d", d, "vector")
-        if d.shape != (A.shape[0],) or not np.all(np.isfinite(d)):
-            raise ValueError(f"d must be a finite vector of shape ({A.shape[0]},), got {d!r}")
+        d = real_array("d", d, "vector")
+        if d.shape != (A.shape[0],):
+            raise ValueError(f"d must be a vector of shape ({A.shape[0]},), got {d!r}")
 
     def dynamics(x, u, *_):
         out = jnp.asarray(A, x.dtype) @ x + jnp.asarray(B, x.dtype) @ u.astype(x.dtype)
@@ -116,7 +88,7 @@ def linear_dynamics(A, B, d=None) -> Callable:
     return dynamics
 
 
-def product_controls(*levels, repeat: int = 1) -> np.ndarray:
+def product_controls(*levels: ArrayLike, repeat: int = 1) -> np.ndarray:
     """``[M, m]`` control set of every combination of the given per-component
     levels, in ``itertools.product`` order: ``product_controls([-1, 0, 1],
     repeat=3)`` is the 27 switch states of a three-level three-phase inverter,
@@ -145,7 +117,8 @@ def product_controls(*levels, repeat: int = 1) -> np.ndarray:
     return out
 
 
-def tracking_cost(C=None, Q=None, R=None, u_ref=None, ref: str = "ref") -> Callable:
+def tracking_cost(C: ArrayLike | None = None, Q: ArrayLike | None = None, R: ArrayLike | None = None,
+                  u_ref: ArrayLike | None = None, ref: str = "ref") -> Callable:
     """Stage cost ``||C x(k+1) - r(k)||_Q^2 + ||u(k) - u_ref||_R^2`` of tracking MPC.
 
     The reference is read from the parameters: with ``step_index`` it is
@@ -161,11 +134,11 @@ def tracking_cost(C=None, Q=None, R=None, u_ref=None, ref: str = "ref") -> Calla
     Input changes are penalised with ``fj.with_input_memory(problem,
     fj.input_change_cost(lambda_u))``.
     """
-    C = None if C is None else _matrix("C", np.reshape(C, (1, -1)) if np.ndim(C) < 2 else C)
+    C = None if C is None else matrix("C", np.reshape(C, (1, -1)) if np.ndim(C) < 2 else C)
     Qw = weight("Q", 1.0 if Q is None else Q)
     Rw = None if R is None else weight("R", R)
-    if u_ref is not None and not np.all(np.isfinite(_real("u_ref", u_ref, "vector"))):
-        raise ValueError(f"u_ref must be finite, got {u_ref!r}")
+    if u_ref is not None:
+        real_array("u_ref", u_ref, "vector")
 
     def stage_cost(x_next, u, *rest):
         if not rest or not hasattr(rest[-1], "__getitem__") or isinstance(rest[-1], (jnp.ndarray, np.ndarray)):
@@ -199,7 +172,7 @@ def tracking_cost(C=None, Q=None, R=None, u_ref=None, ref: str = "ref") -> Calla
     return stage_cost
 
 
-def input_change_cost(lambda_u, norm: str = "squared") -> Callable:
+def input_change_cost(lambda_u: float | str, norm: str = "squared") -> Callable:
     """Switching penalty for ``fj.with_input_memory``:
     ``lambda_u * ||u - u_prev||_2^2`` (``norm="squared"``) or
     ``lambda_u * ||u - u_prev||_1`` (``norm="abs"``, the FCS-MPC count of leg
@@ -208,9 +181,7 @@ def input_change_cost(lambda_u, norm: str = "squared") -> Callable:
     if norm not in ("squared", "abs"):
         raise ValueError(f"norm must be 'squared' or 'abs', got {norm!r}")
     if not isinstance(lambda_u, str):
-        lam = float(np.asarray(lambda_u, dtype=float))
-        if not np.isfinite(lam) or lam < 0:
-            raise ValueError(f"lambda_u must be a finite number >= 0 or a parameter name, got {lambda_u!r}")
+        lam = non_negative("lambda_u (a number or a parameter name)", lambda_u)
 
     def switching_cost(u, u_prev, *rest):
         if isinstance(lambda_u, str):
@@ -226,7 +197,7 @@ def input_change_cost(lambda_u, norm: str = "squared") -> Callable:
     return switching_cost
 
 
-def horizon_windows(signal, steps: int, horizon: int, start: int = 1) -> np.ndarray:
+def horizon_windows(signal: ArrayLike, steps: int, horizon: int, start: int = 1, *, axis: int = 0) -> np.ndarray:
     """``[steps, N, ...]``: for the decision at step t, ``signal[t+start .. t+start+N-1]``.
 
     ``start=1`` (default): ``signal[t+1 .. t+N]``, the samples that the N
@@ -236,13 +207,20 @@ def horizon_windows(signal, steps: int, horizon: int, start: int = 1) -> np.ndar
     ``start=0``: ``signal[t .. t+N-1]``, the samples that go with the N inputs
     ``u(t) .. u(t+N-1)`` (prices, demands, disturbances on inputs).
     ``signal`` ``[steps + start + N - 1, ...]`` or longer, sampled at the
-    control period, ``signal[0]`` at t = 0."""
+    control period, ``signal[0]`` at t = 0.
+
+    ``axis``: the signal's time axis; the axes before it are kept in front.
+    ``axis=1`` cuts B scenarios ``[B, steps + N, ...]`` into ``[B, steps, N, ...]``,
+    the per-loop parameters of ``FIRHC.simulate_batch``."""
     steps, horizon = positive_int("steps", steps), positive_int("horizon", horizon)
     start = positive_int("start", start, minimum=0)
+    axis = positive_int("axis", axis, minimum=0)
     signal = np.asarray(signal)
+    if axis >= max(signal.ndim, 1):
+        raise ValueError(f"axis {axis} is not an axis of signal, whose shape is {signal.shape}")
     need = steps + start + horizon - 1
-    if signal.ndim == 0 or signal.shape[0] < need:
-        raise ValueError(f"signal needs at least steps + start + horizon - 1 = {need} samples along its first "
-                         f"axis, got shape {signal.shape}")
+    if signal.ndim == 0 or signal.shape[axis] < need:
+        raise ValueError(f"signal needs at least steps + start + horizon - 1 = {need} samples along axis {axis}, "
+                         f"got shape {signal.shape}")
     index = np.arange(steps)[:, None] + start + np.arange(horizon)[None, :]
-    return signal[index]
+    return np.take(signal, index, axis=axis)

@@ -53,15 +53,14 @@ from __future__ import annotations
 
 import dataclasses
 import weakref
-from typing import Any, Callable, Optional
+from typing import Callable, Optional
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..checks import is_tracer, positive_int
-
-Array = Any
+from ..annotations import ArrayLike
+from ..checks import finite, input_rows, is_tracer, positive_int, real_array
 
 
 @jax.tree_util.register_pytree_node_class
@@ -92,7 +91,7 @@ class Problem:
     """
 
     dynamics: Callable
-    controls: Array  # [M, m]
+    controls: ArrayLike  # [M, m]
     stage_cost: Callable
     horizon: int
     terminal: Optional[Callable] = None
@@ -137,6 +136,22 @@ class Problem:
         """Child nodes of the full search tree: sum_{i=1..N} M^i."""
         M, N = self.num_controls, self.horizon
         return N if M == 1 else (M ** (N + 1) - M) // (M - 1)
+
+    def index_of(self, u: ArrayLike) -> int | np.ndarray:
+        """The index of input ``u`` ``[m]`` in ``controls``, as ``warm_start``, ``SearchResult.sequence`` and
+        ``ClosedLoop.input_indices`` hold it; of each input of ``[..., m]``, an int32 array ``[...]``.
+
+        Values match exactly, compared in the controls' dtype (a float32 set finds the float32 value of
+        ``0.1``); the first of equal rows is returned. An input that is not in the set is a ``ValueError``."""
+        u = input_rows("u", u, self.input_dim)
+        dtype = self.controls.dtype if np.issubdtype(self.controls.dtype, np.inexact) else np.float64
+        hits = np.all(u.astype(dtype)[..., None, :] == self.controls.astype(dtype), axis=-1)  # [..., M]
+        missing = ~hits.any(axis=-1)
+        if missing.any():
+            where = tuple(int(i) for i in np.argwhere(missing)[0])
+            raise ValueError(f"u{list(where) if where else ''} = {u[where].tolist()} is not in the control set")
+        index = np.argmax(hits, axis=-1).astype(np.int32)
+        return int(index) if index.ndim == 0 else index
 
     def replace(self, **changes) -> "Problem":
         """A copy with some fields changed (e.g. ``terminal=None``)."""
@@ -247,8 +262,7 @@ def _check_controls(controls) -> np.ndarray:
         raise ValueError("controls is empty: the control set needs at least one input (M >= 1)")
     if arr.shape[1] == 0:
         raise ValueError(f"controls has inputs of dimension 0 (shape {tuple(arr.shape)}); need m >= 1")
-    if np.issubdtype(arr.dtype, np.inexact) and not np.all(np.isfinite(arr)):
-        raise ValueError("controls contains NaN or inf")
+    finite("controls", arr)
     if not np.issubdtype(arr.dtype, np.inexact) and not np.array_equal(arr.astype(np.float32), arr):
         raise ValueError("integer controls must be exactly representable in float32 (|u| <= 2^24): the input "
                          "a search returns is floating, so that an infeasible search can return NaN")
@@ -275,7 +289,7 @@ def input_dtype(problem: Problem):
     return jax.dtypes.canonicalize_dtype(np.float64)
 
 
-def quadratic_cost(lam, x_s, beta=0.0, u_e=None) -> Callable:
+def quadratic_cost(lam: ArrayLike, x_s: ArrayLike, beta: ArrayLike = 0.0, u_e: ArrayLike | None = None) -> Callable:
     """Stage cost of eq. (2): ``dx' Q dx + du' R du`` with ``dx = x_next - x_s``
     and ``du = u - u_e`` (``u_e`` defaults to 0).
 
@@ -293,12 +307,7 @@ def quadratic_cost(lam, x_s, beta=0.0, u_e=None) -> Callable:
     for name, v in (("x_s", x_s), ("u_e", u_e)):
         if v is None:
             continue
-        arr = np.asarray(v)
-        if arr.dtype.kind not in "biuf":
-            raise TypeError(f"quadratic_cost target {name} must be a real vector, got dtype {arr.dtype}")
-        if not np.all(np.isfinite(arr)):
-            raise ValueError(f"quadratic_cost target {name} must be finite, got {v!r}")
-        targets[name] = arr.astype(float)
+        targets[name] = real_array(f"quadratic_cost target {name}", v, "vector")
     if Q.ndim and "x_s" in targets and targets["x_s"].ndim and targets["x_s"].shape != Q.shape[:1]:
         raise ValueError(f"quadratic_cost: x_s has shape {targets['x_s'].shape} but lam has shape {Q.shape}: "
                          "both must have the state's length n")
@@ -332,15 +341,7 @@ def weight(name: str, w) -> np.ndarray:
     or a symmetric positive semidefinite matrix; else a ``ValueError`` naming
     ``name``. Returned as a read-only float64 NumPy array (cast to the state's
     dtype where it is used)."""
-    try:
-        complex_ = np.iscomplexobj(w)  # NumPy would drop the imaginary part with only a warning
-        w_np = None if complex_ else np.array(w, dtype=float)
-    except (TypeError, ValueError):
-        raise TypeError(f"weight {name} must be a real scalar, vector or matrix, got {w!r}") from None
-    if complex_:
-        raise TypeError(f"weight {name} must be real, got a complex value {w!r}")
-    if not np.all(np.isfinite(w_np)):
-        raise ValueError(f"weight {name} must be finite, got {w!r}")
+    w_np = real_array(f"weight {name}", w, "scalar, vector or matrix")
     if w_np.ndim > 2:
         raise ValueError(f"weight {name} must be a scalar, a vector or a matrix, got shape {w_np.shape}")
     if w_np.ndim < 2 and np.any(w_np < 0):

@@ -10,10 +10,11 @@ the same script finds it there and only traces and lowers again
 The library never turns it on by itself (that would change global JAX
 config on import): call ``enable_compilation_cache()`` once at the start of
 a script. The command line (``python -m firhc_jax``) calls it unless given
-``--no-cache``.
+``--no-cache``, which runs inside ``compilation_cache_off``.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -32,7 +33,7 @@ def default_cache_path() -> Path:
     return Path(base) / "firhc_jax"
 
 
-def enable_compilation_cache(path=None) -> Path:
+def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     """Turn on JAX's persistent compilation cache in ``path`` (default: ``default_cache_path()``) and return it.
 
     Later compilations in this process are read from, and written to, that
@@ -60,3 +61,18 @@ def enable_compilation_cache(path=None) -> Path:
         jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
     return folder
+
+
+@contextlib.contextmanager
+def compilation_cache_off():
+    """No persistent compilation cache inside the block, even where ``JAX_COMPILATION_CACHE_DIR`` names a folder:
+    JAX reads and writes nothing there (``jax_enable_compilation_cache``), and neither do the command line's kept
+    decisions. As it was after the block."""
+    was = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    _jax_cache.reset_cache()  # JAX decides once per process whether to use its cache: decided again
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_compilation_cache", was)
+        _jax_cache.reset_cache()

@@ -9,8 +9,8 @@ tests and the benchmarks:
 * ``initialize``: join a job from arguments or the environment variables
   ``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES``, ``JAX_PROCESS_ID``
   (switching CPU collectives to gloo, which the final all-gather needs on CPU);
-* ``load_states`` / ``save_result`` / ``load_result``: the ``.npz`` files of the
-  command line;
+* ``load_states`` / ``load_params`` / ``save_result`` / ``load_result``: the
+  ``.npy`` and ``.npz`` files of the command line;
 * ``launch_local``: run one command as P processes of one job on 127.0.0.1
   (a free port), killing all of them if one fails or the time runs out;
 * ``exit_on_failure``: make a failing process of a job exit at once (so the
@@ -102,18 +102,70 @@ def initialize(coordinator: str | None = None, num_processes=None, process_id=No
 # .npz files.
 # ---------------------------------------------------------------------------
 
-def load_states(path) -> np.ndarray:
-    """The ``[B, n]`` states stored under key ``"X0"`` of an ``.npz`` file."""
+NPY_MAGIC, NPZ_MAGIC = b"\x93NUMPY", b"PK\x03\x04"
+
+
+def read_arrays(path):
+    """The array of an ``.npy`` file, or the ``{name: array}`` of an ``.npz``, read whole without pickles.
+
+    A file that exists but cannot be parsed (not NumPy's, truncated,
+    damaged, holding Python objects) raises a one-line ``ValueError``
+    naming it; one that cannot be opened, the ``OSError`` (which names it).
+    """
     path = Path(path)
-    with np.load(path, allow_pickle=False) as data:
-        if STATES_KEY not in data.files:
-            raise ValueError(f"{path} has no array {STATES_KEY!r} (the [B, n] states); it holds {data.files}")
-        X0 = np.asarray(data[STATES_KEY])
+    with open(path, "rb") as f:
+        magic = f.read(len(NPY_MAGIC))
+        if not (magic.startswith(NPZ_MAGIC) or magic == NPY_MAGIC):
+            raise ValueError(f"{path} is neither an .npy nor an .npz file")
+        f.seek(0)
+        try:
+            loaded = np.load(f, allow_pickle=False)
+            if isinstance(loaded, np.ndarray):
+                return loaded
+            with loaded:
+                return {key: loaded[key] for key in loaded.files}
+        except Exception as e:  # noqa: BLE001  whatever NumPy, zipfile or zlib make of a damaged file
+            reason = " ".join(str(e).split()) or "no reason given"
+            raise ValueError(f"cannot read {path} ({type(e).__name__}: {reason})") from None
+
+
+def load_states(path) -> np.ndarray:
+    """The ``[B, n]`` states of an ``.npy`` file, or stored under key ``"X0"`` of an ``.npz`` file."""
+    path = Path(path)
+    data = read_arrays(path)
+    if isinstance(data, dict):
+        if STATES_KEY not in data:
+            raise ValueError(f"{path} has no array {STATES_KEY!r} (the [B, n] states); it holds {list(data)}")
+        data = data[STATES_KEY]
+    X0 = np.asarray(data)
     if X0.ndim != 2:
         raise ValueError(f"{path}: {STATES_KEY} must be [B, n], got shape {X0.shape}")
     if X0.dtype == bool or not (np.issubdtype(X0.dtype, np.integer) or np.issubdtype(X0.dtype, np.floating)):
         raise ValueError(f"{path}: {STATES_KEY} must hold real numbers, got dtype {X0.dtype}")
     return X0
+
+
+def load_params(path):
+    """Per-row parameters: the array of an ``.npy`` file, or the arrays of an ``.npz`` file as a dict, a key
+    ``a/b`` nested as ``p["a"]["b"]``."""
+    path = Path(path)
+    data = read_arrays(path)
+    if not isinstance(data, dict):
+        return data
+    if not data:
+        raise ValueError(f"{path} holds no arrays")
+    params: dict = {}
+    for key, array in data.items():
+        *outer, leaf = key.split("/")
+        node = params
+        for part in outer:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ValueError(f"{path}: {key!r} nests under an array")
+        if leaf in node:
+            raise ValueError(f"{path}: {key!r} is both an array and a group")
+        node[leaf] = array
+    return params
 
 
 def save_states(path, X0) -> None:

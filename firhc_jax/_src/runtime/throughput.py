@@ -1,29 +1,34 @@
-"""Expansion throughput of the user's own problem on this machine.
+"""Expansion throughput of the user's own problem on this machine, and what a node's time is spent on.
 
-``profile(problem, states)`` times the searches a user can pick from on the
-states they will search at (for instance the states of a closed loop): one
-state per call with ``fj.sdfs`` at several pop widths and with
-``fj.exhaustive``, and all states at once with ``fj.solve_batch``'s pool at
-several lane counts. Each setting's first call compiles and is timed apart
-(``compile_s``); the rates come from the median of the timed calls after it.
-The fastest setting (most solves per second) is marked. The one-state
-searches are jitted once per problem and setting, in the package's cache
-(``firhc_jax._src.runtime.memory_cache``): profiling the same problem again compiles nothing.
+``profile(problem, states)`` times the searches a user can pick from on the states they will search at (for
+instance the states of a closed loop): one state per call with ``fj.sdfs`` at several pop widths and with
+``fj.exhaustive``, and all states at once with ``fj.solve_batch`` at its default and at several lane
+counts. It also times each callable of the problem as a search evaluates it, vmapped over a batch of
+children, to split a node's time into dynamics, stage cost, constraint, bound and terminal tests.
+
+Every setting is first called once, which compiles it (timed apart, ``compile_s``); then ``repeats`` rounds
+time every setting once each, in an order rotated from round to round, so that a change in the machine's
+load falls on all settings alike. A row keeps the median and the range of its runs. The fastest setting
+(most solves per second) wins clearly only when its slowest run beats every other setting's fastest; the
+settings whose range reaches the fastest's are ``within_noise`` of it. The jitted searches and callables
+are kept in the package's cache (``memory_cache``): profiling the same problem again compiles nothing.
 """
 from __future__ import annotations
 
 import statistics
 import sys
 import time
-from typing import Callable
+from typing import Callable, NamedTuple, Sequence
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from ..annotations import ArrayLike, PyTree
 from ..checks import positive_int
 from ..problem.callables import search_inputs
-from ..problem.problem import Problem
+from ..problem.problem import Problem, call
 from ..search import solvers
 from ..search.batch import solve_batch
 from ..search.sdfs import INT32_MAX
@@ -32,6 +37,34 @@ from .memory_cache import cached
 POP_WIDTHS = (1, 2, 4, 8)
 LANES = (16, 64, 256)
 MAX_EXHAUSTIVE_NODES = 10_000_000
+CHILDREN = 16_384  # children per timed call of a callable: enough work that the call's dispatch is a small part
+
+
+class Profile(list):
+    """``fj.profile``'s result: a list of rows, one dict per search setting, with what they rest on.
+
+    Attributes: ``node_costs`` (one dict per callable of the problem, in the order a node evaluates them:
+    ``callable``, ``ns`` (median ns per child), ``ns_min``, ``ns_max``, ``children`` (the children of one
+    timed call), ``compile_s``), ``repeats`` (timed runs of every setting), ``compile_seconds`` (the first
+    calls' extra time, summed over the searches and callables) and ``seconds`` (the whole profile's time).
+    """
+
+    def __init__(self, rows: list[dict], node_costs: list[dict], repeats: int, compile_seconds: float,
+                 seconds: float):
+        super().__init__(rows)
+        self.node_costs, self.repeats = node_costs, repeats
+        self.compile_seconds, self.seconds = compile_seconds, seconds
+
+    @property
+    def clear_winner(self) -> bool:
+        """Whether the fastest setting's slowest run beat every other setting's fastest run (never with one run
+        per setting, which measures no noise)."""
+        return self.repeats > 1 and sum(r["within_noise"] for r in self) == 1
+
+
+class _Job(NamedTuple):
+    name: str
+    run: Callable[[], list]  # a list of results, each read back
 
 
 def _counts(name: str, values) -> tuple[int, ...]:
@@ -42,18 +75,29 @@ def _counts(name: str, values) -> tuple[int, ...]:
     return tuple(positive_int(name, v) for v in values)
 
 
-def _timed(run: Callable[[], list], repeats: int):
-    """``(median seconds, first-call seconds, results)`` of ``run()`` (a list of
-    results, each read back before the clock stops); the first call compiles."""
+def _clock(run: Callable[[], list]):
+    """``(seconds, results)`` of one ``run()``, every result read back before the clock stops."""
     t0 = time.perf_counter()
     results = jax.block_until_ready(run())
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        results = jax.block_until_ready(run())
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), first, results
+    return time.perf_counter() - t0, results
+
+
+def _measure(jobs: list[_Job], repeats: int, bar):
+    """``(first-call seconds, [repeats] seconds, last results)`` of each job: every job's compiling call, then
+    ``repeats`` rounds of one call each, each round starting one job later than the last."""
+    firsts, times, results = [], [[] for _ in jobs], [None] * len(jobs)
+    for j, job in enumerate(jobs):
+        bar.set_description(f"profile: {job.name} (compiling)")
+        first, results[j] = _clock(job.run)
+        firsts.append(first)
+        bar.update(1)
+    for r in range(repeats):
+        for j in np.roll(np.arange(len(jobs)), -r):
+            bar.set_description(f"profile: round {r + 1} of {repeats}, {jobs[j].name}")
+            seconds, results[j] = _clock(jobs[j].run)
+            times[j].append(seconds)
+            bar.update(1)
+    return firsts, times, results
 
 
 def _search(problem: Problem, solver: str, X, **options) -> Callable:
@@ -73,44 +117,106 @@ def _each(search: Callable, pairs) -> Callable[[], list]:
     return lambda: [jax.block_until_ready(search(x, p)) for x, p in pairs]
 
 
-def _row(solver: str, setting: str, seconds: float, first: float, results, solves: int, **options) -> dict:
+def _node_parts(problem: Problem) -> dict:
+    """``{name: jitted f(x [W, n], xs [W, M, n], p [W])}`` for each callable a node evaluates, vmapped over the
+    states and every input as the searches vmap them (step index 0, ``N - 1`` steps left), from the cache."""
+    def children(f, per_input):  # f(x or x_child, u, p) over [W] states and [M] inputs
+        inner = jax.vmap(f, in_axes=(0 if per_input else None, 0, None))
+        return jax.vmap(lambda x, p: inner(x, jnp.asarray(problem.controls), p))
+
+    steps_left = jnp.int32(problem.horizon - 1)
+    parts = {"dynamics": lambda x, xs, p: children(lambda x, u, p: problem.next_state(x, u, 0, p), False)(x, p),
+             "stage_cost": lambda x, xs, p: children(lambda x, u, p: problem.cost_of_step(x, u, 0, p), True)(xs, p)}
+    if problem.constraint is not None:
+        parts["constraint"] = lambda x, xs, p: children(lambda x, u, p: problem.allowed(x, u, 0, p), True)(xs, p)
+    for name, fn, more in (("lower_bound", problem.lower_bound, (steps_left,)), ("terminal", problem.terminal, ()),
+                           ("terminal_cost", problem.terminal_cost, ())):
+        if fn is not None:
+            parts[name] = lambda x, xs, p, fn=fn, more=more: children(
+                lambda x, u, p: call(fn, p, x, *more), True)(xs, p)
+    return cached(("profile nodes", problem.key), lambda: {k: jax.jit(f) for k, f in parts.items()})
+
+
+def _node_jobs(problem: Problem, X, params) -> tuple[list[_Job], int]:
+    """A job per callable on ``ceil(CHILDREN / M)`` of the states (repeated as needed) times every input,
+    and the children of one call. The first job, ``dynamics``, computes the children the others take."""
+    M = problem.num_controls
+    rows = np.arange(-(-CHILDREN // M)) % X.shape[0]
+    x = jnp.asarray(X)[rows]
+    p = jax.tree_util.tree_map(lambda a: jnp.asarray(a)[rows], params)
+    parts = _node_parts(problem)
+    children = {}
+
+    def dynamics():
+        children["xs"] = parts["dynamics"](x, None, p)
+        return [children["xs"]]
+
+    jobs = [_Job("dynamics", dynamics)] + [_Job(name, lambda f=f: [f(x, children["xs"], p)])
+                                           for name, f in parts.items() if name != "dynamics"]
+    return jobs, rows.size * M
+
+
+def _row(solver: str, setting: str, times: list, first: float, results, solves: int, default: bool,
+         **options) -> dict:
+    seconds = statistics.median(times)
     nodes = int(sum(np.sum(np.asarray(r.nodes, np.int64)) for r in results))
     iterations = int(sum(np.sum(np.asarray(r.iterations, np.int64)) for r in results))
     return {"solver": solver, "setting": setting, **options, "states": solves, "seconds": seconds,
-            "compile_s": max(first - seconds, 0.0), "nodes": nodes, "iterations": iterations,
-            "nodes_per_second": nodes / seconds, "solves_per_second": solves / seconds,
-            "us_per_iteration": 1e6 * seconds / max(iterations, 1), "fastest": False}
+            "seconds_min": min(times), "seconds_max": max(times), "compile_s": max(first - seconds, 0.0),
+            "nodes": nodes, "iterations": iterations, "nodes_per_second": nodes / seconds,
+            "solves_per_second": solves / seconds, "us_per_iteration": 1e6 * seconds / max(iterations, 1),
+            "default": default, "fastest": False, "within_noise": False}
 
 
-def profile(problem: Problem, states, params=None, *, pop_widths=POP_WIDTHS, lanes=LANES, repeats: int = 3,
-            max_exhaustive_nodes: int = MAX_EXHAUSTIVE_NODES, progress: bool = False) -> list[dict]:
-    """Time every search setting on ``states`` and mark the fastest.
+def _mark(rows: list[dict]) -> None:
+    """Mark the fastest row (most solves per second) and every row within the noise of it: whose fastest
+    run per state is no slower than the fastest row's slowest run per state."""
+    best = max(rows, key=lambda r: r["solves_per_second"])
+    best["fastest"] = True
+    for r in rows:
+        r["within_noise"] = r["seconds_min"] / r["states"] <= best["seconds_max"] / best["states"]
+
+
+def profile(problem: Problem, states: ArrayLike, params: PyTree = None, *, pop_widths: Sequence[int] = POP_WIDTHS,
+            lanes: Sequence[int] = LANES, repeats: int = 3, max_exhaustive_nodes: int = MAX_EXHAUSTIVE_NODES,
+            progress: bool = False) -> Profile:
+    """Time every search setting on ``states``, interleaved and repeated; mark the default and the fastest.
 
     Args:
       problem: the ``Problem``.
       states: ``[S, n]`` states to search from (e.g. a closed loop's).
       params: optional parameter pytree with leading axis S: state i is
         searched with ``params[i]`` (as ``fj.solve_batch``).
-      pop_widths: the ``fj.sdfs`` pop widths to time, one state per call.
+      pop_widths: the ``fj.sdfs`` pop widths to time, one state per call
+        (1, the default, is always among them unless this is empty).
       lanes: the ``fj.solve_batch`` lane counts to time, all states in one
-        call (default ``cores``: every core of a CPU).
-      repeats: timed calls after the compiling one; their median is used.
+        call, after ``solve_batch``'s default (timed unless this is empty).
+      repeats: timed rounds after the compiling call; each times every
+        setting once, in an order rotated from round to round.
       max_exhaustive_nodes: ``fj.exhaustive`` is timed on evenly spaced states
         visiting at most this many nodes in all (none if one tree is larger).
       progress: a bar on stderr naming the setting being compiled and timed.
 
-    Returns one dict per setting, in the order above: ``solver`` (``"sdfs"``,
-    ``"exhaustive"`` or ``"solve_batch"``), ``setting`` (e.g.
-    ``"sdfs pop_width=2"``), ``pop_width`` or ``lanes``, ``states`` (how many
-    were solved), ``seconds`` (median time to solve them all; the one-state
-    solvers are called once per state, each result read back),
+    Returns a ``Profile``: a list with one dict per setting, in the order
+    above: ``solver`` (``"sdfs"``, ``"exhaustive"`` or ``"solve_batch"``),
+    ``setting`` (e.g. ``"sdfs pop_width=2"``), ``pop_width`` or ``lanes``
+    (None: the default), ``states`` (how many were solved: what every figure
+    of the row rests on), ``seconds`` (median time to solve them all; the
+    one-state solvers are called once per state, each result read back),
+    ``seconds_min``, ``seconds_max`` (the range of the ``repeats`` runs),
     ``compile_s`` (the first call's extra time: never part of a rate),
     ``nodes``, ``iterations`` (summed ``SearchResult`` counts),
     ``nodes_per_second``, ``solves_per_second``, ``us_per_iteration``
     (``seconds`` over ``iterations``, whose meaning is each solver's, see
-    ``SearchResult``) and ``fastest``: True on exactly one row, the setting
-    with the most solves per second.
+    ``SearchResult``), ``default`` (the setting a call without options
+    gets), ``fastest`` (True on exactly one row, the most solves per second)
+    and ``within_noise`` (its fastest run per state is no slower than the
+    fastest row's slowest: no clear difference). Its ``node_costs`` split a
+    node's time into the problem's callables; ``clear_winner``,
+    ``compile_seconds`` and ``seconds`` (the whole profile) say what the
+    rows rest on (``Profile``).
     """
+    start = time.perf_counter()
     X, params = search_inputs(problem, states, params, batched=True, name="states")
     S = X.shape[0]
     pop_widths, lanes = _counts("pop_widths", pop_widths), _counts("lanes", lanes)
@@ -120,25 +226,35 @@ def profile(problem: Problem, states, params=None, *, pop_widths=POP_WIDTHS, lan
         raise ValueError("pop_widths and lanes are both empty: nothing to profile")
     one = [(X[i], jax.tree_util.tree_map(lambda a, i=i: a[i], params)) for i in range(S)]
 
-    settings = []  # (setting, solver, how many states, the timed run, its options)
-    for k in pop_widths:
-        settings.append((f"sdfs pop_width={k}", "sdfs", S, _each(_search(problem, "sdfs", X, pop_width=k), one),
-                         {"pop_width": k}))
+    settings = []  # (solver, setting, how many states, default, options), one per job
+    jobs = []
+    for k in (1,) * (1 not in pop_widths and bool(pop_widths)) + pop_widths:
+        settings.append(("sdfs", f"sdfs pop_width={k}", S, k == 1, {"pop_width": k}))
+        jobs.append(_Job(settings[-1][1], _each(_search(problem, "sdfs", X, pop_width=k), one)))
     count = min(S, max_exhaustive_nodes // problem.tree_size())
     if count:
         some = [one[i] for i in np.unique(np.linspace(0, S - 1, count).round().astype(int))]
-        settings.append(("exhaustive", "exhaustive", len(some), _each(_search(problem, "exhaustive", X), some), {}))
-    for slots in lanes:
-        settings.append((f"solve_batch lanes={slots}", "solve_batch", S,
-                         lambda slots=slots: [solve_batch(problem, X, params=params, lanes=slots)], {"lanes": slots}))
-    rows = []
-    with tqdm(total=len(settings), desc="profile", unit="setting", disable=not progress, file=sys.stderr,
-              dynamic_ncols=True) as bar:
-        for setting, solver, solves, run, options in settings:
-            bar.set_description(f"profile: {setting} (compiling, then {repeats} timed runs)")
-            t, first, res = _timed(run, repeats)
-            rows.append(_row(solver, setting, t, first, res, solves, **options))
-            bar.update(1)
+        settings.append(("exhaustive", "exhaustive", len(some), False, {}))
+        jobs.append(_Job("exhaustive", _each(_search(problem, "exhaustive", X), some)))
+    for slots in (None,) * bool(lanes) + lanes:
+        name = "solve_batch default lanes" if slots is None else f"solve_batch lanes={slots}"
+        settings.append(("solve_batch", name, S, slots is None, {"lanes": slots}))
+        jobs.append(_Job(name, lambda slots=slots: [solve_batch(problem, X, params=params, lanes=slots)]))
+    node_jobs, children = _node_jobs(problem, X, params)
+
+    everything = jobs + node_jobs
+    with tqdm(total=len(everything) * (1 + repeats), desc="profile", unit="run", disable=not progress,
+              file=sys.stderr, dynamic_ncols=True) as bar:
+        firsts, times, results = _measure(everything, repeats, bar)
         bar.set_description("profile")
-    max(rows, key=lambda r: r["solves_per_second"])["fastest"] = True
-    return rows
+    rows = [_row(solver, setting, times[j], firsts[j], results[j], solves, default, **options)
+            for j, (solver, setting, solves, default, options) in enumerate(settings)]
+    _mark(rows)
+    node_costs = []
+    for j, job in enumerate(node_jobs, start=len(jobs)):
+        median = statistics.median(times[j])
+        node_costs.append({"callable": job.name, "ns": 1e9 * median / children,
+                           "ns_min": 1e9 * min(times[j]) / children, "ns_max": 1e9 * max(times[j]) / children,
+                           "children": children, "compile_s": max(firsts[j] - median, 0.0)})
+    compile_seconds = sum(r["compile_s"] for r in rows) + sum(c["compile_s"] for c in node_costs)
+    return Profile(rows, node_costs, repeats, compile_seconds, time.perf_counter() - start)

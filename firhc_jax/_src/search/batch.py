@@ -23,12 +23,13 @@ fit on its own is refused before anything is compiled. Where the rows run
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
 from jax.sharding import Mesh, PartitionSpec
 
+from ..annotations import ArrayLike, PyTree
 from ..checks import is_tracer, positive_int
 from ..problem.callables import search_inputs
 from ..problem.problem import Problem
@@ -75,7 +76,7 @@ def _plan(problem: Problem, solver: str, options: dict, n: int, itemsize: int, B
     if fixed >= share:
         raise ValueError(f"the pool of {options['lanes']} lanes needs about {fixed:,} bytes, more than "
                          f"max_memory={max_memory:,}; lower lanes or pop_width, or raise max_memory")
-    what = "one row" if solver == "sdfs" else f"one row of solver={solver!r}"
+    what = f"one row of solver={solver!r}"
     return _Plan(parts, _rows_per_chunk(per_row, per_device, share - fixed, what), options)
 
 
@@ -124,9 +125,10 @@ def _solve(problem: Problem, X, params, max_nodes, *, mesh: Mesh, solver: str, r
     return jax.tree_util.tree_map(lambda a: a[:B], out) if pad else out
 
 
-def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_width: int = 1,
-                lanes: int | None = None, chunk_nodes: int = DEFAULT_CHUNK_NODES, max_nodes=None,
-                max_memory: int = DEFAULT_MAX_MEMORY, devices=None, cores: int | None = None) -> SearchResult:
+def solve_batch(problem: Problem, X0: ArrayLike, *, solver: str = "sdfs", params: PyTree = None, pop_width: int = 1,
+                lanes: int | None = None, chunk_nodes: int = DEFAULT_CHUNK_NODES,
+                max_nodes: int | ArrayLike | None = None, max_memory: int = DEFAULT_MAX_MEMORY,
+                devices: Sequence[jax.Device] | jax.Device | None = None, cores: int | None = None) -> SearchResult:
     """Solve ``problem`` from every row of ``X0``; exact per row.
 
     Args:
@@ -184,17 +186,12 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
     X, params = search_inputs(problem, X0, params, batched=True)
     B, n = X.shape
     table = solvers.get(solver)
-    if max_nodes is not None and not table.budgets:
-        raise ValueError(f"max_nodes applies to the sDFS solvers; solver={solver!r} always visits the whole tree")
-    if pop_width != 1 and "method" in table.options:
-        raise ValueError(f"pop_width applies to the sDFS solvers; solver={solver!r} expands level by level")
-    if lanes is not None and "lanes" not in table.options:
-        raise ValueError(f"lanes sizes the work pool of solver='sdfs'; solver={solver!r} has no pool")
-    given = {"pop_width": positive_int("pop_width", pop_width), "chunk_nodes": positive_int("chunk_nodes", chunk_nodes),
-             "lanes": None if lanes is None else positive_int("lanes", lanes)}
-    options = solvers.check_options(solver, {k: v for k, v in given.items() if k in table.options})
-    options.pop("max_memory"), options.pop("max_nodes", None)
-    max_memory = positive_int("max_memory", max_memory)
+    passed = {"pop_width": pop_width, "lanes": lanes, "chunk_nodes": chunk_nodes, "max_nodes": max_nodes,
+              "max_memory": max_memory}
+    options = solvers.check_options(solver, {k: v for k, v in passed.items()
+                                             if k in table.options or _given(v, _UNSET[k])})
+    max_memory = options.pop("max_memory")
+    options.pop("max_nodes", None)
     budget = node_budget(max_nodes)
     mesh = mesh_of(devices)
     traced = any(is_tracer(a) for a in (X, budget, *jax.tree_util.tree_leaves(params)))  # inside a jit
@@ -221,10 +218,19 @@ def solve_batch(problem: Problem, X0, *, solver: str = "sdfs", params=None, pop_
     return raise_on_errors(replicated(out, mesh) if multi else out)
 
 
+_UNSET = {"pop_width": 1, "lanes": None, "chunk_nodes": DEFAULT_CHUNK_NODES, "max_nodes": None}
+
+
+def _given(value, unset) -> bool:
+    """Whether a keyword of ``solve_batch`` was set to something other than its default (which every solver
+    takes, whether or not the option is its own)."""
+    return not (value is unset or (type(value) is type(unset) and value == unset))
+
+
 def row_memory(problem: Problem, n: int, itemsize: int, solver: str, pop_width: int = 1,
                chunk_nodes: int = DEFAULT_CHUNK_NODES) -> int:
     """Estimated peak bytes one row needs under the vmapped solvers (``"sdfs-vmap"``: the sDFS stack,
     ``"exhaustive"``: the level chunks)."""
-    options = solvers.check_options(solver, {"pop_width": pop_width} if solver != "exhaustive"
-                                    else {"chunk_nodes": chunk_nodes})
+    given = {"pop_width": pop_width, "chunk_nodes": chunk_nodes}
+    options = solvers.check_options(solver, {k: v for k, v in given.items() if k in solvers.get(solver).options})
     return solvers.get(solver).memory(problem, n, itemsize, **options)

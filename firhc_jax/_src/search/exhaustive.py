@@ -25,12 +25,12 @@ import jax
 import jax.numpy as jnp
 
 from ..checks import positive_int
-from ..problem.callables import cost_dtype, search_inputs
+from ..problem.callables import cost_dtype
 from ..problem.problem import Problem
 from ..runtime.memory_cache import cached, compiled
 from .nodes import best_leaf, expand, no_stats, tally
-from .result import SearchResult, finish, raise_on_errors
-from .sdfs import INT32_MAX, exhaustive_dfs
+from .result import SearchResult, finish
+from .sdfs import INT32_MAX
 
 DEFAULT_CHUNK_NODES = 1 << 20
 
@@ -52,10 +52,7 @@ def plan(problem: Problem, chunk_nodes: int = DEFAULT_CHUNK_NODES) -> Plan:
     """
     N, M = problem.horizon, problem.num_controls
     chunk_nodes = positive_int("chunk_nodes", chunk_nodes)
-    total = problem.tree_size()
-    if total > INT32_MAX:
-        raise ValueError(f"exhaustive search of M={M}, N={N} has {total:,} nodes, more than the int32 node "
-                         "counter holds; use fj.sdfs or a shorter horizon")
+    total = check_tree_size(problem)
     if M == 1:
         return Plan(0, 1, 1)
     split = next(s for s in range(N + 1) if M ** (N - s) <= chunk_nodes)
@@ -66,6 +63,16 @@ def plan(problem: Problem, chunk_nodes: int = DEFAULT_CHUNK_NODES) -> Plan:
     most = max(1, chunk_nodes // M ** (N - split))
     chunk = max(d for d in range(1, min(most, M**split) + 1) if M**split % d == 0)
     return Plan(split, chunk, M**split // chunk)
+
+
+def check_tree_size(problem: Problem) -> int:
+    """The tree's node count, refused (``ValueError``) beyond the int32 node counter: the one limit of every
+    search that visits the whole tree."""
+    total = problem.tree_size()
+    if total > INT32_MAX:
+        raise ValueError(f"exhaustive search of M={problem.num_controls}, N={problem.horizon} has {total:,} nodes, "
+                         "more than the int32 node counter holds; use fj.sdfs or a shorter horizon")
+    return total
 
 
 def memory(problem: Problem, n: int, itemsize: int, chunk_nodes: int = DEFAULT_CHUNK_NODES) -> int:
@@ -126,38 +133,7 @@ def _exhaustive(problem: Problem, x0, params, *, chunk_nodes: int) -> SearchResu
     return finish(problem, best_cost, (best_index // weights) % M, stats, True, x0, params)
 
 
-def exhaustive(problem: Problem, x0, *, params=None, method: str = "levels",
-               chunk_nodes: int = DEFAULT_CHUNK_NODES, pop_width: int = 1) -> SearchResult:
-    """Exact optimum by visiting every node of the tree (``nodes == problem.tree_size()``).
-
-    Args:
-      params: optional parameter pytree passed to every callable (as ``fj.sdfs``).
-      method: ``"levels"`` (default) the vectorised level-by-level search, the
-        fastest way to visit every node; ``"dfs"`` the sDFS machinery with
-        pruning off (``pop_width`` applies), the like-for-like baseline that
-        isolates what pruning saves.
-      chunk_nodes: most nodes held in one batched call by ``"levels"``; bounds
-        memory at about ``chunk_nodes * (n + 4) * itemsize * 3`` bytes
-        (``memory``).
-
-    The lower bound, if the problem has one, is not used: this is the reference.
-    """
-    if method == "dfs":
-        return exhaustive_dfs(problem, x0, params=params, pop_width=pop_width)
-    if method != "levels":
-        raise ValueError(f"method must be 'levels' or 'dfs', got {method!r}")
-    x0, params = search_inputs(problem, x0, params)
-    if pop_width != 1:
-        raise ValueError("pop_width applies to method='dfs'; method='levels' expands whole levels")
-    chunk_nodes = positive_int("chunk_nodes", chunk_nodes)  # a plain int: part of the cache key
-    plan(problem, chunk_nodes)  # refuse before tracing
-    search = _levels_executable(problem, x0, params, chunk_nodes)
-    if search is None:  # XLA:CPU could not compile it: the same tree, visited depth first
-        return exhaustive_dfs(problem, x0, params=params)
-    return raise_on_errors(search(x0, params))
-
-
-def _levels_executable(problem: Problem, x0, params, chunk_nodes: int):
+def levels_executable(problem: Problem, x0, params, chunk_nodes: int):
     """The level search for these shapes, compiled ahead of time and cached;
     None where XLA:CPU fails to compile it. Some deep level chains (seen with
     M = 2, 13 <= N <= 23) stop XLA:CPU with "Unknown MLIR failure"

@@ -15,7 +15,9 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.typing import DTypeLike
 
+from ..annotations import ArrayLike, PyTree
 from ..problem.callables import cost_dtype as dtype_of_cost
 from ..problem.problem import Problem, call
 
@@ -142,7 +144,8 @@ def best_leaf(cost, terminal_ok, usable, is_leaf, incumbent):
     return low, i, low < incumbent
 
 
-def rollout_cost(problem: Problem, x0, sequence, cost_dtype=None, params=None):
+def rollout_cost(problem: Problem, x0: ArrayLike, sequence: ArrayLike, cost_dtype: DTypeLike | None = None,
+                 params: PyTree = None) -> tuple[jax.Array, jax.Array]:
     """Cost of one input sequence ``[N]`` from ``x0`` (stage costs and the
     terminal cost), +inf if it fails the terminal test or a constraint,
     contains an out-of-range index, or meets a non-finite state.

@@ -39,13 +39,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..checks import as_sequence, is_tracer, positive_int
-from ..problem.callables import cost_dtype, search_inputs
+from ..checks import is_tracer, positive_int
+from ..problem.callables import cost_dtype
 from ..problem.problem import Problem, call
-from ..runtime.memory_cache import compiled
 from . import stack as stacks
 from .nodes import SearchStats, best_leaf, expand, first_min, no_stats, one_child, rollout_cost, tally
-from .result import SearchResult, finish, raise_on_errors
+from .result import SearchResult, finish
 from .stack import Popped, Stack
 
 INT32_MAX = 2**31 - 1
@@ -303,64 +302,3 @@ def search(problem: Problem, x0, params, warm_start, max_nodes, *, pop_width: in
     # An iteration computes at most L children.
     out, done = _dfs(problem, x0, params, start, max_nodes - L, pop_width=K, prune=prune)
     return finish(problem, out.cost, out.path, out.stats, done, x0, params)
-
-
-def _run(problem: Problem, x0, params, warm_start, max_nodes, pop_width, prune, max_memory) -> SearchResult:
-    x0, params = search_inputs(problem, x0, params)
-    pop_width = positive_int("pop_width", pop_width)
-    if not prune and problem.tree_size() > INT32_MAX:
-        raise ValueError(f"exhaustive search of M={problem.num_controls}, N={problem.horizon} has "
-                         f"{problem.tree_size():,} nodes, more than the int32 node counter holds")
-    check_memory(stack_memory(problem, x0.shape[0], max(x0.dtype.itemsize, 4), pop_width), max_memory,
-                 f"the sDFS stack of N={problem.horizon}, M={problem.num_controls}, pop_width={pop_width}")
-    ws = as_sequence(warm_start, problem.horizon, problem.num_controls)
-    run = compiled(search, problem, pop_width=pop_width, prune=prune, budgeted=max_nodes is not None)
-    return raise_on_errors(run(x0, params, ws, node_budget(max_nodes)))
-
-
-def sdfs(problem: Problem, x0, *, params=None, pop_width: int = 1, warm_start=None, max_nodes=None,
-         max_memory: int = DEFAULT_MAX_MEMORY) -> SearchResult:
-    """Exact optimal input sequence by sorted depth-first search.
-
-    Args:
-      problem: the ``Problem``.
-      x0: ``[n]`` current state.
-      params: optional parameter pytree passed to every callable as its last
-        argument (see ``firhc_jax._src.problem.problem``). New values of the same shapes and
-        dtypes reuse the compiled search.
-      pop_width: K, nodes popped and expanded per iteration (K * M children in
-        one batched call). 1 is the paper's algorithm; larger K trades some
-        pruning for fewer, wider iterations. Always exact.
-      warm_start: optional ``[N]`` candidate sequence (e.g. the previous
-        solution shifted by one step), evaluated first; if it meets the
-        terminal test it is the initial incumbent. ``nodes`` counts its N
-        nodes. All ``-1`` means none (no nodes counted); so does a
-        ``max_nodes`` below N (its nodes would not fit in the budget).
-      max_nodes: optional node budget (real-time use): ``nodes <= max_nodes``
-        always (a warm start's N nodes included). Up to half of it first
-        seeds the incumbent (the exact problems of horizon 1, 2, ... each
-        extended to N by a greedy rollout; docs/guide/budgets.md states what that
-        guarantees). The search stops before an iteration could take the
-        count above it and returns its incumbent with ``complete=False``
-        (infeasible if it has none yet; ``True``: proven optimal). A traced
-        value: changing it does not recompile.
-      max_memory: bytes the stack may take (``stack_memory``); larger problems
-        are refused before anything is allocated.
-
-    Works under ``jax.jit`` and ``jax.vmap`` over ``x0`` and ``params``. In an
-    un-jitted call a negative stage cost raises ``ValueError``. Not
-    differentiable (a discrete search); see ``fj.rollout_cost``.
-    """
-    return _run(problem, x0, params, warm_start, max_nodes, pop_width, True, max_memory)
-
-
-def exhaustive_dfs(problem: Problem, x0, *, params=None, pop_width: int = 1,
-                   max_memory: int = DEFAULT_MAX_MEMORY) -> SearchResult:
-    """Exhaustive search on the sDFS machinery with pruning switched off.
-
-    Visits every node (``nodes == problem.tree_size()``) whatever the problem's
-    ``lower_bound`` says (it is not used: a ``+inf`` bound would otherwise keep
-    nodes off the stack); compare its time with ``sdfs`` to measure what
-    pruning saves, like for like.
-    """
-    return _run(problem.replace(lower_bound=None), x0, params, None, None, pop_width, False, max_memory)

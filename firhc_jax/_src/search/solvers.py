@@ -28,7 +28,7 @@ from typing import Any, Callable, Mapping, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..checks import positive_int
+from ..checks import is_tracer, positive_int
 from ..problem.problem import Problem
 from . import exhaustive as exhaustive_module
 from .pool import pool_memory, pool_row_memory, pool_search
@@ -50,6 +50,7 @@ class Solver(NamedTuple):
     memory: Callable[..., int]  # (problem, n, itemsize, **options) -> bytes of one search
     batch_memory: Callable[..., tuple[int, int]]  # (problem, n, itemsize, rows, param_bytes, **opts) -> bytes
     budgets: bool  # takes max_nodes
+    prunes: bool  # False: visits every node of the tree
     warm_starts: bool  # takes a warm start
     doc: str  # one line for tables and --help
 
@@ -79,7 +80,7 @@ def _pool_one(problem, x, params, warm_start, max_nodes, *, budgeted, pop_width,
 
 
 def _exhaustive(problem, x, params, warm_start, max_nodes, *, method, chunk_nodes, pop_width, **_):
-    if method == "dfs" or exhaustive_module._levels_executable(problem, x, params, chunk_nodes) is None:
+    if method == "dfs" or exhaustive_module.levels_executable(problem, x, params, chunk_nodes) is None:
         # the sDFS machinery with pruning off (and the bound unused: the reference); also where XLA:CPU
         # cannot compile the level search (docs/dev/xla_notes.md)
         return sdfs_search(problem.replace(lower_bound=None), x, params, None, INT32_MAX, pop_width=pop_width,
@@ -122,19 +123,21 @@ def lanes_for(lanes, rows: int) -> int:
 _SDFS_OPTIONS = {"pop_width": 1, "max_nodes": None, "max_memory": DEFAULT_MAX_MEMORY}
 SOLVERS: dict[str, Solver] = {
     "sdfs": Solver(search=sdfs_search, batch=_pool_batch, options={**_SDFS_OPTIONS, "lanes": None},
-                   memory=_stack_memory, batch_memory=_pool_memory, budgets=True, warm_starts=True,
+                   memory=_stack_memory, batch_memory=_pool_memory, budgets=True, prunes=True, warm_starts=True,
                    doc="sorted depth-first search (the paper's Table 1); a batch shares a work pool"),
     "pool": Solver(search=_pool_one, batch=_pool_batch, options={**_SDFS_OPTIONS, "lanes": None},
-                   memory=_one_pool_memory, batch_memory=_pool_memory, budgets=True, warm_starts=True,
+                   memory=_one_pool_memory, batch_memory=_pool_memory, budgets=True, prunes=True,
+                   warm_starts=True,
                    doc=f"sDFS on a work pool: one decision on `lanes` slots (default {DECISION_LANES}) by stealing"),
     "sdfs-vmap": Solver(search=sdfs_search, batch=_vmapped(sdfs_search), options=_SDFS_OPTIONS,
-                        memory=_stack_memory, batch_memory=_rows_of(_stack_memory), budgets=True, warm_starts=True,
+                        memory=_stack_memory, batch_memory=_rows_of(_stack_memory), budgets=True, prunes=True,
+                        warm_starts=True,
                         doc="sDFS vmapped over a batch's rows (each row its own loop, lanes in lock-step)"),
     "exhaustive": Solver(search=_exhaustive, batch=_vmapped(_exhaustive),
                          options={"method": "levels", "chunk_nodes": exhaustive_module.DEFAULT_CHUNK_NODES,
                                   "pop_width": 1, "max_memory": DEFAULT_MAX_MEMORY},
                          memory=_exhaustive_memory, batch_memory=_rows_of(_exhaustive_memory), budgets=False,
-                         warm_starts=False, doc="every node of the tree (the reference)"),
+                         prunes=False, warm_starts=False, doc="every node of the tree (the reference)"),
 }
 _COUNTS = ("pop_width", "max_nodes", "max_memory", "chunk_nodes", "lanes")
 
@@ -147,15 +150,21 @@ def get(name: str) -> Solver:
 
 
 def check_options(name: str, options: Mapping[str, Any]) -> dict:
-    """Every option of solver ``name``: those given, checked, and the defaults of the rest."""
+    """Every option of solver ``name``: those given, checked, and the defaults of the rest. An option the solver
+    does not take is refused with the solvers that do take it. A traced ``max_nodes`` passes as it is (budgets
+    are traced: they never recompile)."""
     solver = get(name)
-    unknown = set(options) - set(solver.options)
+    unknown = sorted(set(options) - set(solver.options))
     if unknown:
-        raise TypeError(f"unknown option(s) {sorted(unknown)} for solver={name!r}; it accepts "
-                        f"{sorted(solver.options)}")
+        takers = {key: [other for other, s in SOLVERS.items() if key in s.options] for key in unknown}
+        where = "; ".join(f"{key} is an option of {_names(takers[key])}" if takers[key] else f"{key} is no option"
+                          for key in unknown)
+        raise TypeError(f"unknown option(s) {unknown} for solver={name!r}, which takes {sorted(solver.options)}: "
+                        f"{where}")
     out = {**solver.options, **options}
     for key in _COUNTS:
-        if out.get(key) is not None:
+        none_allowed = key in solver.options and solver.options[key] is None  # None: none, or chosen per call
+        if key in out and not is_tracer(out[key]) and not (out[key] is None and none_allowed):
             out[key] = positive_int(key, out[key])
     if "method" in out and out["method"] not in ("levels", "dfs"):
         raise ValueError(f"method must be 'levels' or 'dfs', got {out['method']!r}")
@@ -164,16 +173,23 @@ def check_options(name: str, options: Mapping[str, Any]) -> dict:
     return out
 
 
+def _names(names: list) -> str:
+    return ("solver " if len(names) == 1 else "solvers ") + ", ".join(repr(n) for n in names)
+
+
+def check_tree(name: str, options: Mapping[str, Any], problem: Problem) -> None:
+    """Refuse (``ValueError``) a tree that solver ``name`` cannot search with these options: an exhaustive
+    search's node count beyond the int32 counter, or levels that do not fit ``chunk_nodes``."""
+    if name == "exhaustive" and options["method"] == "levels":
+        exhaustive_module.plan(problem, options["chunk_nodes"])
+    elif not get(name).prunes:
+        exhaustive_module.check_tree_size(problem)
+
+
 def check_memory(name: str, options: Mapping[str, Any], problem: Problem, n: int, itemsize: int) -> int:
-    """Bytes of one search, refused (``ValueError``) beyond ``max_memory``, or where the tree cannot be
-    searched that way at all."""
-    solver = get(name)
-    if options.get("method", "levels") == "levels" and name == "exhaustive":
-        exhaustive_module.plan(problem, options["chunk_nodes"])  # refuses trees it cannot split
-    elif options.get("method") == "dfs" and problem.tree_size() > INT32_MAX:
-        raise ValueError(f"exhaustive search of M={problem.num_controls}, N={problem.horizon} has "
-                         f"{problem.tree_size():,} nodes, more than the int32 node counter holds")
-    need = solver.memory(problem, n, itemsize, **options)
+    """Bytes of one search (``check_tree`` first), refused (``ValueError``) beyond ``max_memory``."""
+    check_tree(name, options, problem)
+    need = get(name).memory(problem, n, itemsize, **options)
     check_max_memory(need, options["max_memory"], f"solver={name!r} on N={problem.horizon}, M={problem.num_controls}")
     return need
 
