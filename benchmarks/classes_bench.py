@@ -11,18 +11,17 @@ both warm-started with their previous plan, compiled first, then timed in altern
 round of each is kept). Columns: nodes a decision, microseconds a step, nanoseconds a node; the ratios of
 nodes (plain / ours), of a node's cost (ours / plain) and of time (plain / ours: above 1, the classes win).
 
-    python benchmarks/classes_bench.py [--levels 3 5] [--horizons 1 2 3 5 8] [--steps 800] [--rounds 3]
+    python benchmarks/classes_bench.py [--levels 3 5] [--horizons 1 3 5 8] [--steps 800] [--rounds 3] [--publish]
 """
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _results import machine, published
 from sphere_bench import plain_problem
 
 import firhc_jax as fj
@@ -61,15 +60,20 @@ def loops(lt: fj.LinearTracking, steps: int):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--levels", type=int, nargs="+", default=[3, 5])
-    ap.add_argument("--horizons", type=int, nargs="+", default=[1, 2, 3, 5, 8])
+    ap.add_argument("--horizons", type=int, nargs="+", default=[1, 3, 5, 8])
     ap.add_argument("--steps", type=int, default=800, help="decisions (one fundamental period = 800)")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--lambda-u", type=float, default=0.1)
+    ap.add_argument("--publish", action="store_true", help="also write the table to benchmarks/results/classes.md")
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
-    print(f"classes_bench: {platform.processor() or platform.machine()}, {jax.devices()[0].platform}, "
-          f"jax {jax.__version__}, float64, lambda_u = {args.lambda_u}, {args.steps} decisions; load average "
-          f"{' '.join(f'{v:.1f}' for v in os.getloadavg())}")
+    with published("classes", args.publish, "python benchmarks/classes_bench.py --publish"):
+        run(args)
+
+
+def run(args):
+    print(f"classes_bench: {machine()}, float64, lambda_u = {args.lambda_u}, {args.steps} decisions, fastest of "
+          f"{args.rounds} rounds\n")
     print(f"{'levels':>6} {'N':>3} {'classes':>9} {'nodes ours':>10} {'plain':>9} {'us/step ours':>12} {'plain':>8} "
           f"{'ns/node ours':>12} {'plain':>7} {'nodes p/o':>9} {'ns/node o/p':>11} {'time p/o':>8}")
     for levels in args.levels:
