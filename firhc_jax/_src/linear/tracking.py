@@ -130,8 +130,6 @@ class TrackingModel(NamedTuple):
     members: jax.Array       # [C, R, m] each class's inputs (padding repeats the first)
     member_index: jax.Array  # [C, R] their indices into controls, as numbers of the model's dtype
     member_ok: jax.Array     # [C, R] 1 for a member, 0 for padding
-    inputs: jax.Array        # [M, m] the controls in lexicographic order (``_class`` searches them)
-    input_class: jax.Array   # [M] the class of each, as numbers of the model's dtype
     max_step: Optional[jax.Array] = None  # [] the bound on |u_i(k) - u_i(k-1)|; None: no bound
 
 
@@ -262,14 +260,12 @@ class LinearTracking:
         M, M_data, Ms, Tu, err_s, err_d = child_map(A, B, C, psd_factor("Q", Q), _squared_weight(
             lambda_u, norm, controls, max_step), N)
         filled = np.where(members >= 0, members, members[:, :1])  # padding repeats the first member
-        order = np.lexsort(controls.T[::-1])  # lexicographic: the first component first
         # float64, NumPy: the constants of problem's callables, and what params applies to the data
         self._model = TrackingModel(
             M=M, M_norm=np.linalg.norm(M[:, n + p:], axis=(1, 2)), lambda_u=np.float64(lambda_u),
             l1=np.float64(norm == "abs"), Tu=Tu,
             Tu_norm=np.linalg.norm(Tu, axis=(1, 2)), err_s=err_s, members=controls.astype(float)[filled],
             member_index=filled.astype(float), member_ok=(members >= 0).astype(float),
-            inputs=controls.astype(float)[order], input_class=self._class_of[order].astype(float),
             max_step=None if max_step is None else np.float64(max_step))
         self._maps = _DataMaps(M_data, Ms, err_d)
         self._device = {}  # dtype -> the model and the data maps on the device
@@ -478,24 +474,12 @@ def _squared_weight(lambda_u, norm, controls, max_step) -> float:
 
 
 def _class(u, model: TrackingModel):
-    """``(class, found)``: the class of input ``u`` ``[m]``, and whether ``u`` is one of the controls.
-
-    A binary search over the controls in lexicographic order (``model.inputs``), unrolled: log2(M) steps of
-    one row each, where comparing ``u`` with every member of every class cost C R m comparisons a child (the
-    five-level inverter's 61 classes of 5: most of a node's time)."""
-    inputs = model.inputs
-    M = inputs.shape[0]
-    u = u.astype(inputs.dtype)
-    lo, hi = jnp.zeros((), jnp.int32), jnp.full((), M, jnp.int32)
-    for _ in range(M.bit_length()):  # the first row not below u: lo == hi after at most log2(M) + 1 halvings
-        mid = (lo + hi) // 2
-        row = inputs[jnp.minimum(mid, M - 1)]
-        differ = row != u
-        first = jnp.argmax(differ)
-        below = (lo < hi) & jnp.any(differ) & (row[first] < u[first])
-        lo, hi = jnp.where(below, mid + 1, lo), jnp.where(below | (lo == hi), hi, mid)
-    at = jnp.minimum(lo, M - 1)
-    return model.input_class[at].astype(jnp.int32), jnp.all(inputs[at] == u)
+    """``(class, found)``: the first class whose members include input ``u`` ``[m]``, and whether one does. (The
+    searches give every child a constant input, so XLA computes this once per search, outside its loop.)"""
+    hit = jnp.any(jnp.all(model.members == u.astype(model.members.dtype), axis=-1) & (model.member_ok > 0),
+                  axis=-1)
+    C = hit.shape[0]
+    return jnp.minimum(jnp.min(jnp.where(hit, jnp.arange(C), C)), C - 1), jnp.any(hit)
 
 
 def _dynamics(z, u, k, data: TrackingParams, model: TrackingModel):
