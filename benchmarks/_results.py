@@ -7,26 +7,13 @@ from __future__ import annotations
 import contextlib
 import io
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
-import jax
+from firhc_jax.apps._machine import machine
 
 RESULTS = Path(__file__).parent / "results"
-
-
-def machine() -> str:
-    """The processor, the cores this process may use, JAX's version and platform."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return f"{cpu}, {cores} usable cores, jax {jax.__version__} on {jax.devices()[0].platform}"
 
 
 def _load() -> str:

@@ -2,7 +2,7 @@
 
 The decoder of Geyer and Quevedo (IEEE TPEL 29(12), 2014) for the linear
 tracking problem of ``firhc_jax.linear_tracking`` (the same J, max_step
-included, d = 0), written as well as plain Python allows: J(U) = c +
+and the disturbance d included), written as well as plain Python allows: J(U) = c +
 ||V U - h||^2 with V lower triangular (a QR factorisation of the stacked
 problem with its columns reversed, done once per problem); per decision h
 and c are one matrix-vector product each (NumPy); the search is a recursive
@@ -31,19 +31,21 @@ class SphereDecoder:
     J = sum_k ||y_ref[k] - C x(k+1)||_Q^2 + lambda_u ||u(k) - u(k-1)||^2 over N steps."""
 
     def __init__(self, A, B, C, Q, levels, horizon, lambda_u, max_step=None):
+        """The stacked problem of ``x(k+1) = A x(k) + B u(k) + d(k)`` (``solve``'s ``d``, default 0)."""
         A, B, C, Q = (np.asarray(a, float) for a in (A, B, C, Q))
         n, m = B.shape
         p, N = C.shape[0], horizon
         sq = np.linalg.cholesky(Q).T  # Q = sq^T sq
         # Stacked rows sqrt(Q) (y_ref[k] - C x(k+1)) and sqrt(lambda_u) (u(k) - u(k-1)):
-        # F U - g, g = G [x; u_prev; y_ref].
+        # F U - g, g = G [x; u_prev; y_ref; d].
         F = np.zeros((N * (p + m), N * m))
-        G = np.zeros((N * (p + m), n + m + N * p))
+        G = np.zeros((N * (p + m), n + m + N * p + N * n))
         powers = [np.linalg.matrix_power(A, k) for k in range(N + 1)]
         for k in range(N):
             rows = slice(k * p, (k + 1) * p)
-            for j in range(k + 1):  # x(k+1) = A^(k+1) x + sum_j A^(k-j) B u(j)
+            for j in range(k + 1):  # x(k+1) = A^(k+1) x + sum_j A^(k-j) (B u(j) + d(j))
                 F[rows, j * m:(j + 1) * m] = -sq @ C @ powers[k - j] @ B
+                G[rows, n + m + N * p + j * n:n + m + N * p + (j + 1) * n] = sq @ C @ powers[k - j]
             G[rows, :n] = sq @ C @ powers[k + 1]
             G[rows, n + m + k * p:n + m + (k + 1) * p] = -sq
             srows = slice(N * p + k * m, N * p + (k + 1) * m)
@@ -59,11 +61,12 @@ class SphereDecoder:
         self.levels, self.max_step = [float(v) for v in levels], max_step
         self.n, self.m, self.N = n, m, N
 
-    def solve(self, x, u_prev, y_ref, first=None):
-        """``(J, U [N, m])`` the optimum from ``x`` after ``u_prev`` for ``y_ref`` ``[N, p]``; ``first``: a
-        candidate ``[N, m]`` (the shifted previous optimum) whose J is the first radius. ``(inf, None)``
-        when no sequence meets max_step."""
-        s = np.concatenate([np.asarray(x, float), np.asarray(u_prev, float), np.asarray(y_ref, float).ravel()])
+    def solve(self, x, u_prev, y_ref, first=None, d=None):
+        """``(J, U [N, m])`` the optimum from ``x`` after ``u_prev`` for ``y_ref`` ``[N, p]`` and ``d``
+        ``[N, n]`` (default 0); ``first``: a candidate ``[N, m]`` (the shifted previous optimum) whose J is
+        the first radius. ``(inf, None)`` when no sequence meets max_step."""
+        d = np.zeros(self.N * self.n) if d is None else np.asarray(d, float).ravel()
+        s = np.concatenate([np.asarray(x, float), np.asarray(u_prev, float), np.asarray(y_ref, float).ravel(), d])
         g, h = self.G @ s, self.H @ s
         c = float(g @ g - h @ h)
         h = h.tolist()

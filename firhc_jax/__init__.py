@@ -22,6 +22,7 @@ from ._src.problem.formulation import (
 )
 from ._src.problem.problem import Problem, quadratic_cost
 from ._src.problem.transforms import InputMemory, with_input_memory
+from ._src.runtime.collector import collector_paused
 from ._src.runtime.disk_cache import enable_compilation_cache
 from ._src.runtime.memory_cache import cache_info, clear_cache, set_cache_size
 from ._src.runtime.throughput import profile
@@ -34,7 +35,7 @@ __all__ = ["Problem", "quadratic_cost", "discretize", "linear_dynamics", "produc
            "input_change_cost", "horizon_windows", "LinearTracking", "sdfs", "exhaustive", "SearchResult", "FIRHC",
            "ControllerState", "StepInfo", "ClosedLoop", "InfeasibleError", "InputMemory", "with_input_memory",
            "solve_batch", "clear_cache", "set_cache_size", "cache_info", "enable_compilation_cache", "check_problem",
-           "check_lower_bound", "diagnostics", "profile", "rollout_cost"]
+           "check_lower_bound", "diagnostics", "profile", "rollout_cost", "collector_paused"]
 __version__ = "0.3.0"
 
 _install_old_paths(__name__)

@@ -107,3 +107,49 @@ def test_step_index_problems_run_in_the_closed_loop():
     x, u = run.states[0], CONTROLS[int(run.input_indices[0])]
     assert float(run.stage_costs[0]) == float(cost_k(dyn_k(x, u, 0), u, 0))
     np.testing.assert_array_equal(np.asarray(run.states[1]), np.asarray(dyn_k(x, u, 0)))
+
+
+@pytest.mark.parametrize("solver", ["sdfs", "pool"])
+def test_a_budget_beyond_int32_is_clamped_as_fj_sdfs_clamps_it(solver):
+    """max_nodes = 2**31 or more is more than the int32 node counter can count: the controller clamps it
+    as fj.sdfs does (one compiled decision for every such budget) and decides exactly."""
+    p = fj.Problem(dyn, CONTROLS, COST, 4)
+    x = jnp.array([1.0, -0.5])
+    huge = fj.FIRHC(p, solver, max_nodes=2**31)
+    assert huge.solver_options["max_nodes"] == 2**31 - 1
+    assert fj.FIRHC(p, solver, max_nodes=2**40).options.key == huge.options.key
+    u, info = huge(x)
+    ref = fj.sdfs(p, x, max_nodes=2**31)
+    assert bool(info.complete) and float(info.result.cost) == float(ref.cost) == float(fj.exhaustive(p, x).cost)
+    run = huge.simulate(x, 3)
+    assert np.asarray(run.complete).all()
+
+
+def test_a_plant_defined_anew_for_each_call_is_named_when_the_loop_compiles_again():
+    """The plant is part of the compiled closed loop, keyed by the object: a lambda written in the call (a
+    sweep's list comprehension) compiles the loop each time, and says so in one line; the same object, the
+    default plant, another plant's code and the Python loop (which compiles no plant) do not warn."""
+    import warnings
+
+    c = fj.FIRHC(fj.Problem(dyn, CONTROLS, COST, 2))
+    x = np.array([1.0, -0.5])
+    plant = lambda x, u: dyn(x, u)  # noqa: E731
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # none of these warns
+        c.simulate(x, 2)
+        for _ in range(2):
+            c.simulate(x, 2, plant)
+        c.simulate(x, 2, lambda x, u: 0.5 * dyn(x, u))  # another plant's code
+        c.simulate(x, 2, lambda x, u: 0.5 * dyn(x, u), compiled=False)
+        c.simulate(x, 2, plant)  # compiled before: nothing compiles
+    with pytest.warns(UserWarning, match=r"compiles its closed loop again for a new plant object"):
+        c.simulate(x, 2, type(plant)(plant.__code__, globals()))  # plant's code in a new function object
+    seen = []
+    for _ in range(2):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            c.simulate_batch(x[None], 2, lambda x, u: 0.9 * dyn(x, u))
+        seen.append([str(w.message) for w in caught])
+    assert seen[0] == [] and len(seen[1]) == 1, seen  # the first lambda of this line follows another code
+    assert "\n" not in seen[1][0] and "new plant object with the code of the last one (<lambda> at " in seen[1][0]
+    assert "define it once and pass that same object" in seen[1][0]

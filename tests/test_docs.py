@@ -49,6 +49,13 @@ def test_every_public_name_has_an_api_entry():
                     or f"::: firhc_jax.{name}\n" in api), f"firhc_jax.{space}.{name}"
 
 
+def test_every_model_has_an_api_entry():
+    api = _api_text()
+    for module in (Path(fj.__file__).parent / "models").glob("*.py"):
+        if not module.name.startswith("_"):
+            assert f"::: firhc_jax.models.{module.stem}\n" in api, module.stem
+
+
 def test_every_page_is_in_the_navigation():
     nav = (ROOT / "mkdocs.yml").read_text()
     for page in DOCS.rglob("*.md"):

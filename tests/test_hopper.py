@@ -4,18 +4,15 @@ import json
 import math
 
 import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
 
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-
-import firhc_jax as fj  # noqa: E402
-from firhc_jax import cli  # noqa: E402
-from firhc_jax.apps import hopper as app  # noqa: E402
-from firhc_jax.apps._timing import compile_events as compilations  # noqa: E402
-from firhc_jax.models import hopper as hm  # noqa: E402
+import firhc_jax as fj
+from firhc_jax import cli
+from firhc_jax.apps import hopper as app
+from firhc_jax.apps._timing import compile_events as compilations
+from firhc_jax.models import hopper as hm
 
 P = hm.HopperParams()
 CLOSED = jnp.zeros(2)  # both valves closed

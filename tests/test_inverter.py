@@ -15,8 +15,6 @@ from firhc_jax.apps import inverter as app
 from firhc_jax.apps._timing import compile_events
 from firhc_jax.models import inverter as model
 
-jax.config.update("jax_enable_x64", True)
-
 P = model.InverterParams()
 
 

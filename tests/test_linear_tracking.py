@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from reference import same_cost
 
@@ -34,8 +34,9 @@ NONE = np.full(3, -1)  # mimo's "no warm start": the same compiled search as a w
 class Case:
     """A random LinearTracking problem and one decision's data (NumPy, float64)."""
 
-    def __init__(self, shape, max_step, seed):
+    def __init__(self, shape, max_step, seed, norm="squared"):
         n, m, p, N, levels = SHAPES[shape]
+        self.norm = norm
         rng = np.random.default_rng(seed)
         A = rng.normal(size=(n, n))
         self.A = A * rng.uniform(0.3, 0.95) / max(np.max(np.abs(np.linalg.eigvals(A))), 1e-9)
@@ -56,7 +57,7 @@ class Case:
     def tracker(self):
         controls = self.controls[:, 0] if self.controls.shape[1] == 1 else self.controls  # [M] means m = 1
         return fj.LinearTracking(self.A, self.B, controls, self.N, C=self.C, Q=self.Q, lambda_u=self.lambda_u,
-                                 max_step=self.max_step)
+                                 norm=self.norm, max_step=self.max_step)
 
     def J(self, sequences):
         """J of index sequences ``[S, N]`` (+inf where max_step is broken), the issue's definition term by term."""
@@ -68,7 +69,8 @@ class Case:
             x = x @ self.A.T + U[:, k] @ self.B.T + self.d[k]
             e = self.y_ref[k] - x @ self.C.T
             du = U[:, k] - u_last
-            cost += np.einsum("si,ij,sj->s", e, self.Q, e) + self.lambda_u * np.sum(du * du, axis=1)
+            change = np.abs(du) if self.norm == "abs" else du * du
+            cost += np.einsum("si,ij,sj->s", e, self.Q, e) + self.lambda_u * np.sum(change, axis=1)
             if self.max_step is not None:
                 ok &= np.all(np.abs(du) <= self.max_step, axis=1)
             u_last = U[:, k]
@@ -125,6 +127,83 @@ def test_the_problem_searches_the_classes_and_applies_an_optimal_first_input(cas
     assert same_cost(float(classes.cost), best) and bool(classes.feasible) == np.isfinite(best)
     if bool(classes.feasible):
         assert same_cost(best_starting_with(case, classes.first_input), best)
+
+
+@settings(SETTINGS, max_examples=4)  # lt.problem holds its model as constants: each example compiles its search
+@given(cases, st.integers(0, 2**32 - 1), st.sampled_from([None, 40, 400]))
+@example(Case("common", True, 0), 1, None)
+def test_solve_and_the_problem_expand_the_same_nodes(case, seed, max_nodes):
+    """lt.solve (shared_problem, the model in the params) and fj.sdfs on lt.problem (the model as constants)
+    are one search: the same nodes, iterations and result on the same decision, with or without a warm start
+    and a budget (lt.solve without max_nodes ran a budgeted search, whose seeding cost nodes)."""
+    lt = case.tracker()
+    rng = np.random.default_rng(seed)
+    ws = rng.integers(0, len(case.controls), case.N) if rng.random() < 0.5 else NONE
+    solved = lt.solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=ws, max_nodes=max_nodes)
+    classes = np.where(ws >= 0, lt.class_of[np.maximum(ws, 0)], -1)
+    searched = fj.sdfs(lt.problem, lt.observe(case.x, case.u_prev), params=lt.params(case.y_ref, case.d),
+                       warm_start=classes, max_nodes=max_nodes)
+    for field in ("nodes", "iterations", "cost", "feasible", "complete"):
+        assert np.asarray(getattr(solved, field)) == np.asarray(getattr(searched, field)), field
+    np.testing.assert_array_equal(lt.class_of[np.asarray(solved.sequence)][np.asarray(solved.sequence) >= 0],
+                                  np.asarray(searched.sequence)[np.asarray(searched.sequence) >= 0])
+
+
+abs_cases = st.builds(Case, st.sampled_from(["mimo", "common", "long"]), st.booleans(), st.integers(0, 2**32 - 1),
+                      st.just("abs"))
+
+
+@pytest.mark.float32
+@SETTINGS
+@given(abs_cases)
+def test_the_l1_switching_cost_is_the_brute_force_minimum(case):
+    """norm="abs": J with lambda_u ||du||_1, solved exactly (lt.solve), also in the float32 run."""
+    result = case.tracker().solve(case.x, case.u_prev, case.y_ref, case.d, warm_start=np.full(case.N, -1))
+    check(case, result, "solve, L1")
+
+
+def discrete_cost_to_go(case, k, x, u_last):
+    """min over the controls u(k .. N-1) of J's steps k .. N-1 from x(k) = x after u_last (brute force)."""
+    rest = Case.__new__(Case)
+    rest.__dict__.update(case.__dict__)
+    rest.N, rest.x, rest.u_prev, rest.y_ref, rest.d = case.N - k, x, u_last, case.y_ref[k:], case.d[k:]
+    return rest.brute_force()
+
+
+@settings(SETTINGS, max_examples=6)
+@given(abs_cases)
+@example(Case("long", False, 5, "abs"))
+def test_the_l1_bound_is_below_every_discrete_completion(case):
+    """With norm="abs" the bound of a node k steps deep is at most the cheapest completion over the controls,
+    member by member (each member's switching so far plus its completion)."""
+    case.lambda_u = 3.0  # a switching term that weighs: L1 and squared norms far apart (steps of 2 without max_step)
+    lt = case.tracker()
+    params = lt.params(case.y_ref, case.d)
+    rng = np.random.default_rng(int(case.x[0] * 1e6) % 2**32)
+    child = jax.jit(lt.problem.dynamics)
+    n, m = case.x.shape[0], case.controls.shape[1]
+    for k in range(1, case.N):
+        parent = lt.observe(rng.normal(size=n), case.controls[rng.integers(len(case.controls))])
+        z = child(parent, lt.problem.controls[rng.integers(lt.num_classes)], np.int32(k - 1), params)
+        node = Node.unpack(np.asarray(z), lt.class_size, m)
+        reached = node.o >= 0
+        if not reached.any():  # max_step: no child, its bound unused
+            continue
+        best = min(float(o) + discrete_cost_to_go(case, k, np.asarray(node.x), np.asarray(u))
+                   for u, o, ok in zip(node.U, node.o, reached, strict=True) if ok)
+        assert float(node.W) <= best * (1 + 1e-9) + 1e-12, (k, float(node.W), best)
+
+
+def test_unit_steps_make_the_l1_and_squared_trackers_one_search():
+    """The inverter's legs step by one level (max_step = 1), where ||du||_1 = ||du||^2: both norms are the same
+    problem with the same bound, so the same nodes and J."""
+    A, B = three_level.model()
+    refs = np.random.default_rng(0).normal(scale=20.0, size=(4, 5, 2))
+    squared, l1 = (fj.LinearTracking(A, B, three_level.SWITCH_STATES, 5, lambda_u=2.0, max_step=1.0, norm=norm)
+                   for norm in ("squared", "abs"))
+    for y_ref, u_prev in zip(refs, three_level.SWITCH_STATES[[0, 4, 13, 26]], strict=True):
+        a, b = (lt.solve(y_ref[0], u_prev, y_ref) for lt in (squared, l1))
+        assert int(a.nodes) == int(b.nodes) and same_cost(float(a.cost), float(b.cost), rtol=1e-12)
 
 
 def _plain_dynamics(z, u, k, p):
@@ -405,6 +484,7 @@ def test_the_bound_is_the_unconstrained_cost_to_go(case):
     ({"Q": np.eye(3)}, r"Q must be \[p, p\]"),
     ({"C": np.ones((2, 3))}, "C must be"),
     ({"lambda_u": -1.0}, "lambda_u must be a finite number >= 0"),
+    ({"norm": "l1"}, r"norm must be one of \('squared', 'abs'\), got 'l1'"),
     ({"max_step": float("nan")}, "max_step must be a finite number"),
     ({"A": np.ones((2, 3))}, "A must be square"),
     ({"A": [[np.nan, 0], [0, 1]]}, "A contains NaN"),
@@ -545,6 +625,32 @@ def test_an_input_outside_the_controls_has_no_child():
     assert not bool(lt.problem.allowed(lt.problem.next_state(z, stray, 0, p), stray, 0, p))
     rep = lt.problem.controls[0]
     assert bool(lt.problem.allowed(lt.problem.next_state(z, rep, 0, p), rep, 0, p))
+
+
+@pytest.mark.parametrize("which", ["five-level, shuffled", "random reals"])
+def test_every_control_reaches_the_node_of_its_class(which):
+    """The dynamics finds the class of any control it is given (the searches give it each class's first member, a
+    closed loop without a plant applies any member): its node holds that class's members and the state A x + B u,
+    and an input that is no control has no child."""
+    rng = np.random.default_rng(1)
+    if which == "random reals":  # 37 inputs, some sharing a component: ties decided by the next one
+        controls = np.round(rng.normal(size=(37, 2)), 1)
+        controls = controls[np.unique(controls, axis=0, return_index=True)[1]]
+        A, B = np.eye(2) * 0.9, rng.normal(size=(2, 2))
+    else:  # 125 inputs in 61 classes of up to 5
+        controls = rng.permutation(fj.product_controls([-2.0, -1.0, 0.0, 1.0, 2.0], repeat=3))
+        A, B = three_level.model()
+    lt = fj.LinearTracking(A, B, controls, 1)
+    p, x = lt.params(np.zeros((1, 2))), np.array([0.3, -0.2])
+    z = lt.observe(x, controls[0])
+    child = jax.jit(lambda u: lt.problem.next_state(z, u, 0, p))
+    for i, u in enumerate(controls):
+        node = Node.unpack(child(u), lt.class_size, controls.shape[1])
+        members = controls[lt.class_of == lt.class_of[i]]
+        assert {tuple(v) for v in np.asarray(node.U)} == {tuple(v) for v in members}, i
+        np.testing.assert_allclose(node.x, A @ x + B @ u, rtol=1e-12, atol=1e-12)
+    for stray in (controls[0] + 0.05, controls.max(axis=0) + 1.0, controls.min(axis=0) - 1.0):
+        assert not bool(lt.problem.allowed(child(stray), stray, 0, p)), stray
 
 
 def test_the_search_state_is_a_packed_node():

@@ -182,3 +182,28 @@ def test_switching_penalty_matches_brute_force():
     free = fj.FIRHC(fj.with_input_memory(base, lambda u, u_prev: 0.0 * jnp.sum(u)).problem,
                     observe=mem.observe).simulate(jnp.array([0.5]), 6, plant=dyn, u0=jnp.array([1.0]))
     assert not np.all(np.asarray(free.inputs)[:, 0] == 1.0)
+
+
+@pytest.mark.float32
+def test_values_beyond_float32_are_refused_naming_the_leaf_with_x64_off():
+    """With x64 off a finite float64 1e39 would be cast to inf and searched as inf (every state infeasible,
+    "complete"): every entry point refuses it, naming the leaf; an int64 beyond int32 would wrap around."""
+    if jax.config.jax_enable_x64:
+        pytest.skip("the cast narrows only with x64 off (pytest --float32)")
+    prob = fj.Problem(lambda x, u, p: x + u, jnp.array([-1.0, 0.0, 1.0]),
+                      lambda x, u, p: 1e-30 * jnp.sum(jnp.abs(x - p["ref"])), 2)
+    x0 = np.zeros(1, np.float32)
+    with pytest.raises(ValueError, match=r"params leaf \['ref'\] holds 1e\+39, beyond the range of float32"):
+        fj.sdfs(prob, x0, params={"ref": np.array([1e39])})
+    with pytest.raises(ValueError, match=r"params leaf \['ref'\] holds 1e\+39, beyond the range of float32"):
+        fj.solve_batch(prob, np.zeros((3, 1)), params={"ref": np.array([[0.0], [1e39], [0.0]])})
+    with pytest.raises(ValueError, match=r"params leaf \['ref'\] holds 1e\+39"):
+        fj.FIRHC(prob).simulate(x0, 2, params={"ref": np.full((2, 1), -1e39)})
+    with pytest.raises(ValueError, match=r"x0 holds 1e\+39, beyond the range of float32"):
+        fj.sdfs(prob, np.array([1e39]), params={"ref": np.zeros(1)})
+    with pytest.raises(ValueError, match=r"X0 holds 1e\+39, beyond the range of float32 .* in rows \[1\]"):
+        fj.solve_batch(prob, np.array([[0.0], [1e39]]), params={"ref": np.zeros((2, 1))})
+    with pytest.raises(ValueError, match=r"params leaf \['k'\] holds 1.1e\+12, beyond the range of int32"):
+        fj.sdfs(prob.replace(stage_cost=lambda x, u, p: jnp.sum(x ** 2) * p["k"]), x0, params={"k": np.int64(2**40)})
+    result = fj.sdfs(prob, x0, params={"ref": np.array([3e38])})  # within float32's range: solved
+    assert bool(result.feasible) and np.isfinite(float(result.cost))

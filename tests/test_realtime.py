@@ -78,3 +78,32 @@ def test_a_batch_of_loops_with_a_bar_makes_the_same_decisions():
 def test_progress_chunks_are_the_one_scan_run_bit_for_bit(capsys):
     for name, a, b in _one_scan_and_chunked(capsys):
         np.testing.assert_array_equal(a, b, err_msg=name)
+
+
+def test_the_python_loop_runs_with_the_collector_paused_and_restores_it():
+    """simulate(compiled=False) keeps Python's cyclic garbage collector out of its loop (a collection walks
+    every object of the process inside one decision); fj.collector_paused restores whatever was set."""
+    import gc
+
+    seen = []
+
+    def plant(x, u):  # called from the loop, as it is
+        seen.append(gc.isenabled())
+        return np.asarray(x) + 0.1 * np.asarray(u)
+
+    ctrl = fj.FIRHC(fj.Problem(lambda x, u: x + 0.1 * u, jnp.array([-1.0, 0.0, 1.0]), fj.quadratic_cost(1.0, 0.0), 2))
+    assert gc.isenabled()
+    run = ctrl.simulate(np.array([1.0]), 4, plant, compiled=False)
+    assert seen == [False] * 4 and gc.isenabled() and np.isfinite(np.asarray(run.solve_times)).all()
+    with pytest.raises(KeyError):
+        with fj.collector_paused():
+            assert not gc.isenabled()
+            raise KeyError("an error inside the loop")
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with fj.collector_paused():
+            pass
+        assert not gc.isenabled()  # left as the caller set it
+    finally:
+        gc.enable()

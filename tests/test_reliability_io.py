@@ -116,6 +116,35 @@ def test_load_says_what_a_npy_file_or_another_file_is(saved, tmp_path):
         fj.ClosedLoop.load(tmp_path / "objects.npz")
 
 
+def test_load_says_a_damaged_archive_is_damaged_in_one_line(saved, tmp_path):
+    """One flipped byte inside the data of a member: its checksum fails as numpy reads it."""
+    _, path = saved
+    data = bytearray(open(path, "rb").read())
+    with zipfile.ZipFile(path) as z:
+        member = z.getinfo("states.npy")
+    data[member.header_offset + 30 + len(member.filename) + len(member.extra) + member.file_size - 3] ^= 0xFF
+    (tmp_path / "damaged.npz").write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=r"damaged\.npz is a damaged \.npz archive \(Bad CRC-32 for file "
+                                         r"'states\.npy'\); save the run again$"):
+        fj.ClosedLoop.load(tmp_path / "damaged.npz")
+
+
+def test_load_blames_inputs_of_four_axes_on_inputs(saved, tmp_path):
+    fields, _ = saved
+    np.savez(tmp_path / "four.npz", **{**fields, "inputs": fields["inputs"][None, None]})
+    with pytest.raises(ValueError, match=r"not a consistent ClosedLoop: inputs has shape \(1, 1, 6, 1\), "
+                                         r"expected \[T, m'\] \(one run\) or \[B, T, m'\] \(B runs\)"):
+        fj.ClosedLoop.load(tmp_path / "four.npz")
+
+
+@pytest.mark.parametrize("call", ["profile", "check_problem"])
+def test_string_states_are_refused_naming_states(call):
+    prob = fj.Problem(lambda x, u: 0.9 * x + u, CONTROLS, fj.quadratic_cost(1.0, 0.0), 2)
+    fn = fj.profile if call == "profile" else fj.diagnostics.check_problem
+    with pytest.raises(TypeError, match=r"^states must be a real numeric batch of states \[B, n\], got dtype <U1$"):
+        fn(prob, np.array([["a"], ["b"]]))
+
+
 def test_plot_names_the_curves_and_labels_the_time_axis_in_seconds(saved):
     import matplotlib
 
@@ -159,6 +188,17 @@ def test_a_negative_terminal_cost_is_blamed_on_terminal_cost():
     assert [(v.state, v.source) for v in fj.diagnostics.check_problem(negative_stage, jnp.array([[-9.0]]))] == \
         [(0, "stage_cost")]
 
+
+
+def test_a_negative_stage_cost_beside_a_nan_one_is_reported():
+    """From x = 0.3 the log cost is log 0.8 < 0 for one input and NaN for the other (the search discards that
+    node and raises on the negative cost): the check reports the negative cost."""
+    prob = fj.Problem(lambda x, u: x + u, jnp.array([0.5, -1.0]), lambda x, u: jnp.log(x[0]), 2)
+    with pytest.raises(ValueError, match="negative"):
+        fj.sdfs(prob, jnp.array([0.3]))
+    found = fj.diagnostics.check_problem(prob, jnp.array([[0.3], [2.0]]))
+    assert [(v.state, v.source) for v in found] == [(0, "stage_cost")]
+    np.testing.assert_allclose(found[0].value, np.log(0.8))
 
 # -- helpers take what they say ---------------------------------------------------------------------------------
 def _bounded(bound):

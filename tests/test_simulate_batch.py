@@ -243,3 +243,24 @@ def test_loops_split_over_four_devices_equal_their_single_loops():
                          cwd=Path(__file__).parent.parent, timeout=900)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "loops on 4 devices equal their single loops" in out.stdout
+
+
+BUDGET_PROBLEM = random_problems.make(5, n=2, m=1, M=4, N=5).problem()  # random inputs: no ties
+BUDGET_CASES = [(solver, budget) for solver in ("sdfs", "pool", "sdfs-vmap") for budget in (None, 60)] \
+    + [("exhaustive", None)]
+
+
+@pytest.mark.parametrize("solver,max_nodes", [pytest.param(*case, marks=() if case == ("pool", 60) else
+                                                           pytest.mark.slow) for case in BUDGET_CASES])
+def test_every_solver_batches_its_loops_as_simulate(solver, max_nodes):
+    """Every solver, with and without a node budget: each batched loop makes its own simulate's decisions
+    (no ties here, so every step), node for node wherever no nodes are shared between loops."""
+    budget = {} if max_nodes is None else {"max_nodes": max_nodes}
+    c = fj.FIRHC(BUDGET_PROBLEM, solver, warm_start=solver != "exhaustive", **budget)
+    X0 = np.random.default_rng(11).uniform(-1, 1, (5, 2))
+    run = c.simulate_batch(X0, 6)
+    nodes = max_nodes is not None or solver in ("sdfs-vmap", "exhaustive")
+    for b in range(5):
+        assert assert_same_loop(row(run, b), c.simulate(X0[b], 6), f"{solver}: loop {b}", nodes=nodes) == 6
+    if max_nodes is not None:  # the budget cuts every search
+        assert not np.asarray(run.complete).any() and int(np.max(np.asarray(run.decision_nodes))) <= max_nodes

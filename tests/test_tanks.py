@@ -14,8 +14,6 @@ from firhc_jax.apps._timing import compile_events as compilations
 from firhc_jax.apps._timing import timed_closed_loop
 from firhc_jax.models import tanks as model
 
-jax.config.update("jax_enable_x64", True)
-
 P = model.TankParams()
 PLANT = jax.jit(jax.vmap(model.make_plant(P)))  # ([B, 3], [B]) -> ([B, 3], [B])
 ALL_MODES = np.arange(model.NUM_MODES)

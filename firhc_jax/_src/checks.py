@@ -95,7 +95,27 @@ def strong(a):
     if isinstance(a, jax.Array) and not a.weak_type:
         return a
     a = np.asarray(a)
-    return a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False)
+    with np.errstate(over="ignore"):  # a value beyond the canonical dtype is refused by ``kept_in_cast``
+        return a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False)
+
+
+def kept_in_cast(name: str, given, cast, detail: str = "") -> None:
+    """A ``ValueError`` naming ``name`` where ``cast`` (the finite ``given`` as ``strong`` made it) lost values
+    beyond the range of the narrower dtype JAX casts them to with x64 off (searched as inf, or wrapped
+    around)."""
+    a = np.asarray(cast)
+    if a.dtype.kind == "f":
+        if np.isfinite(a).all():
+            return
+        g = np.asarray(given)
+        big, limit = float(np.max(np.abs(g))), float(np.finfo(a.dtype).max)
+    elif a.dtype.kind in "iu" and np.asarray(given).dtype != a.dtype and not np.array_equal(given, a):
+        g = np.asarray(given)
+        big, limit = int(np.max(np.abs(g.astype(object)))), int(np.iinfo(a.dtype).max)
+    else:
+        return
+    raise ValueError(f"{name} holds {big:.4g}, beyond the range of {a.dtype} (largest {limit:.4g}), which JAX "
+                     f"casts {g.dtype} to with x64 off: scale it, or enable jax_enable_x64{detail}")
 
 
 def check_params(params, leading: int | tuple | None = None, what: str = "params", axis: str = "B"):
@@ -124,6 +144,7 @@ def check_params(params, leading: int | tuple | None = None, what: str = "params
                 raise TypeError(f"{name} must be a real numeric or boolean array, got dtype {arr.dtype}")
             finite(name, arr)
             a = strong(arr)
+            kept_in_cast(name, arr, a)
         if isinstance(leading, tuple) and tuple(a.shape[:len(leading)]) != leading:
             raise ValueError(f"{name} must have leading axes {axis} = {list(leading)}, got shape {tuple(a.shape)}")
         if isinstance(leading, int) and (a.ndim == 0 or a.shape[0] != leading):
@@ -143,6 +164,7 @@ def as_state(x0, name: str = "x0"):
         x_np = numeric(name, x0, "state vector [n]")
         finite(name, x_np, f": {x_np}")
         x0 = strong(x0)
+        kept_in_cast(name, x_np, x0, f": {x_np}")
     if x0.ndim != 1:
         raise ValueError(
             f"{name} must be a 1-D state vector [n], got shape {tuple(x0.shape)}; "
@@ -174,10 +196,8 @@ def as_batch(X0, name: str = "X0"):
     if isinstance(X0, jax.core.Tracer):
         X = X0
     else:
-        try:
-            X = jnp.asarray(strong(X0))
-        except (TypeError, ValueError) as e:
-            raise TypeError(f"{name} must be a numeric array [B, n]: {e}") from None
+        X0 = X0 if isinstance(X0, jax.Array) else numeric(name, X0, "batch of states [B, n]")
+        X = jnp.asarray(strong(X0))
     if X.ndim != 2:
         raise ValueError(f"{name} must be a 2-D batch of states [B, n], got shape {tuple(X.shape)}; "
                          "for one state use fj.sdfs")
@@ -187,7 +207,9 @@ def as_batch(X0, name: str = "X0"):
         raise TypeError(f"{name} must have a floating dtype, got {X.dtype}")
     if not isinstance(X, jax.core.Tracer):
         bad = np.flatnonzero(~np.all(np.isfinite(np.asarray(X)), axis=1))
-        finite(name, np.asarray(X), f" in rows {bad[:10].tolist()}{' ...' if bad.size > 10 else ''}")
+        rows = f" in rows {bad[:10].tolist()}{' ...' if bad.size > 10 else ''}"
+        finite(name, X0, rows)
+        kept_in_cast(name, X0, X, rows)
     return X
 
 

@@ -5,14 +5,14 @@ Python loop of the compiled decision with each decision timed in
 ``solve_times``. Before it, the decision is compiled for the run's shapes and
 that compilation is timed on its own, so ``compile_s`` is tracing plus
 compilation and ``solve_times`` never include it. The loop runs with
-Python's cyclic garbage collector paused, as a real-time loop would run
-(``gc.disable``/``gc.freeze``): one collection of the run's records took
-130-160 ms inside a single decision (docs/applications/inverter.md).
+Python's cyclic garbage collector paused (``fj.collector_paused``, as
+``simulate(..., compiled=False)`` runs it): one collection of the run's
+records took 130-160 ms inside a single decision
+(docs/applications/inverter.md).
 """
 from __future__ import annotations
 
 import contextlib
-import gc
 import time
 
 import jax
@@ -43,19 +43,6 @@ def compile_events(kind: str = BACKEND_COMPILE):
         jax.monitoring.unregister_event_duration_listener(listener)
 
 
-@contextlib.contextmanager
-def collector_paused():
-    """Python's cyclic garbage collector off inside the block (as it was before, after it), then one collection."""
-    was = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if was:
-            gc.enable()
-        gc.collect()
-
-
 def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None, dt=None, progress=False,
                       settings=None):
     """``(loop, compile_s)``: ``ctrl.simulate(x0, steps, plant, ..., compiled=False)`` with every decision timed,
@@ -83,9 +70,8 @@ def timed_closed_loop(ctrl, x0, steps: int, plant=None, *, params=None, u0=None,
         decide = decision(ctrl, settings, folder, state, x0, p0) if settings and folder else ctrl._decide()
         jax.block_until_ready(decide(state, x0, p0))
         first = time.perf_counter() - t0
-    with collector_paused():  # the decision was checked when traced; the plant is called as it is
-        plant, key, _ = ctrl._plant(plant)
-        loop = ctrl._run(state, x0, steps, plant, key, params, progress, decide, dt)
+    plant, key, _ = ctrl._plant(plant)  # the decision was checked when traced; the plant is called as it is
+    loop = ctrl._run(state, x0, steps, plant, key, params, progress, decide, dt)
     if seen:
         return loop, first - float(loop.solve_times[0])
     with stage("timing the decision's compilation"):

@@ -221,7 +221,7 @@ def solve_in_chunks(problem, X0, params, options: dict, label: str | None):
         for start in range(0, B, size):
             rows = np.minimum(np.arange(start, start + size), B - 1)
             part = solve_batch(problem, X0[rows], params=jax.tree_util.tree_map(lambda a, r=rows: a[r], params),
-                               **options)
+                               progress=False, **options)  # this bar counts the rows
             parts.append([np.asarray(field)[:B - start] for field in part])
             bar.update(min(size, B - start))
     return SearchResult(*(np.concatenate(field) for field in zip(*parts, strict=True)))

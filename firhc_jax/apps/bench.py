@@ -14,8 +14,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import os
-import platform
 import statistics
 import sys
 import time
@@ -28,6 +26,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ._args import number, output_dir
+from ._machine import machine
 from ._status import stage
 
 # The paper's figures: Point A, Point B max and min (Table 2) or max and mean (Table 3), Point C (sDFS time /
@@ -252,16 +251,6 @@ def tables_markdown(rows: list[dict], bound: bool = False, quick: bool = False) 
         "warm: sDFS seeded with the previous step's solution shifted. fastest K: the pop_width with the least "
         "total time. Compile times are in the JSON output.", ""]
     return "\n".join(lines)
-
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, jax {jax.__version__}, {jax.devices()[0].platform}"
 
 
 def run_tables(args) -> int:

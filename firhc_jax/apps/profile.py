@@ -16,7 +16,6 @@ and ns per callable) into ``--out``.
 from __future__ import annotations
 
 import json
-import platform
 from pathlib import Path
 
 import numpy as np
@@ -224,16 +223,15 @@ def run(args) -> int:
     problem, states, params = load_case(args.case, args.debug)
     args.out.mkdir(parents=True, exist_ok=True)  # writable: checked by output_dir when the arguments were parsed
     from .. import profile
-    from ..distributed import usable_cores
+    from ._machine import machine
 
     try:
         result = profile(problem, states, params, pop_widths=args.pop_widths, lanes=args.lanes,
                          repeats=args.repeats, max_exhaustive_nodes=args.max_exhaustive_nodes, progress=True)
     except (TypeError, ValueError) as e:  # states or params the search refuses: its message, no traceback
         raise SystemExit(f"profile: {e}") from None
-    machine = (f"{platform.machine()}, {usable_cores()} usable cores, {jax.devices()[0].platform}, "
-               f"jax {jax.__version__}, {'float32' if args.float32 else 'float64'}")
-    title = f"{args.case}: N = {problem.horizon}, M = {problem.num_controls}, {len(states)} states; {machine}"
+    where = f"{machine()}, {'float32' if args.float32 else 'float64'}"
+    title = f"{args.case}: N = {problem.horizon}, M = {problem.num_controls}, {len(states)} states; {where}"
     exhaustive = next((r["states"] for r in result if r["solver"] == "exhaustive"), 0)
     print(f"# {title}\n\n{markdown(result)}\n\n{verdict(result)}\n")
     subset = (f"fj.exhaustive on {exhaustive} of them" if exhaustive else "fj.exhaustive on none: one tree is larger")
@@ -242,7 +240,7 @@ def run(args) -> int:
           f"others. Compiling took {result.compile_seconds:.1f} s of the {result.seconds:.1f} s this profile "
           f"took.\n\n{node_table(result)}\n")
     (args.out / "profile.json").write_text(json.dumps(
-        {"case": args.case, "machine": machine, "rows": result, "node_costs": result.node_costs,
+        {"case": args.case, "machine": where, "rows": result, "node_costs": result.node_costs,
          "repeats": result.repeats, "clear_winner": result.clear_winner,
          "compile_seconds": result.compile_seconds, "seconds": result.seconds}, indent=1))
     figure(result, title).savefig(args.out / "profile.png", dpi=100)

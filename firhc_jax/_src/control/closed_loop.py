@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 import zipfile
+import zlib
 from typing import TYPE_CHECKING, NamedTuple, Optional, Sequence
 
 import jax
@@ -104,8 +105,16 @@ class ClosedLoop(NamedTuple):
         (``states`` not ``[T+1, n]`` for ``inputs`` ``[T, m']``, ...), whose
         headers declare more data than the file holds (``save`` writes
         uncompressed arrays), or that is not an ``.npz`` at all is refused
-        with a ``ValueError`` before anything is allocated. No pickles."""
+        with a ``ValueError`` before anything is allocated; so is a damaged
+        archive (a member whose data fail their checksum). No pickles."""
         path = os.fspath(path)
+        try:
+            return cls._load(path)
+        except (zipfile.BadZipFile, zlib.error, EOFError) as e:
+            raise ValueError(f"{path} is a damaged .npz archive ({e}); save the run again") from None
+
+    @classmethod
+    def _load(cls, path: str) -> "ClosedLoop":
         declared = _declared_arrays(path)
         names = set(declared)
         required = [f for f in cls._fields if f not in cls._field_defaults]
@@ -184,11 +193,14 @@ def _check_layout(path: str, declared: dict) -> None:
     """The fields' declared shapes and dtypes agree with one run of T steps (``inputs`` ``[T, m']``), or
     with B runs of T steps (``inputs`` ``[B, T, m']``: every field but ``times`` then leads with B)."""
     inputs = declared["inputs"][0]
+    if len(inputs) not in (2, 3):
+        raise ValueError(f"{path} is not a consistent ClosedLoop: inputs has shape {inputs}, expected [T, m'] "
+                         "(one run) or [B, T, m'] (B runs)")
     batch = tuple(inputs[:1]) if len(inputs) == 3 else ()
-    T = inputs[len(batch)] if len(inputs) > len(batch) else None
+    T = inputs[len(batch)]
     for name, (shape, dtype) in declared.items():
         lead, ndim, kinds = _LAYOUT[name]
-        length = None if T is None else T + (lead == "T+1")
+        length = T + (lead == "T+1")
         first = () if name == "times" else batch
         if len(shape) != ndim + len(first) or tuple(shape[:len(first)]) != first \
                 or shape[len(first)] != length or dtype.kind not in kinds:

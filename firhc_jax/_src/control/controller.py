@@ -32,8 +32,9 @@ before any complete sequence), or the input found is not finite (a
 else the input applied last (``u0`` at the start), and flag the decision
 (``info.held``, ``ClosedLoop.held``); ``simulate`` and ``simulate_batch``
 warn at the first held step (a Python loop: as it happens; a compiled run
-with ``progress``: at the end of its chunk; a compiled run without: after
-it, naming the step) and count the held steps after the run; the one-shot
+in chunks, under a progress bar: at the end of its chunk; a compiled run in
+one piece: after it, naming the step) and count the held steps after the
+run; the one-shot
 ``ctrl(x)`` raises ``InfeasibleError``.
 
 With ``params`` (leaves with leading axis ``steps``) step k calls every
@@ -44,6 +45,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import inspect
+import warnings
 from typing import Any, Callable, Mapping, Optional
 
 import jax
@@ -53,7 +56,6 @@ from ..annotations import ArrayLike, PyTree
 from ..checks import as_batch, as_inputs, as_sequence, as_state, check_params, is_tracer, positive_int, sample_times
 from ..problem.problem import Problem, input_dtype
 from ..runtime.memory_cache import cached
-from ..runtime.progress import Progress
 from ..search.result import SearchResult, raise_on_errors
 from .closed_loop import ClosedLoop
 from .decision import ControllerState, StepInfo, decide, decide_rows
@@ -63,6 +65,15 @@ from .runner import first_held_warning, ready, run_compiled, run_loops, run_pyth
 
 class InfeasibleError(RuntimeError):
     """A one-shot decision (``FIRHC.__call__``) found no input to apply."""
+
+
+def code_of(fn):
+    """The code object behind a callable (a function, a bound method, a ``functools.partial``, a jitted or
+    wrapped function), or None."""
+    fn = inspect.unwrap(fn)
+    while isinstance(fn, functools.partial):
+        fn = inspect.unwrap(fn.func)
+    return getattr(getattr(fn, "__func__", fn), "__code__", None)
 
 
 def _hashable(value):
@@ -150,7 +161,8 @@ class FIRHC:
         solvers; ``method``, ``chunk_nodes``, ``pop_width``, ``max_memory``
         for exhaustive. Unknown options are refused here. ``max_nodes`` is
         the budget of a whole decision: the fallback search gets what the
-        first one left.
+        first one left. Budgets beyond 2**31 - 1 (what the int32 node
+        counter counts) count as 2**31 - 1, as in ``fj.sdfs``.
     """
 
     def __init__(self, problem: Problem, solver: str = "sdfs", *, fallback: str | Problem | None = None,
@@ -158,6 +170,7 @@ class FIRHC:
                  actuate: Optional[Callable] = None, u_safe: ArrayLike | None = None, **solver_options: Any):
         self.options = Options(**controller_options(problem, solver, fallback, warm_start, observe, actuate,
                                                     u_safe, solver_options))
+        self._last_plant = None  # the plant of the last compiled closed loop (_note_plant)
 
     problem = property(lambda self: self.options.problem)
     solver = property(lambda self: self.options.solver)
@@ -260,7 +273,7 @@ class FIRHC:
     # -- closed loops ------------------------------------------------------------
     def simulate(self, x0: ArrayLike, steps: int, plant: Optional[Callable] = None, *, params: PyTree = None,
                  u0: ArrayLike | None = None, dt: float | None = None,
-                 progress: bool = False, compiled: bool = True) -> ClosedLoop:
+                 progress: bool | None = None, compiled: bool = True) -> ClosedLoop:
         """Run the closed loop for ``steps`` steps from plant state ``x0``: ``step`` then ``plant``.
 
         Args:
@@ -271,9 +284,14 @@ class FIRHC:
             the first decision finds none); default zeros.
           dt: the sampling period in seconds: the run gets ``times`` ``[T+1]``
             (``k * dt``) and plots against time.
-          progress: a progress bar (at most ``progress.TICKS`` updates; a
-            compiled run is then one compiled chunk of steps dispatched
-            again and again, with the same results to the last bit).
+          progress: a progress bar with an estimate, on stderr or in the
+            notebook. ``None`` (default): once the run has taken 2 s.
+            ``True``: at once; ``False``: never. A compiled run reports its
+            steps when it runs as chunks of steps dispatched again and again
+            (the same results to the last bit): with ``True``, and by default
+            when the last run of this loop says this one takes 2 s or more;
+            otherwise it is one compiled program, whose bar shows the time
+            elapsed (docs/guide/realtime.md).
           compiled: ``True``: one ``lax.scan`` (everything traceable);
             ``False``: a Python loop over the compiled ``step``, for a plant
             that cannot be traced, and with each decision timed in
@@ -283,8 +301,8 @@ class FIRHC:
 
         Steps where no input was found hold the safe input (``held``): a
         ``RuntimeWarning`` names the first one as it happens (``compiled=False``),
-        at the end of its chunk (``progress=True``) or after the run, and another
-        counts them after the run.
+        at the end of its chunk (a run under a progress bar) or after the run, and
+        another counts them after the run.
         """
         steps = positive_int("steps", steps)
         x0 = as_state(x0)
@@ -292,35 +310,41 @@ class FIRHC:
         state = self.init(x0, u0)
         sample_times(dt, steps)
         plant, plant_key, default = self._plant(plant)
-        check_closed_loop(self.options, plant_key if compiled else False, plant if compiled else None, state.u, x0,
-                          params, default, drop=1)
+        fresh = check_closed_loop(self.options, plant_key if compiled else False, plant if compiled else None,
+                                  state.u, x0, params, default, drop=1)
+        if compiled:
+            self._note_plant(plant, default, fresh)
         return self._run(state, x0, steps, plant, plant_key, params, progress, None if compiled else self._decide(),
                          dt)
 
-    def _run(self, state, x0, steps: int, plant, plant_key, params, progress: bool, decision, dt) -> ClosedLoop:
+    def _run(self, state, x0, steps: int, plant, plant_key, params, progress: Optional[bool], decision, dt
+             ) -> ClosedLoop:
         """A checked closed loop (``simulate``'s), under its progress bar and followed by the held-input warning:
         one compiled scan where ``decision`` is None, else a Python loop of ``decision``, a compiled decision of
         this controller (``step``'s contract); ``dt`` (checked) gives its time axis."""
-        on_held = first_held_warning(self.u_safe is not None, stacklevel=5)
-        with Progress(steps, f"FIRHC[{self.solver}]", enabled=progress):
-            if decision is None:
-                out, = run_compiled(functools.partial(decide, self.options), user_plant(plant), [(state, x0, params)],
-                                    steps, key=(self.options.key, plant_key), progress=progress, on_held=on_held)
-            else:
-                out = run_python(decision, user_plant(plant), state, x0, params, steps, progress=progress,
-                                 on_held=on_held)
+        label = f"FIRHC[{self.solver}]"
+        # the warning points at the caller of simulate: through _report, _in_chunks and run_compiled, or run_python
+        on_held = first_held_warning(self.u_safe is not None, stacklevel=7 if decision is None else 5)
+        if decision is None:
+            out, = run_compiled(functools.partial(decide, self.options), user_plant(plant), [(state, x0, params)],
+                                steps, key=(self.options.key, plant_key), progress=progress, label=label,
+                                on_held=on_held)
+        else:
+            out = run_python(decision, user_plant(plant), state, x0, params, steps, progress=progress, label=label,
+                             on_held=on_held)
         warn_held(out.held, steps, self.u_safe is not None)
         return out._replace(times=sample_times(dt, steps))
 
     def simulate_batch(self, X0: ArrayLike, steps: int, plant: Optional[Callable] = None, *, params: PyTree = None,
                        u0: ArrayLike | None = None, dt: float | None = None,
-                       progress: bool = False) -> ClosedLoop:
+                       progress: bool | None = None) -> ClosedLoop:
         """Run B closed loops at once, loop b from plant state ``X0[b]``: one compiled run.
 
         Loop b makes the decisions of ``simulate(X0[b], steps, plant, params=params[b], u0=u0[b])``: at
         every step the B searches run as the solver's batch (``"sdfs"``, ``"pool"``: one work pool whose
         lanes take the next loop's root or steal nodes, so a long search never holds the other loops; with
-        ``max_nodes`` no loop's nodes are shared, so each is searched node for node as ``simulate`` does).
+        ``max_nodes`` no loop's nodes are shared, so each is searched node for node as ``simulate`` does:
+        ``"sdfs"`` on one slot, ``"pool"`` on a pool of ``lanes`` slots of its own).
         The loops are split into parts, one per CPU core and per local device, run side by side; in a job of
         several processes (``jax.distributed``) each runs its share and every process gets every loop.
         Costs are equal (to the last bits: XLA vectorises the batch its own way); inputs too, except at exact
@@ -332,7 +356,8 @@ class FIRHC:
           params: optional pytree whose leaves are ``[B, steps, ...]``: loop b, step k uses ``params[b, k]``.
           u0: ``[m]`` (every loop) or ``[B, m]``: the input applied before step 0; default zeros.
           dt: the sampling period in seconds (``times`` ``[T+1]``).
-          progress: a bar counting loops x steps (compiled chunks of steps, as in ``simulate``).
+          progress: a bar counting loops x steps (compiled chunks of steps; ``None``, ``True``, ``False`` as in
+            ``simulate``).
 
         Returns a ``ClosedLoop`` with a leading axis B on every field but ``times``; ``solve_times`` NaN.
         """
@@ -344,11 +369,12 @@ class FIRHC:
         state = ControllerState(u=u0, plan=np.full((B, self.problem.horizon), -1, np.int32))
         times = sample_times(dt, steps)
         plant, plant_key, default = self._plant(plant)
-        check_closed_loop(self.options, plant_key, plant, state.u[0], X0[0], params, default, drop=2)
-        with Progress(B * steps, f"FIRHC[{self.solver}] x {B} loops", enabled=progress):
-            out = run_loops(functools.partial(decide_rows, self.options), jax.vmap(user_plant(plant)), state, X0,
-                            params, steps, key=("batch", self.options.key, plant_key), progress=progress,
-                            on_held=first_held_warning(self.u_safe is not None, stacklevel=5))
+        self._note_plant(plant, default, check_closed_loop(self.options, plant_key, plant, state.u[0], X0[0], params,
+                                                           default, drop=2))
+        out = run_loops(functools.partial(decide_rows, self.options), jax.vmap(user_plant(plant)), state, X0, params,
+                        steps, key=("batch", self.options.key, plant_key), progress=progress,
+                        label=f"FIRHC[{self.solver}] x {B} loops",
+                        on_held=first_held_warning(self.u_safe is not None, stacklevel=7))
         warn_held(out.held, steps * B, self.u_safe is not None)
         return out._replace(times=times)
 
@@ -356,6 +382,19 @@ class FIRHC:
     def _input_form(self) -> tuple:
         """``(m, dtype)`` of the searched inputs (``u0``, ``u_safe``)."""
         return self.problem.input_dim, input_dtype(self.problem)
+
+    def _note_plant(self, plant, default: bool, compiling: bool) -> None:
+        """A compiled closed loop's ``plant`` (``compiling``: the loop compiles for it): a one-line warning when
+        it compiles for a new object with the code of the last plant (a plant defined anew for each call
+        compiles the whole loop each time)."""
+        last, self._last_plant = self._last_plant, None if default else plant
+        code = None if default or not compiling or last is None or last is plant else code_of(plant)
+        if code is None or code != code_of(last):
+            return
+        warnings.warn(f"FIRHC compiles its closed loop again for a new plant object with the code of the last one "
+                      f"({code.co_name} at {code.co_filename}:{code.co_firstlineno}): the plant is part of the "
+                      "compiled loop, keyed by the object; define it once and pass that same object to every call "
+                      "(values that change belong in params)", UserWarning, stacklevel=3)
 
     def _plant(self, plant):
         """``(plant, its cache key, whether it is the default)``: the default plant (the model's dynamics)

@@ -117,8 +117,8 @@ def solve(opts, x, params, previous):
 
 def solve_rows(opts, X, params, previous):
     """``solve`` for the rows of ``X`` ``[B, n]`` (``params`` leaves ``[B, ...]``, ``previous`` ``[B, N]`` or None),
-    each row's searches by the solver's ``batch``. With a node budget no row's nodes are shared between
-    slots (no stealing), so every row is searched in ``solve``'s order, node for node."""
+    each row's searches by the solver's ``batch``. With a node budget no row's nodes are shared with another
+    row's (``steal=False``), so every row is searched as ``solve`` searches it, node for node."""
     B = X.shape[0]
     batch = solvers.get(opts.solver).batch
     max_nodes = jnp.broadcast_to(max_nodes_of(opts), (B,))

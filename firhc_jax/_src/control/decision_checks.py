@@ -15,6 +15,7 @@ from ..problem.callables import check_state, params_spec, shape_of
 from ..problem.problem import Problem, input_dtype
 from ..runtime.memory_cache import cached
 from ..search import solvers
+from ..search.sdfs import node_budget
 from .decision import decide, solve
 
 _DEFAULT_PLANT_HINT = ("; the default plant is the model's dynamics, which with observe set runs on model states: "
@@ -27,6 +28,8 @@ def controller_options(problem, solver, fallback, warm_start, observe, actuate, 
         raise TypeError(f"problem must be a firhc_jax.Problem, got {type(problem).__name__}")
     table = solvers.get(solver)
     options = solvers.check_options(solver, solver_options)
+    if options.get("max_nodes") is not None:  # what the int32 node counter can count, as fj.sdfs clamps it
+        options["max_nodes"] = int(node_budget(options["max_nodes"]))
     if isinstance(fallback, Problem):
         if (fallback.horizon, fallback.num_controls) != (problem.horizon, problem.num_controls):
             raise ValueError(f"a fallback Problem needs the problem's horizon and inputs (N={problem.horizon}, "
@@ -129,13 +132,20 @@ def no_input_message(opts, info) -> str:
     return msg
 
 
-def check_closed_loop(opts, plant_key, plant, u, x0, params, default: bool, drop: int) -> None:
-    """The closed loop's checks, once per signature (``drop``: the leading axes of ``params``)."""
+def check_closed_loop(opts, plant_key, plant, u, x0, params, default: bool, drop: int) -> bool:
+    """The closed loop's checks, once per signature and plant (``drop``: the leading axes of ``params``);
+    whether they ran (a signature or plant not seen before: the loop compiles next)."""
     pkey, pspec = params_spec(params, drop_leading=drop)
     spec = lambda a: jax.ShapeDtypeStruct(np.shape(a), a.dtype)  # noqa: E731
     plan = jax.ShapeDtypeStruct((opts.problem.horizon,), np.int32)
-    cached(("closed-loop check", opts.key, plant_key, spec(x0), spec(u), pkey),
-           lambda: check_loop(opts, plant, spec(u), plan, spec(x0), pspec, default))
+    ran = []
+
+    def check():
+        check_loop(opts, plant, spec(u), plan, spec(x0), pspec, default)
+        ran.append(True)
+
+    cached(("closed-loop check", opts.key, plant_key, spec(x0), spec(u), pkey), check)
+    return bool(ran)
 
 
 def decide_checked(opts, state, x, p):

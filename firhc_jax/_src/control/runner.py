@@ -19,7 +19,7 @@ from __future__ import annotations
 import functools
 import time
 import warnings
-from typing import Callable
+from typing import Callable, Optional
 
 import jax
 import jax.numpy as jnp
@@ -28,25 +28,47 @@ from jax.experimental import multihost_utils
 
 from ..checks import is_tracer
 from ..problem.problem import call
+from ..runtime.collector import collector_paused
 from ..runtime.memory_cache import cached
-from ..runtime.progress import due, interval, tick_python
+from ..runtime.progress import Progress, chunked, due, interval, record, tick_python
 from ..runtime.sharding import default_parts, join_rows, mesh_of, on_stream, same_on_every_process, split_rows
 from .closed_loop import ClosedLoop
 from .decision import StepInfo
 
 
-def run_compiled(decide: Callable, plant: Callable, runs: list, steps: int, *, key, progress: bool,
-                 ticks_per_step: int = 1, on_held: Callable | None = None) -> list[ClosedLoop]:
+def run_compiled(decide: Callable, plant: Callable, runs: list, steps: int, *, key, progress: Optional[bool],
+                 label: str, ticks_per_step: int = 1, on_held: Callable | None = None) -> list[ClosedLoop]:
     """``steps`` steps of each run ``(state, x0, params)`` in ``runs`` (``params`` leaves ``[steps, ...]``,
     row k: step k) as compiled scans, one ``ClosedLoop`` each. Several runs (parts of a batch of loops) are
     dispatched each on its own execution stream, so they run side by side on the CPU's cores
-    (``firhc_jax._src.runtime.sharding``). With ``progress`` the bar moves by ``ticks_per_step`` per step done,
-    and ``on_held(step)`` is called once, at the end of the chunk that holds the first held step (a step of
-    any loop; without ``progress`` the run is one program and there is no moment to call it)."""
-    if not progress:
-        run = cached(("closed loop", key, steps), lambda: jax.jit(lambda s, x, p: _with_x0(
-            x, _scan(decide, plant, (s, x), p, 0, steps)[1], jnp.full((steps,) + _batch(x), jnp.nan))))
-        return [_dispatch(i, len(runs), run, *r) for i, r in enumerate(runs)]
+    (``firhc_jax._src.runtime.sharding``). ``progress`` (True, False, None: automatic) as
+    ``firhc_jax._src.runtime.progress`` says: a bar labelled ``label``, moved by ``ticks_per_step`` per step
+    done where the run goes in chunks; there ``on_held(step)`` is called once, at the end of the chunk that
+    holds the first held step (of any loop; a run in one piece is one program: no moment to call it)."""
+    traced = any(map(is_tracer, jax.tree_util.tree_leaves(runs)))
+    rate_key, units = ("closed loop", key), steps * ticks_per_step
+    chunks = not traced and chunked(progress, rate_key, units)
+    with Progress(units, label, enabled=False if traced else progress, counted=chunks):
+        outs, started = (functools.partial(_in_chunks, on_held=on_held) if chunks else _whole)(
+            decide, plant, runs, steps, key, ticks_per_step)
+        if not traced:
+            jax.block_until_ready(outs)
+            record(rate_key, units, time.perf_counter() - started)
+    return outs
+
+
+def _whole(decide, plant, runs: list, steps: int, key, ticks_per_step: int):
+    """``run_compiled``'s runs as one compiled scan each: ``(runs, when the first was dispatched)``."""
+    run = cached(("closed loop", key, steps), lambda: jax.jit(lambda s, x, p: _with_x0(
+        x, _scan(decide, plant, (s, x), p, 0, steps)[1], jnp.full((steps,) + _batch(x), jnp.nan))))
+    outs = [_dispatch(0, len(runs), run, *runs[0])]
+    started = time.perf_counter()  # compiled (the first call), now running
+    return outs + [_dispatch(i, len(runs), run, *r) for i, r in enumerate(runs[1:], 1)], started
+
+
+def _in_chunks(decide, plant, runs: list, steps: int, key, ticks_per_step: int, on_held: Callable | None):
+    """``run_compiled``'s runs as chunks of ``interval(steps)`` steps, the bar moved after each (and
+    ``on_held`` called at the first held step's): ``(runs, when the first chunk was dispatched)``."""
     length = interval(steps)
     chunks = -(-steps // length)
 
@@ -65,19 +87,20 @@ def run_compiled(decide: Callable, plant: Callable, runs: list, steps: int, *, k
     finish = cached(("closed loop finish", steps), lambda: jax.jit(functools.partial(_finish, steps=steps)))
     carries, params = [(s, x) for s, x, _ in runs], [padded(p) for _, _, p in runs]
     recs = [_dispatch(i, len(runs), empty, c, p) for i, (c, p) in enumerate(zip(carries, params, strict=True))]
-    firsts, last, held_seen = [None] * len(runs), None, on_held is None
+    firsts, last, started, held_seen = [None] * len(runs), None, None, on_held is None
     for start in range(0, steps, length):
         for i, (carry, p) in enumerate(zip(carries, params, strict=True)):
             carries[i], recs[i], firsts[i] = _dispatch(i, len(runs), run, carry, recs[i], p, np.int32(start))
+            started = started or time.perf_counter()  # compiled (the first call), now running
         if last is not None:  # the chunk before this one is done (or nearly): move the bar
             held_seen = _report(*last, held_seen, on_held)
         last = min(start + length, steps) * ticks_per_step - 1, [c[1] for c in carries], list(firsts), steps
     _report(*last, held_seen, on_held)
-    return [finish(x0, r) for (_, x0, _), r in zip(runs, recs, strict=True)]
+    return [finish(x0, r) for (_, x0, _), r in zip(runs, recs, strict=True)], started
 
 
-def run_loops(decide: Callable, plant: Callable, state, X0, params, steps: int, *, key, progress: bool,
-              on_held: Callable | None = None) -> ClosedLoop:
+def run_loops(decide: Callable, plant: Callable, state, X0, params, steps: int, *, key, progress: Optional[bool],
+              label: str, on_held: Callable | None = None) -> ClosedLoop:
     """``steps`` steps of B loops (``state``, ``X0`` and ``params`` leaves with leading axis B, params
     ``[B, steps, ...]``; ``decide`` and ``plant`` batched), loop-major (``[B, ...]`` fields). Process i of a
     job of P runs loops i, i + P, ... and every process gets all of them; within a process the loops run in
@@ -95,7 +118,8 @@ def run_loops(decide: Callable, plant: Callable, state, X0, params, steps: int, 
     runs = [(s, x, None if p is None else jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), p)) for s, x, p in shares]
     if len(devices) > 1:  # part j runs on device j % D (its inputs put there), the devices side by side
         runs = [jax.device_put(r, devices[j % len(devices)]) for j, r in enumerate(runs)]
-    outs = run_compiled(decide, plant, runs, steps, key=key, progress=progress, ticks_per_step=mine, on_held=on_held)
+    outs = run_compiled(decide, plant, runs, steps, key=key, progress=progress, label=label, ticks_per_step=mine,
+                        on_held=on_held)
     outs = [batch_major(jax.device_put(o, devices[0]) if len(devices) > 1 else o) for o in outs]
     out = join_rows(outs, mine) if parts > 1 else outs[0]
     if processes == 1:
@@ -135,31 +159,33 @@ def _scan(decide, plant, carry, params, start, length):
     return carry, closed_loop(xs, us, info, None)
 
 
-def run_python(decide: Callable, plant: Callable, state, x0, params, steps: int, *, progress: bool,
-               on_held: Callable | None = None) -> ClosedLoop:
-    """``steps`` steps of the compiled ``decide`` from Python, each decision timed (``solve_times``);
-    ``plant`` is called as it is (jit it, or each of its operations is one eager dispatch a step).
-    ``on_held(step)`` is called once, right after the first held decision."""
+def run_python(decide: Callable, plant: Callable, state, x0, params, steps: int, *, progress: Optional[bool],
+               label: str, on_held: Callable | None = None) -> ClosedLoop:
+    """``steps`` steps of the compiled ``decide`` from Python, each decision timed (``solve_times``), with
+    Python's cyclic garbage collector paused, under a bar labelled ``label`` (``progress``: True, False, None:
+    automatic); ``plant`` is called as it is (jit it, or each of its operations is one eager dispatch a
+    step). ``on_held(step)`` is called once, right after the first held decision."""
     x = x0
     host = None if params is None else jax.tree.map(np.asarray, params)  # rows as views: no dispatch each
     rows = [None if host is None else jax.tree.map(lambda a, k=k: a[k, ...], host) for k in range(steps)]
     decide(state, x, rows[0])  # compiles the decision for these shapes, so that solve_times never count it
     records, times = [], []
-    for k in range(steps):
-        t0 = time.perf_counter()
-        u, state, info = jax.block_until_ready(decide(state, x, rows[k]))
-        times.append(time.perf_counter() - t0)
-        x_next = plant(x, u, rows[k])
-        if not hasattr(x_next, "shape") or tuple(np.shape(x_next)) != x.shape:
-            raise TypeError(f"plant(x, u[, p]) must return the next plant state of shape {tuple(x.shape)} "
-                            f"like x0, got {type(x_next).__name__} of shape {np.shape(x_next)} at step {k}")
-        x = x_next if ready(x_next) and x_next.dtype == x.dtype else np.asarray(x_next, x.dtype)
-        records.append((x, u, _kept(info)))  # each field is read back to the host once (held: here, kept)
-        if on_held is not None and np.asarray(info.held):
-            on_held(k)
-            on_held = None
-        if progress and due(k, steps):
-            tick_python(k)
+    with Progress(steps, label, enabled=progress), collector_paused():  # no collection inside a decision
+        for k in range(steps):
+            t0 = time.perf_counter()
+            u, state, info = jax.block_until_ready(decide(state, x, rows[k]))
+            times.append(time.perf_counter() - t0)
+            x_next = plant(x, u, rows[k])
+            if not hasattr(x_next, "shape") or tuple(np.shape(x_next)) != x.shape:
+                raise TypeError(f"plant(x, u[, p]) must return the next plant state of shape {tuple(x.shape)} "
+                                f"like x0, got {type(x_next).__name__} of shape {np.shape(x_next)} at step {k}")
+            x = x_next if ready(x_next) and x_next.dtype == x.dtype else np.asarray(x_next, x.dtype)
+            records.append((x, u, _kept(info)))  # each field is read back to the host once (held: here, kept)
+            if on_held is not None and np.asarray(info.held):
+                on_held(k)
+                on_held = None
+            if due(k, steps):
+                tick_python(k)
     # Stacked on the host, one device array per field: an eager jnp.stack of T arrays compiles a
     # T-operand concatenation per field on a run's first call.
     stacked = jax.tree.map(lambda *a: jnp.asarray(np.stack(a)), *records)

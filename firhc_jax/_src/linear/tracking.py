@@ -6,7 +6,8 @@ every u(k) a row of ``controls``, and
 
     J(U) = sum_{k=0}^{N-1} ||y_ref[k] - C x(k+1)||_Q^2 + lambda_u ||u(k) - u(k-1)||^2,   u(-1) = u_prev,
 
-optionally with |u_i(k) - u_i(k-1)| <= max_step for every component and step.
+or with the switching term lambda_u ||u(k) - u(k-1)||_1 (``norm="abs"``: for unit steps the count of switch
+changes, FCS-MPC's usual term), optionally with |u_i(k) - u_i(k-1)| <= max_step for every component and step.
 
 Why this is the sphere decoder (Geyer and Quevedo, IEEE TPEL 29(12), 2014).
 Stacking the horizon, J(U) = ||F U - g||^2 with F static (A, B, C, Q,
@@ -82,6 +83,8 @@ from ..search.result import SearchResult, raise_on_errors
 from ..search.sdfs import DEFAULT_MAX_MEMORY, node_budget
 from .factor import child_map, factor_memory, input_classes, psd_factor
 
+NORMS = ("squared", "abs")  # the switching term: lambda_u ||du||^2 or lambda_u ||du||_1
+
 # ---------------------------------------------------------------------------
 # Named structures. Shapes are one decision's: n states, m inputs, p outputs, N steps, C classes of at most R
 # inputs; params and a batch of nodes take leading axes (one per row, step or loop) in front.
@@ -119,7 +122,8 @@ class TrackingModel(NamedTuple):
     have models of equal shapes, whatever their values, Q and lambda_u."""
     M: jax.Array             # [N, 2n + p + m, n + m] step k's map of [x; u]: x(k+1), -sqrt(Q) C x(k+1), W's residual
     M_norm: jax.Array        # [N] Frobenius norm of M's rows of W's residual: a bound on their rounding
-    lambda_u: jax.Array      # [] the weight of ||u(k) - u(k-1)||^2
+    lambda_u: jax.Array      # [] the weight of the switching term
+    l1: jax.Array            # [] 1: the switching term is lambda_u ||u(k) - u(k-1)||_1; 0: lambda_u ||...||^2
     Tu: jax.Array            # [N, n + m, m] how W's residual moves with the child's input (the other members)
     Tu_norm: jax.Array       # [N] Frobenius norm of Tu
     err_s: jax.Array         # [N] the factorisation's error in sqrt(W_{k+1}) per unit of ||[x(k+1); u]||
@@ -173,7 +177,10 @@ class LinearTracking:
       horizon: N >= 1.
       C: ``[p, n]`` output matrix (default I).
       Q: ``[p, p]`` symmetric positive semidefinite output weight (default I).
-      lambda_u: weight (>= 0) of ||u(k) - u(k-1)||^2, the first step against u_prev.
+      lambda_u: weight (>= 0) of the switching term, the first step against u_prev.
+      norm: the switching term: ``"squared"`` (default), lambda_u ||u(k) - u(k-1)||^2, or ``"abs"``,
+        lambda_u ||u(k) - u(k-1)||_1 (for unit steps, the count of switch changes), as
+        ``fj.input_change_cost``'s ``norm``.
       max_step: optional bound (>= 0) on |u_i(k) - u_i(k-1)|, every component
         and step, the first against u_prev: a hard constraint.
       max_memory: bytes the factorisation may take (``factor_memory``, which
@@ -210,8 +217,8 @@ class LinearTracking:
     """
 
     def __init__(self, A: ArrayLike, B: ArrayLike, controls: ArrayLike, horizon: int, *, C: ArrayLike | None = None,
-                 Q: ArrayLike | None = None, lambda_u: float = 0.0, max_step: float | None = None,
-                 max_memory: int = DEFAULT_MAX_MEMORY):
+                 Q: ArrayLike | None = None, lambda_u: float = 0.0, norm: str = "squared",
+                 max_step: float | None = None, max_memory: int = DEFAULT_MAX_MEMORY):
         A = matrix("A", A)
         n = A.shape[0]
         if A.shape != (n, n):
@@ -229,6 +236,8 @@ class LinearTracking:
             raise ValueError(f"Q must be [p, p] = [{p}, {p}] like the rows of C, got shape {Q.shape}")
         N = positive_int("horizon", horizon)
         lambda_u = non_negative("lambda_u", lambda_u)
+        if norm not in NORMS:
+            raise ValueError(f"norm must be one of {NORMS}, got {norm!r}")
         max_step = None if max_step is None else non_negative("max_step", max_step)
         max_memory = positive_int("max_memory", max_memory)
         need = factor_memory(n, m, p, N)
@@ -237,7 +246,7 @@ class LinearTracking:
                              f"about {need:,} bytes, more than max_memory={max_memory:,} (it grows as N^3); "
                              "shorten the horizon or raise max_memory")
         self.A, self.B, self.C, self.Q = A, B, C, Q
-        self.lambda_u, self.max_step, self.horizon = lambda_u, max_step, N
+        self.lambda_u, self.norm, self.max_step, self.horizon = lambda_u, norm, max_step, N
         self.n, self.m, self.p = n, m, p
         controls = _check_controls(controls)
         if controls.shape[1] != m:
@@ -248,11 +257,13 @@ class LinearTracking:
         self._class_of = np.zeros(len(controls), np.int32)  # [M] the class of each input
         for j, row in enumerate(members):
             self._class_of[row[row >= 0]] = j
-        M, M_data, Ms, Tu, err_s, err_d = child_map(A, B, C, psd_factor("Q", Q), lambda_u, N)
+        M, M_data, Ms, Tu, err_s, err_d = child_map(A, B, C, psd_factor("Q", Q), _squared_weight(
+            lambda_u, norm, controls, max_step), N)
         filled = np.where(members >= 0, members, members[:, :1])  # padding repeats the first member
         # float64, NumPy: the constants of problem's callables, and what params applies to the data
         self._model = TrackingModel(
-            M=M, M_norm=np.linalg.norm(M[:, n + p:], axis=(1, 2)), lambda_u=np.float64(lambda_u), Tu=Tu,
+            M=M, M_norm=np.linalg.norm(M[:, n + p:], axis=(1, 2)), lambda_u=np.float64(lambda_u),
+            l1=np.float64(norm == "abs"), Tu=Tu,
             Tu_norm=np.linalg.norm(Tu, axis=(1, 2)), err_s=err_s, members=controls.astype(float)[filled],
             member_index=filled.astype(float), member_ok=(members >= 0).astype(float),
             max_step=None if max_step is None else np.float64(max_step))
@@ -344,8 +355,10 @@ class LinearTracking:
         # One compiled call (observe, params, search, members), shared by trackers of equal shapes: the model
         # travels as an argument, so a new A, B, Q or lambda_u of the same shapes reuses it.
         run = compiled(_solve, self.shared_problem, observe=self.observe)
+        # No budget is no budget (None): fj.sdfs seeds a budgeted search first, which costs nodes
+        budget = None if max_nodes is None else node_budget(max_nodes)
         return raise_on_errors(run(*self._on_device(x.dtype), self._controls, self._class_of, x, u_prev, y_ref, d,
-                                   warm_start, node_budget(max_nodes)))
+                                   warm_start, budget))
 
 
 def _solve(problem, model, maps, controls, class_of, x, u_prev, y_ref, d, warm_start, budget, *, observe):
@@ -423,18 +436,46 @@ def _node(z, model: TrackingModel) -> Node:
 
 def _switch(u_from, o_from, u_to, ok_to, model: TrackingModel):
     """One min-plus step of the switching costs: for each member ``u_to`` ``[R', m]`` the cheapest
-    o_from[e] + lambda_u ||u_to - u_from[e]||^2 over the allowed predecessors e (``[R', R]``; +inf where there
+    o_from[e] + the switching from u_from[e] to u_to over the allowed predecessors e (``[R', R]``; +inf where there
     is none), and the argmin."""
-    du = u_to[:, None, :] - u_from[None, :, :]
-    allowed = ok_to[:, None] & (o_from[None, :] >= 0)
-    if model.max_step is not None:
-        allowed &= jnp.all(jnp.abs(du) <= model.max_step, axis=-1)
-    S = jnp.where(allowed, o_from[None, :] + model.lambda_u * jnp.sum(du * du, axis=-1), jnp.inf)
+    cost, allowed = _switching(u_from[None, :, :], u_to[:, None, :], model)
+    allowed &= ok_to[:, None] & (o_from[None, :] >= 0)
+    S = jnp.where(allowed, o_from[None, :] + cost, jnp.inf)
     return jnp.min(S, axis=1), jnp.argmin(S, axis=1)
 
 
+def _switching(u_from, u_to, model: TrackingModel):
+    """``(cost, allowed)`` of switching from ``u_from`` to ``u_to`` (``[..., m]``, broadcast against each other):
+    lambda_u ||du||_1 or lambda_u ||du||^2, and whether every component keeps within max_step. Summed one
+    component at a time, so that XLA fuses the pairs of members into one elementwise kernel (a reduction over
+    the last axis of the [.., R, R, m] differences took several kernels: the five-level inverter's nodes
+    0.7x the time)."""
+    change = worst = 0
+    for i in range(u_to.shape[-1]):
+        step = jnp.abs(u_to[..., i] - u_from[..., i])
+        change = change + jnp.where(model.l1 > 0, step, step * step)
+        worst = jnp.maximum(worst, step)
+    allowed = jnp.ones_like(worst, bool) if model.max_step is None else worst <= model.max_step
+    return model.lambda_u * change, allowed
+
+
+def _squared_weight(lambda_u, norm, controls, max_step) -> float:
+    """The weight of ||du||^2 in the cost-to-go W. For ``norm="abs"``: lambda_u / D, where D bounds every
+    component's change between two controls (their range, capped by max_step): |du_i| <= D gives
+    |du_i| >= du_i^2 / D, so the squared term is below the L1 term on every input sequence, and W, the
+    continuous minimum of the squared problem, stays a lower bound (equal where every step is 0 or D: the
+    inverters' unit steps under max_step = 1)."""
+    if norm == "squared":
+        return lambda_u
+    D = float(np.max(np.ptp(controls, axis=0)))
+    if max_step is not None:
+        D = min(D, max_step)
+    return lambda_u / D if D > 0 else lambda_u  # D = 0: no input ever changes, any weight is a bound
+
+
 def _class(u, model: TrackingModel):
-    """``(class, found)``: the first class whose members include input ``u`` ``[m]``, and whether one does."""
+    """``(class, found)``: the first class whose members include input ``u`` ``[m]``, and whether one does. (The
+    searches give every child a constant input, so XLA computes this once per search, outside its loop.)"""
     hit = jnp.any(jnp.all(model.members == u.astype(model.members.dtype), axis=-1) & (model.member_ok > 0),
                   axis=-1)
     C = hit.shape[0]
@@ -448,9 +489,11 @@ def _dynamics(z, u, k, data: TrackingParams, model: TrackingModel):
     j, found = _class(u, model)  # an input of no class (not a control) has no child
     U, ok = model.members[j].astype(z.dtype), (model.member_ok[j] > 0) & found  # [R, m], [R]
     xu = jnp.concatenate([node.x, U[0]])
-    out = model.M[k] @ xu + data.off[k]  # [x(k+1) (n), sqrt(Q) (y_ref[k] - C x(k+1)) (p), W's residual v (n + m)]
+    # The two products as sums of elementwise products: XLA:CPU runs a batch of these tiny matrix products as
+    # library calls, one kernel each, which cost a node more than the arithmetic (docs/applications/inverter.md)
+    out = jnp.sum(model.M[k] * xu, axis=1) + data.off[k]  # [x(k+1) (n), sqrt(Q) (y_ref[k] - C x(k+1)) (p), W's v]
     dU = U - U[0]
-    v = out[n + p:] + dU @ model.Tu[k].T  # [R, n + m] the residual of W_{k+1}(x(k+1), member)
+    v = out[n + p:] + jnp.sum(dU[:, None, :] * model.Tu[k], axis=2)  # [R, n + m] W_{k+1}'s residual, per member
     # W = ||v||^2 + s, rounded down by a bound on the rounding of v (its terms nearly cancel, and W must stay
     # admissible): ||v_true|| >= ||v|| - ||v - v_true||, with ||v - v_true|| <= gamma (||M_v|| ||[x; u]|| + ||off_v||
     # + ||Tu|| ||du||) + the rounding of off_v.
@@ -526,11 +569,8 @@ def _first_input(z0, classes, data, model: TrackingModel):
     j = jnp.maximum(classes, 0)
     U, ok = model.members[j].astype(z0.dtype), model.member_ok[j] > 0  # [N, R, m], [N, R]
     first, _ = _switch(root.U, root.o, U[0], ok[0], model)  # [R] the root to each first member
-    du = U[1:, None, :, :] - U[:-1, :, None, :]  # [N-1, R (from), R (to), m]
-    allowed = ok[:-1, :, None] & ok[1:, None, :]
-    if model.max_step is not None:
-        allowed &= jnp.all(jnp.abs(du) <= model.max_step, axis=-1)
-    chain = jnp.where(allowed, model.lambda_u * jnp.sum(du * du, axis=-1), jnp.inf)  # [N-1, R, R]
+    cost, allowed = _switching(U[:-1, :, None, :], U[1:, None, :, :], model)  # [N-1, R (from), R (to)]
+    chain = jnp.where(allowed & ok[:-1, :, None] & ok[1:, None, :], cost, jnp.inf)
     while chain.shape[0] > 1:  # min-plus products of neighbours; an odd one out waits a level
         pairs = chain.shape[0] // 2 * 2
         product = jnp.min(chain[:pairs:2, :, :, None] + chain[1:pairs:2, None, :, :], axis=2)

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..annotations import ArrayLike, PyTree
-from ..checks import as_state, check_params, positive_int
+from ..checks import as_batch, check_params, positive_int
 from ..runtime.memory_cache import cached
 from ..search.one_state import exhaustive
 from .callables import check_state
@@ -40,10 +40,11 @@ def check_problem(problem: Problem, states: ArrayLike, params: PyTree = None,
     the ``(state, 0, cost, 0, source)`` of each state with a negative one,
     ``source`` the callable that returned it (``"stage_cost"``: the lowest of
     the state's stage costs; ``"terminal_cost"``); empty: none found. Steps
-    that break the ``constraint`` are never searched and are skipped.
+    that break the ``constraint`` are never searched and are skipped, and so
+    are NaN costs (the searches discard those nodes).
 
     ``params``: as in ``check_lower_bound``."""
-    X = _states(states)
+    X = as_batch(states, "states")
     params, p_axis = _params_form(problem, X, params, per_state)
     controls = jnp.asarray(problem.controls)
     ks = jnp.arange(problem.horizon if problem.step_index else 1, dtype=jnp.int32)
@@ -52,7 +53,7 @@ def check_problem(problem: Problem, states: ArrayLike, params: PyTree = None,
         def one(u, k):
             x_next = problem.next_state(x, u, k, params)
             c = problem.cost_of_step(x_next, u, k, params)
-            return jnp.where(problem.allowed(x_next, u, k, params), c, jnp.inf)
+            return jnp.where(problem.allowed(x_next, u, k, params) & ~jnp.isnan(c), c, jnp.inf)
         c = jnp.min(jax.vmap(lambda k: jax.vmap(lambda u: one(u, k))(controls))(ks))
         g = call(problem.terminal_cost, params, x) if problem.terminal_cost is not None else jnp.zeros_like(c)
         return c, g
@@ -83,7 +84,7 @@ def check_lower_bound(problem: Problem, states: ArrayLike, params: PyTree = None
     ``ValueError`` says they do)."""
     if problem.lower_bound is None:
         raise ValueError("problem has no lower_bound to check")
-    X = _states(states)
+    X = as_batch(states, "states")
     params, p_axis = _params_form(problem, X, params, per_state)
     max_steps = problem.horizon if max_steps is None else positive_int("max_steps", max_steps)
     steps = jnp.arange(1, max_steps + 1, dtype=jnp.int32)
@@ -156,13 +157,3 @@ def _params_form(problem: Problem, X, params, per_state):
         raise errors[per_state]
     raise type(errors[True])(f"params fit the callables neither as one pytree for every state ({errors[False]}) "
                              f"nor as one row per state with leading axis S = {S} ({errors[True]})")
-
-
-def _states(states) -> jax.Array:
-    X = jnp.asarray(states)
-    if X.ndim != 2 or X.shape[0] == 0:
-        raise ValueError(f"states must be a non-empty batch of states [S, n], got shape {tuple(X.shape)}")
-    X_np = np.asarray(X)  # row checks on a host copy (an eager slice of a device array costs a dispatch)
-    for i in range(X.shape[0]):
-        as_state(X_np[i], f"states[{i}]")
-    return X

@@ -16,14 +16,12 @@ are kept in the package's cache (``memory_cache``): profiling the same problem a
 from __future__ import annotations
 
 import statistics
-import sys
 import time
 from typing import Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from tqdm.auto import tqdm
 
 from ..annotations import ArrayLike, PyTree
 from ..checks import positive_int
@@ -33,6 +31,7 @@ from ..search import solvers
 from ..search.batch import solve_batch
 from ..search.sdfs import INT32_MAX
 from .memory_cache import cached
+from .progress import Progress
 
 POP_WIDTHS = (1, 2, 4, 8)
 LANES = (16, 64, 256)
@@ -87,16 +86,16 @@ def _measure(jobs: list[_Job], repeats: int, bar):
     ``repeats`` rounds of one call each, each round starting one job later than the last."""
     firsts, times, results = [], [[] for _ in jobs], [None] * len(jobs)
     for j, job in enumerate(jobs):
-        bar.set_description(f"profile: {job.name} (compiling)")
+        bar.describe(f"profile: {job.name} (compiling)")
         first, results[j] = _clock(job.run)
         firsts.append(first)
-        bar.update(1)
+        bar.update(len(firsts))
     for r in range(repeats):
-        for j in np.roll(np.arange(len(jobs)), -r):
-            bar.set_description(f"profile: round {r + 1} of {repeats}, {jobs[j].name}")
+        for i, j in enumerate(np.roll(np.arange(len(jobs)), -r)):
+            bar.describe(f"profile: round {r + 1} of {repeats}, {jobs[j].name}")
             seconds, results[j] = _clock(jobs[j].run)
             times[j].append(seconds)
-            bar.update(1)
+            bar.update((r + 1) * len(jobs) + i + 1)
     return firsts, times, results
 
 
@@ -179,7 +178,7 @@ def _mark(rows: list[dict]) -> None:
 
 def profile(problem: Problem, states: ArrayLike, params: PyTree = None, *, pop_widths: Sequence[int] = POP_WIDTHS,
             lanes: Sequence[int] = LANES, repeats: int = 3, max_exhaustive_nodes: int = MAX_EXHAUSTIVE_NODES,
-            progress: bool = False) -> Profile:
+            progress: bool | None = None) -> Profile:
     """Time every search setting on ``states``, interleaved and repeated; mark the default and the fastest.
 
     Args:
@@ -195,7 +194,10 @@ def profile(problem: Problem, states: ArrayLike, params: PyTree = None, *, pop_w
         setting once, in an order rotated from round to round.
       max_exhaustive_nodes: ``fj.exhaustive`` is timed on evenly spaced states
         visiting at most this many nodes in all (none if one tree is larger).
-      progress: a bar on stderr naming the setting being compiled and timed.
+      progress: a bar counting the runs, with an estimate, on stderr or in
+        the notebook, naming the setting being compiled and timed: ``None``
+        (default) once the call has taken 2 s, ``True`` at once, ``False``
+        never.
 
     Returns a ``Profile``: a list with one dict per setting, in the order
     above: ``solver`` (``"sdfs"``, ``"exhaustive"`` or ``"solve_batch"``),
@@ -239,14 +241,14 @@ def profile(problem: Problem, states: ArrayLike, params: PyTree = None, *, pop_w
     for slots in (None,) * bool(lanes) + lanes:
         name = "solve_batch default lanes" if slots is None else f"solve_batch lanes={slots}"
         settings.append(("solve_batch", name, S, slots is None, {"lanes": slots}))
-        jobs.append(_Job(name, lambda slots=slots: [solve_batch(problem, X, params=params, lanes=slots)]))
+        jobs.append(_Job(name, lambda slots=slots: [solve_batch(problem, X, params=params, lanes=slots,
+                                                                progress=False)]))
     node_jobs, children = _node_jobs(problem, X, params)
 
     everything = jobs + node_jobs
-    with tqdm(total=len(everything) * (1 + repeats), desc="profile", unit="run", disable=not progress,
-              file=sys.stderr, dynamic_ncols=True) as bar:
+    with Progress(len(everything) * (1 + repeats), "profile", enabled=progress) as bar:
         firsts, times, results = _measure(everything, repeats, bar)
-        bar.set_description("profile")
+        bar.describe("profile")
     rows = [_row(solver, setting, times[j], firsts[j], results[j], solves, default, **options)
             for j, (solver, setting, solves, default, options) in enumerate(settings)]
     _mark(rows)

@@ -23,6 +23,7 @@ fit on its own is refused before anything is compiled. Where the rows run
 from __future__ import annotations
 
 import math
+import time
 from typing import NamedTuple, Sequence
 
 import jax
@@ -34,6 +35,7 @@ from ..checks import is_tracer, positive_int
 from ..problem.callables import search_inputs
 from ..problem.problem import Problem
 from ..runtime.memory_cache import compiled
+from ..runtime.progress import TICKS, Progress, chunked, record, tick_python
 from ..runtime.sharding import AXIS, default_parts, global_rows, mesh_of, replicated, run_parts
 from . import solvers
 from .exhaustive import DEFAULT_CHUNK_NODES
@@ -128,7 +130,8 @@ def _solve(problem: Problem, X, params, max_nodes, *, mesh: Mesh, solver: str, r
 def solve_batch(problem: Problem, X0: ArrayLike, *, solver: str = "sdfs", params: PyTree = None, pop_width: int = 1,
                 lanes: int | None = None, chunk_nodes: int = DEFAULT_CHUNK_NODES,
                 max_nodes: int | ArrayLike | None = None, max_memory: int = DEFAULT_MAX_MEMORY,
-                devices: Sequence[jax.Device] | jax.Device | None = None, cores: int | None = None) -> SearchResult:
+                devices: Sequence[jax.Device] | jax.Device | None = None, cores: int | None = None,
+                progress: bool | None = None) -> SearchResult:
     """Solve ``problem`` from every row of ``X0``; exact per row.
 
     Args:
@@ -179,6 +182,14 @@ def solve_batch(problem: Problem, X0: ArrayLike, *, solver: str = "sdfs", params
         execution. Costs, sequences and flags do not depend on it; the
         pool's node counts do (which rows share a pool), and so do the
         incumbents of pool rows cut by ``max_nodes`` where slots share them.
+      progress: a bar counting the rows solved, with an estimate, on stderr
+        or in the notebook: ``None`` (default) once the call has taken 2 s,
+        ``True`` at once, ``False`` never. The rows are then solved in up to
+        25 chunks, one compiled call each (costs and sequences as in one
+        call; node counts as ``cores`` says): with ``True``, and by default
+        when the last call of the same compiled batch says this one takes
+        2 s or more; otherwise in one call, whose bar shows the time elapsed.
+        Un-jitted, single-process calls only (``None`` is ``False`` there).
 
     Returns a ``SearchResult`` with leading axis B on every field. Un-jitted, a
     negative stage cost in any row raises ``ValueError`` (as ``fj.sdfs``).
@@ -203,19 +214,63 @@ def solve_batch(problem: Problem, X0: ArrayLike, *, solver: str = "sdfs", params
         if parts > 1 and (traced or multi):
             raise ValueError(f"cores={parts} splits the rows of an un-jitted, single-process call into parts "
                              "dispatched at once; inside jax.jit or over several processes pass cores=None")
+    if progress not in (None, True, False):
+        raise TypeError(f"progress must be None, True or False, got {progress!r}")
+    if progress and (traced or multi):
+        raise ValueError("progress=True reports between compiled calls of an un-jitted, single-process call; "
+                         "inside jax.jit or over several processes pass progress=None")
     item = max(X.dtype.itemsize, 4)  # as fj.sdfs sizes its stack
     param_bytes = sum(a.dtype.itemsize * math.prod(a.shape[1:]) for a in jax.tree_util.tree_leaves(params))
-    plan = _plan(problem, solver, options, n, item, B, mesh.devices.size, min(parts, B), param_bytes, max_memory)
-    if multi:
-        X = global_rows(X, mesh)
-        params = jax.tree_util.tree_map(lambda a: global_rows(a, mesh), params)
-    run = compiled(_solve, problem, mesh=mesh, solver=solver, rows_per_chunk=plan.rows_per_chunk,
-                   budgeted=max_nodes is not None, options=tuple(sorted(plan.options.items())))
-    if plan.parts > 1:
-        out = run_parts(run, X, params, budget, plan.parts)
-    else:
-        out = run(X, params, budget)
-    return raise_on_errors(replicated(out, mesh) if multi else out)
+
+    def runner(rows: int):  # the compiled batch of `rows` rows and its plan
+        plan = _plan(problem, solver, options, n, item, rows, mesh.devices.size, min(parts, rows), param_bytes,
+                     max_memory)
+        return plan, compiled(_solve, problem, mesh=mesh, solver=solver, rows_per_chunk=plan.rows_per_chunk,
+                              budgeted=max_nodes is not None, options=tuple(sorted(plan.options.items())))
+
+    def solve(X, params):
+        plan, run = runner(X.shape[0])
+        return run_parts(run, X, params, budget, plan.parts) if plan.parts > 1 else run(X, params, budget)
+
+    if traced or multi:
+        if multi:
+            X = global_rows(X, mesh)
+            params = jax.tree_util.tree_map(lambda a: global_rows(a, mesh), params)
+        out = solve(X, params)
+        return raise_on_errors(replicated(out, mesh) if multi else out)
+    key = ("solve_batch", problem.key, solver, tuple(sorted(options.items())), max_nodes is not None, n, X.dtype.str,
+           parts, max_memory, mesh)
+    return raise_on_errors(_in_chunks(solve, X, params, progress, key,
+                                      min_rows=parts * solvers.lanes_for(options.get("lanes"), B)))
+
+
+def _in_chunks(solve, X, params, progress, key, min_rows: int) -> SearchResult:
+    """``solve(X, params)`` under a bar counting rows (``progress``: True, False, None: automatic): in one call,
+    or (``chunked``) in up to ``TICKS`` calls of equal rows (at least ``min_rows``; the last padded by
+    repeating the last row), each counted as it ends."""
+    B = X.shape[0]
+    chunks = chunked(progress, key, B)
+    with Progress(B, "solve_batch", enabled=progress, counted=chunks):
+        if not chunks:
+            out = solve(X, params)
+            started = time.perf_counter()  # compiled (the first call), now running
+        else:
+            R = max(-(-B // TICKS), min(min_rows, B))
+            pad = -B % R
+            rows = lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, 0)]) if pad else a  # noqa: E731
+            X, params = rows(X), jax.tree_util.tree_map(rows, params)
+            outs, started = [], None
+            for start in range(0, B, R):
+                part = lambda a, start=start: a[start:start + R]  # noqa: E731
+                outs.append(solve(part(X), jax.tree_util.tree_map(part, params)))
+                started = started or time.perf_counter()
+                if len(outs) > 1:  # the chunk before this one is done (or nearly): count its rows
+                    jax.block_until_ready(outs[-2])
+                    tick_python(start - 1)
+            out = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a)[:B], *outs)
+        jax.block_until_ready(out)
+        record(key, B, time.perf_counter() - started)
+    return out
 
 
 _UNSET = {"pop_width": 1, "lanes": None, "chunk_nodes": DEFAULT_CHUNK_NODES, "max_nodes": None}

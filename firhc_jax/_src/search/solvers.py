@@ -19,6 +19,9 @@ know of a search. Its two traced entry points share one signature (mctx's
   (``params`` leaves ``[R, ...]``, ``warm_start`` ``[R, N]``, ``[R, C, N]``
   or None, ``max_nodes`` and ``reserve`` ``[R]``); rows from ``n_valid`` on
   are padding, their results unused.
+  ``steal=False``: no nodes are shared between rows, so every row is searched
+  node for node as ``search`` searches it (a budget cuts it where it cuts
+  ``search``).
 
 Both run inside a trace and trust their arguments: the options are checked
 once, by ``check_options``, at the public boundary. ``memory`` estimates the
@@ -85,6 +88,14 @@ def _pool_one(problem, x, params, warm_start, max_nodes, *, budgeted, pop_width,
     return jax.tree_util.tree_map(lambda a: a[0], out)
 
 
+def _pool_decisions(problem, X, params, warm_start, max_nodes, n_valid, *, steal=True, **options):
+    """``"pool"``'s batch: the rows share one pool (``steal``), or each row is one decision's pool of its own
+    (``_pool_one`` vmapped), where its slots steal from each other as in ``search``."""
+    if steal:
+        return _pool_batch(problem, X, params, warm_start, max_nodes, n_valid, **options)
+    return _vmapped(_pool_one)(problem, X, params, warm_start, max_nodes, n_valid, **options)
+
+
 def _exhaustive(problem, x, params, warm_start, max_nodes, *, method, chunk_nodes, pop_width, **_):
     if method == "dfs" or exhaustive_module.levels_executable(problem, x, params, chunk_nodes) is None:
         # the sDFS machinery with pruning off (and the bound unused: the reference); also where XLA:CPU
@@ -131,7 +142,7 @@ SOLVERS: dict[str, Solver] = {
     "sdfs": Solver(search=sdfs_search, batch=_pool_batch, options={**_SDFS_OPTIONS, "lanes": None},
                    memory=_stack_memory, batch_memory=_pool_memory, budgets=True, prunes=True, warm_starts=True,
                    doc="sorted depth-first search (the paper's Table 1); a batch shares a work pool"),
-    "pool": Solver(search=_pool_one, batch=_pool_batch, options={**_SDFS_OPTIONS, "lanes": None},
+    "pool": Solver(search=_pool_one, batch=_pool_decisions, options={**_SDFS_OPTIONS, "lanes": None},
                    memory=_one_pool_memory, batch_memory=_pool_memory, budgets=True, prunes=True,
                    warm_starts=True,
                    doc=f"sDFS on a work pool: one decision on `lanes` slots (default {DECISION_LANES}) by stealing"),

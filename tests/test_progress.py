@@ -1,0 +1,61 @@
+"""Long calls show progress by default: ``simulate``, ``simulate_batch``, ``solve_batch`` and ``fj.profile`` draw
+a bar once a call has run ``progress.AFTER_S`` seconds (here 0: every call is long), counted with an estimate
+where the call runs in chunks (the last call of the same program was long), else the time elapsed; short calls
+draw nothing, and ``progress=False`` never does."""
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import firhc_jax as fj
+from firhc_jax._src.runtime import progress
+
+
+def _problem(N=3):
+    return fj.Problem(lambda x, u: 0.9 * x + 0.2 * u, jnp.array([-1.0, 0.0, 1.0]), fj.quadratic_cost(1.0, 0.0), N)
+
+
+def test_a_short_call_draws_nothing(capsys):
+    problem = _problem()
+    ctrl = fj.FIRHC(problem)
+    for default in (False, True):  # compiled first (a first call that compiles for 2 s draws the time elapsed)
+        ctrl.simulate(np.array([1.0]), 5, **({} if default else {"progress": False}))
+        fj.solve_batch(problem, np.ones((3, 1)), **({} if default else {"progress": False}))
+    assert capsys.readouterr().err == ""
+
+
+def test_long_calls_draw_a_bar_by_default(capsys, monkeypatch):
+    monkeypatch.setattr(progress, "AFTER_S", 0.0)
+    monkeypatch.setattr(progress._Watcher, "POLL_S", 0.01)  # the watcher looks at once
+    ctrl = fj.FIRHC(_problem(4), fallback="unconstrained")  # a controller of its own: no run of it timed yet
+    x0 = np.array([1.5])
+    whole = ctrl.simulate(x0, 30, progress=False)
+    assert capsys.readouterr().err == ""
+    ctrl.simulate(x0, 30)  # the last run was long (every run is): chunks, counted
+    err = capsys.readouterr().err
+    assert "FIRHC[sdfs]" in err and "30/30" in err and "100%" in err
+    again = ctrl.simulate(x0, 30)
+    np.testing.assert_array_equal(np.asarray(again.plans), np.asarray(whole.plans))
+    capsys.readouterr()
+    ctrl.simulate(x0, 7, compiled=False)
+    assert "7/7" in capsys.readouterr().err
+    ctrl.simulate_batch(np.array([[1.5], [-0.5]]), 4)  # a first run of this loop: one program, time elapsed
+    assert "FIRHC[sdfs] x 2 loops (compiling, then one compiled run: not counted" in capsys.readouterr().err
+    ctrl.simulate_batch(np.array([[1.5], [-0.5]]), 4)
+    assert "8/8" in capsys.readouterr().err
+
+
+def test_solve_batch_and_profile_draw_a_bar_by_default(capsys, monkeypatch):
+    monkeypatch.setattr(progress, "AFTER_S", 0.0)
+    problem = _problem(5)
+    X = np.linspace(-2, 2, 80)[:, None]
+    whole = fj.solve_batch(problem, X, progress=False, lanes=4)
+    assert capsys.readouterr().err == ""
+    chunked = fj.solve_batch(problem, X, lanes=4)
+    err = capsys.readouterr().err
+    assert "solve_batch" in err and "80/80" in err
+    np.testing.assert_array_equal(np.asarray(chunked.cost), np.asarray(whole.cost))
+    np.testing.assert_array_equal(np.asarray(chunked.sequence), np.asarray(whole.sequence))
+    fj.profile(problem, X[:4], pop_widths=(1,), lanes=(4,), repeats=1)
+    assert "profile" in capsys.readouterr().err
+    with pytest.raises(TypeError, match="progress must be None, True or False"):
+        fj.solve_batch(problem, X, progress="yes")
