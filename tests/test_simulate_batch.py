@@ -55,16 +55,20 @@ def assert_same_loop(batched, one, label: str, nodes: bool = False) -> int:
 
 CONTROLLERS = {
     "full": dict(fallback="unconstrained", warm_start=True, observe=observe, actuate=actuate),
-    # A budget that cuts searches and leaves some decisions with no input (held): no stealing, node for node.
-    "budget": dict(fallback="unconstrained", warm_start=True, observe=observe, actuate=actuate, max_nodes=24, lanes=2,
-                   u_safe=np.array([0.0])),
+    # Budgets that cut searches (no stealing, node for node): the fallback acts within its half of the budget;
+    # without a fallback some decisions find no input (held).
+    "budget": dict(fallback="unconstrained", warm_start=True, observe=observe, actuate=actuate, max_nodes=16,
+                   lanes=2),
+    "budget, no fallback": dict(warm_start=True, observe=observe, actuate=actuate, max_nodes=24, lanes=2,
+                                u_safe=np.array([0.0])),
     "lanes": dict(fallback="unconstrained", observe=observe, actuate=actuate, lanes=2),
     "exhaustive": dict(solver="exhaustive", fallback="unconstrained", observe=observe, actuate=actuate),
 }
 
 
 @pytest.fixture(scope="module", params=["full", *(pytest.param(name, marks=pytest.mark.slow)
-                                                  for name in ("budget", "lanes", "exhaustive"))])
+                                                  for name in ("budget", "budget, no fallback", "lanes",
+                                                               "exhaustive"))])
 def ctrl(request):
     return request.param, fj.FIRHC(PROBLEM, **CONTROLLERS[request.param])
 
@@ -77,16 +81,17 @@ def test_loop_b_is_simulate_of_loop_b(ctrl, seed, B):
     X0 = rng.uniform(-1, 1, (B, 2))
     U0 = rng.choice(CONTROLS, (B, 1))
     params = loop_params(rng, B)
-    with pytest.warns() if name == "budget" else _nothing():
+    holds = name == "budget, no fallback"
+    with pytest.warns() if holds else _nothing():
         run = c.simulate_batch(X0, T, plant, params=params, u0=U0)
     assert run.states.shape == (B, T + 1, 2) and run.plans.shape == (B, T, N) and run.nodes.shape == (B, T)
     for b in range(B):
-        with pytest.warns() if name == "budget" else _nothing():
+        with pytest.warns() if holds else _nothing():
             one = c.simulate(X0[b], T, plant, params=row(params, b), u0=U0[b])
         # nobody steals under a budget or in the exhaustive search: the same nodes
-        assert_same_loop(row(run, b), one, f"{name}: loop {b}", nodes=name in ("budget", "exhaustive"))
-    if name == "budget":
-        assert int(np.max(np.asarray(run.decision_nodes))) <= 24
+        assert_same_loop(row(run, b), one, f"{name}: loop {b}", nodes=name.startswith("budget") or name == "exhaustive")
+    if name.startswith("budget"):
+        assert int(np.max(np.asarray(run.decision_nodes))) <= c.solver_options["max_nodes"]
         assert not np.asarray(run.complete).all()
 
 
@@ -103,11 +108,13 @@ def test_the_cases_cover_what_they_claim(ctrl):
     name, c = ctrl
     rng = np.random.default_rng(7)
     params = loop_params(rng, 5)
-    with pytest.warns(RuntimeWarning) if name == "budget" else _nothing():
+    with pytest.warns(RuntimeWarning) if name == "budget, no fallback" else _nothing():
         run = c.simulate_batch(rng.uniform(-1, 1, (5, 2)), T, plant, params=params)
-    assert np.asarray(run.used_fallback).any() and not np.asarray(run.used_fallback).all()
-    if name == "budget":
-        assert np.asarray(run.held).any() and not np.asarray(run.complete).all()
+    if c.fallback is not None:
+        assert np.asarray(run.used_fallback).any() and not np.asarray(run.used_fallback).all()
+    if name.startswith("budget"):
+        assert not np.asarray(run.complete).all()
+        assert np.asarray(run.held).any() == (c.fallback is None) and not np.asarray(run.held).all()
 
 
 @pytest.mark.parametrize("seed", [0, 1])

@@ -30,8 +30,12 @@ before any complete sequence), or the input found is not finite (a
 ``first_input_of`` returning NaN), a controller never hands a NaN to the plant.
 ``step`` and ``simulate`` apply a safe input instead: ``u_safe`` if given,
 else the input applied last (``u0`` at the start), and flag the decision
-(``info.held``, ``ClosedLoop.held``); ``simulate`` warns after a run with
-held steps; the one-shot ``ctrl(x)`` raises ``InfeasibleError``.
+(``info.held``, ``ClosedLoop.held``); ``simulate`` and ``simulate_batch``
+warn at the first held step (a Python loop: as it happens; a compiled run
+in chunks, under a progress bar: at the end of its chunk; a compiled run in
+one piece: after it, naming the step) and count the held steps after the
+run; the one-shot
+``ctrl(x)`` raises ``InfeasibleError``.
 
 With ``params`` (leaves with leading axis ``steps``) step k calls every
 callable, the problem's and these, with ``params[k]``: a reference trajectory,
@@ -56,7 +60,7 @@ from ..search.result import SearchResult, raise_on_errors
 from .closed_loop import ClosedLoop
 from .decision import ControllerState, StepInfo, decide, decide_rows
 from .decision_checks import check_closed_loop, controller_options, decide_checked, no_input_message, solve_checked
-from .runner import ready, run_compiled, run_loops, run_python, user_plant, warn_held
+from .runner import first_held_warning, ready, run_compiled, run_loops, run_python, user_plant, warn_held
 
 
 class InfeasibleError(RuntimeError):
@@ -254,14 +258,14 @@ class FIRHC:
         the first search's iterations added, its error flags kept, and
         ``complete`` only if both searches ran to the end (a constrained
         search stopped by ``max_nodes`` has not proven infeasibility).
-        ``previous_sequence`` seeds the warm start (ignored unless
-        ``warm_start``; an all ``-1`` sequence, i.e. infeasible, is no warm
-        start and costs no nodes). No input found: ``result.feasible`` is
+        ``previous_sequence``: the last decision's plan, the candidates'
+        source (ignored unless ``warm_start`` or ``max_nodes``; an all ``-1``
+        sequence, i.e. infeasible, is none and costs no nodes). No input found: ``result.feasible`` is
         False and ``result.first_input`` NaN.
         """
         x, params = as_state(x, "x"), check_params(params)
         prev = as_sequence(previous_sequence, self.problem.horizon, self.problem.num_controls,
-                           "previous_sequence") if self.warm_start else None
+                           "previous_sequence") if self.warm_start or self.options.budgeted else None
         fn = cached(("solve", self.options.key), lambda: jax.jit(functools.partial(solve_checked, self.options)))
         result, used = fn(x, params, prev)
         return raise_on_errors(result), used
@@ -295,8 +299,10 @@ class FIRHC:
             The plant is called as it is: jit it, or each of its
             operations is one eager dispatch a step.
 
-        Steps where no input was found hold the safe input (``held``); a
-        ``RuntimeWarning`` follows such a run.
+        Steps where no input was found hold the safe input (``held``): a
+        ``RuntimeWarning`` names the first one as it happens (``compiled=False``),
+        at the end of its chunk (a run under a progress bar) or after the run, and
+        another counts them after the run.
         """
         steps = positive_int("steps", steps)
         x0 = as_state(x0)
@@ -317,11 +323,15 @@ class FIRHC:
         one compiled scan where ``decision`` is None, else a Python loop of ``decision``, a compiled decision of
         this controller (``step``'s contract); ``dt`` (checked) gives its time axis."""
         label = f"FIRHC[{self.solver}]"
+        # the warning points at the caller of simulate: through _report, _in_chunks and run_compiled, or run_python
+        on_held = first_held_warning(self.u_safe is not None, stacklevel=7 if decision is None else 5)
         if decision is None:
             out, = run_compiled(functools.partial(decide, self.options), user_plant(plant), [(state, x0, params)],
-                                steps, key=(self.options.key, plant_key), progress=progress, label=label)
+                                steps, key=(self.options.key, plant_key), progress=progress, label=label,
+                                on_held=on_held)
         else:
-            out = run_python(decision, user_plant(plant), state, x0, params, steps, progress=progress, label=label)
+            out = run_python(decision, user_plant(plant), state, x0, params, steps, progress=progress, label=label,
+                             on_held=on_held)
         warn_held(out.held, steps, self.u_safe is not None)
         return out._replace(times=sample_times(dt, steps))
 
@@ -363,7 +373,8 @@ class FIRHC:
                                                            default, drop=2))
         out = run_loops(functools.partial(decide_rows, self.options), jax.vmap(user_plant(plant)), state, X0, params,
                         steps, key=("batch", self.options.key, plant_key), progress=progress,
-                        label=f"FIRHC[{self.solver}] x {B} loops")
+                        label=f"FIRHC[{self.solver}] x {B} loops",
+                        on_held=first_held_warning(self.u_safe is not None, stacklevel=7))
         warn_held(out.held, steps * B, self.u_safe is not None)
         return out._replace(times=times)
 

@@ -51,19 +51,37 @@ def max_nodes_of(opts) -> jax.Array:
 
 
 def warm_start(opts, problem, x, params, previous):
-    """[N] int32 the seed of a search (all -1: none), or None without warm starts."""
-    if not opts.warm_start or previous is None:
+    """The first incumbents of a search: ``[N]`` or ``[C, N]`` int32 (all -1: none), or None. Under a node
+    budget the previous plan shifted by one step, its last step left to the search's greedy rollout, comes
+    first (docs/guide/budgets.md); then a callable ``warm_start``'s seed, or without a budget the shifted plan
+    with its last input repeated (``warm_start=True``)."""
+    if previous is None:
         return None
+    out = []
+    if opts.budgeted:
+        out.append(jnp.where(previous[0] >= 0, jnp.concatenate([previous[1:], jnp.full((1,), -1, jnp.int32)]), -1))
     if callable(opts.warm_start):
-        return jnp.asarray(opts.warm_start(problem, x, previous, params), jnp.int32)
-    shifted = jnp.concatenate([previous[1:], previous[-1:]])
-    return jnp.where(previous[0] >= 0, shifted, -1)
+        out.append(jnp.asarray(opts.warm_start(problem, x, previous, params), jnp.int32))
+    elif opts.warm_start and not opts.budgeted:
+        out.append(jnp.where(previous[0] >= 0, jnp.concatenate([previous[1:], previous[-1:]]), -1))
+    return None if not out else out[0] if len(out) == 1 else jnp.stack(out)
 
 
-def _search(opts, problem, x, params, previous, max_nodes) -> SearchResult:
+def previous_plan(opts, state: ControllerState):
+    """The plan the next decision's candidates come from (None: it takes none)."""
+    return state.plan if opts.warm_start or opts.budgeted else None
+
+
+def reserve(opts, max_nodes):
+    """Nodes of the decision's budget the terminal-constrained search holds back for the fallback while it has
+    found no sequence (None: all of it is the search's): half, with a fallback and a budget."""
+    return max_nodes // 2 if opts.budgeted and opts.relaxed is not None else None
+
+
+def _search(opts, problem, x, params, previous, max_nodes, held_back=None) -> SearchResult:
     solver = solvers.get(opts.solver)
     return solver.search(problem, x, params, warm_start(opts, problem, x, params, previous), max_nodes,
-                         budgeted=opts.budgeted, **opts.search_options)
+                         budgeted=opts.budgeted, reserve=held_back, **opts.search_options)
 
 
 def merged(first: SearchResult, relaxed: SearchResult) -> SearchResult:
@@ -85,7 +103,7 @@ def solve(opts, x, params, previous):
     """The searches of one decision at model state ``x``: ``(deciding result, nodes of the constrained
     search, used_fallback)``; the fallback searches only when needed, within what the first search left."""
     max_nodes = max_nodes_of(opts)
-    result = _search(opts, opts.problem, x, params, previous, max_nodes)
+    result = _search(opts, opts.problem, x, params, previous, max_nodes, reserve(opts, max_nodes))
     if opts.relaxed is None:
         return result, result.nodes, jnp.zeros((), bool)
 
@@ -98,20 +116,20 @@ def solve(opts, x, params, previous):
 
 
 def solve_rows(opts, X, params, previous):
-    """``solve`` for the rows of ``X`` ``[B, n]`` (``params`` leaves ``[B, ...]``, ``previous`` ``[B, N]``),
+    """``solve`` for the rows of ``X`` ``[B, n]`` (``params`` leaves ``[B, ...]``, ``previous`` ``[B, N]`` or None),
     each row's searches by the solver's ``batch``. With a node budget no row's nodes are shared with another
     row's (``steal=False``), so every row is searched as ``solve`` searches it, node for node."""
     B = X.shape[0]
     batch = solvers.get(opts.solver).batch
     max_nodes = jnp.broadcast_to(max_nodes_of(opts), (B,))
 
-    def search(problem, X, params, previous, max_nodes, n_valid):
-        seeds = None if not opts.warm_start else jax.vmap(
+    def search(problem, X, params, previous, max_nodes, n_valid, held_back=None):
+        seeds = None if previous is None else jax.vmap(
             lambda x, p, prev: warm_start(opts, problem, x, p, prev))(X, params, previous)
-        return batch(problem, X, params, seeds, max_nodes, n_valid, budgeted=opts.budgeted,
+        return batch(problem, X, params, seeds, max_nodes, n_valid, budgeted=opts.budgeted, reserve=held_back,
                      steal=not opts.budgeted, **opts.search_options)
 
-    result = search(opts.problem, X, params, previous, max_nodes, B)
+    result = search(opts.problem, X, params, previous, max_nodes, B, reserve(opts, max_nodes))
     if opts.relaxed is None:
         return result, result.nodes, jnp.zeros((B,), bool)
     used = ~result.feasible
@@ -121,8 +139,8 @@ def solve_rows(opts, X, params, previous):
         back = jnp.argsort(order)
         rows = lambda a: a[order]  # noqa: E731
         left = jnp.where(used, _left(opts, max_nodes, result.nodes), 0)
-        relaxed = search(opts.relaxed, X[order], jax.tree_util.tree_map(rows, params), previous[order],
-                         left[order], jnp.sum(used, dtype=jnp.int32))
+        relaxed = search(opts.relaxed, X[order], jax.tree_util.tree_map(rows, params),
+                         None if previous is None else previous[order], left[order], jnp.sum(used, dtype=jnp.int32))
         relaxed = jax.tree_util.tree_map(lambda a: a[back], relaxed)
         both = jax.vmap(merged)(result, relaxed)
         return jax.tree_util.tree_map(lambda a, b: jnp.where(used.reshape((B,) + (1,) * (a.ndim - 1)), a, b),
@@ -154,13 +172,12 @@ def applied(opts, state: ControllerState, x, xm, p, result: SearchResult, nodes,
 def decide(opts, state: ControllerState, x, p):
     """One decision at plant state ``x``: ``(u_plant, next state, StepInfo)``."""
     xm = observed(opts, state, x, p)
-    previous = state.plan if opts.warm_start else None
-    return applied(opts, state, x, xm, p, *solve(opts, xm, p, previous))
+    return applied(opts, state, x, xm, p, *solve(opts, xm, p, previous_plan(opts, state)))
 
 
 def decide_rows(opts, state: ControllerState, X, P):
     """``decide`` for ``B`` loops at once (every argument with leading axis B)."""
     Xm = jax.vmap(lambda s, x, p: observed(opts, s, x, p))(state, X, P)
-    result, nodes, used = solve_rows(opts, Xm, P, state.plan)
+    result, nodes, used = solve_rows(opts, Xm, P, previous_plan(opts, state))
     return jax.vmap(lambda s, x, xm, p, r, n, f: applied(opts, s, x, xm, p, r, n, f))(
         state, X, Xm, P, result, nodes, used)

@@ -37,18 +37,20 @@ from .decision import StepInfo
 
 
 def run_compiled(decide: Callable, plant: Callable, runs: list, steps: int, *, key, progress: Optional[bool],
-                 label: str, ticks_per_step: int = 1) -> list[ClosedLoop]:
+                 label: str, ticks_per_step: int = 1, on_held: Callable | None = None) -> list[ClosedLoop]:
     """``steps`` steps of each run ``(state, x0, params)`` in ``runs`` (``params`` leaves ``[steps, ...]``,
     row k: step k) as compiled scans, one ``ClosedLoop`` each. Several runs (parts of a batch of loops) are
     dispatched each on its own execution stream, so they run side by side on the CPU's cores
     (``firhc_jax._src.runtime.sharding``). ``progress`` (True, False, None: automatic) as
     ``firhc_jax._src.runtime.progress`` says: a bar labelled ``label``, moved by ``ticks_per_step`` per step
-    done where the run goes in chunks."""
+    done where the run goes in chunks; there ``on_held(step)`` is called once, at the end of the chunk that
+    holds the first held step (of any loop; a run in one piece is one program: no moment to call it)."""
     traced = any(map(is_tracer, jax.tree_util.tree_leaves(runs)))
     rate_key, units = ("closed loop", key), steps * ticks_per_step
     chunks = not traced and chunked(progress, rate_key, units)
     with Progress(units, label, enabled=False if traced else progress, counted=chunks):
-        outs, started = (_in_chunks if chunks else _whole)(decide, plant, runs, steps, key, ticks_per_step)
+        outs, started = (functools.partial(_in_chunks, on_held=on_held) if chunks else _whole)(
+            decide, plant, runs, steps, key, ticks_per_step)
         if not traced:
             jax.block_until_ready(outs)
             record(rate_key, units, time.perf_counter() - started)
@@ -64,9 +66,9 @@ def _whole(decide, plant, runs: list, steps: int, key, ticks_per_step: int):
     return outs + [_dispatch(i, len(runs), run, *r) for i, r in enumerate(runs[1:], 1)], started
 
 
-def _in_chunks(decide, plant, runs: list, steps: int, key, ticks_per_step: int):
-    """``run_compiled``'s runs as chunks of ``interval(steps)`` steps, the bar moved after each:
-    ``(runs, when the first chunk was dispatched)``."""
+def _in_chunks(decide, plant, runs: list, steps: int, key, ticks_per_step: int, on_held: Callable | None):
+    """``run_compiled``'s runs as chunks of ``interval(steps)`` steps, the bar moved after each (and
+    ``on_held`` called at the first held step's): ``(runs, when the first chunk was dispatched)``."""
     length = interval(steps)
     chunks = -(-steps // length)
 
@@ -85,20 +87,20 @@ def _in_chunks(decide, plant, runs: list, steps: int, key, ticks_per_step: int):
     finish = cached(("closed loop finish", steps), lambda: jax.jit(functools.partial(_finish, steps=steps)))
     carries, params = [(s, x) for s, x, _ in runs], [padded(p) for _, _, p in runs]
     recs = [_dispatch(i, len(runs), empty, c, p) for i, (c, p) in enumerate(zip(carries, params, strict=True))]
-    last, started = None, None
+    firsts, last, started, held_seen = [None] * len(runs), None, None, on_held is None
     for start in range(0, steps, length):
         for i, (carry, p) in enumerate(zip(carries, params, strict=True)):
-            carries[i], recs[i] = _dispatch(i, len(runs), run, carry, recs[i], p, np.int32(start))
+            carries[i], recs[i], firsts[i] = _dispatch(i, len(runs), run, carry, recs[i], p, np.int32(start))
             started = started or time.perf_counter()  # compiled (the first call), now running
         if last is not None:  # the chunk before this one is done (or nearly): move the bar
-            _report(*last)
-        last = min(start + length, steps) * ticks_per_step - 1, [c[1] for c in carries]
-    _report(*last)
+            held_seen = _report(*last, held_seen, on_held)
+        last = min(start + length, steps) * ticks_per_step - 1, [c[1] for c in carries], list(firsts), steps
+    _report(*last, held_seen, on_held)
     return [finish(x0, r) for (_, x0, _), r in zip(runs, recs, strict=True)], started
 
 
 def run_loops(decide: Callable, plant: Callable, state, X0, params, steps: int, *, key, progress: Optional[bool],
-              label: str) -> ClosedLoop:
+              label: str, on_held: Callable | None = None) -> ClosedLoop:
     """``steps`` steps of B loops (``state``, ``X0`` and ``params`` leaves with leading axis B, params
     ``[B, steps, ...]``; ``decide`` and ``plant`` batched), loop-major (``[B, ...]`` fields). Process i of a
     job of P runs loops i, i + P, ... and every process gets all of them; within a process the loops run in
@@ -116,7 +118,8 @@ def run_loops(decide: Callable, plant: Callable, state, X0, params, steps: int, 
     runs = [(s, x, None if p is None else jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), p)) for s, x, p in shares]
     if len(devices) > 1:  # part j runs on device j % D (its inputs put there), the devices side by side
         runs = [jax.device_put(r, devices[j % len(devices)]) for j, r in enumerate(runs)]
-    outs = run_compiled(decide, plant, runs, steps, key=key, progress=progress, label=label, ticks_per_step=mine)
+    outs = run_compiled(decide, plant, runs, steps, key=key, progress=progress, label=label, ticks_per_step=mine,
+                        on_held=on_held)
     outs = [batch_major(jax.device_put(o, devices[0]) if len(devices) > 1 else o) for o in outs]
     out = join_rows(outs, mine) if parts > 1 else outs[0]
     if processes == 1:
@@ -157,11 +160,11 @@ def _scan(decide, plant, carry, params, start, length):
 
 
 def run_python(decide: Callable, plant: Callable, state, x0, params, steps: int, *, progress: Optional[bool],
-               label: str) -> ClosedLoop:
+               label: str, on_held: Callable | None = None) -> ClosedLoop:
     """``steps`` steps of the compiled ``decide`` from Python, each decision timed (``solve_times``), with
     Python's cyclic garbage collector paused, under a bar labelled ``label`` (``progress``: True, False, None:
     automatic); ``plant`` is called as it is (jit it, or each of its operations is one eager dispatch a
-    step)."""
+    step). ``on_held(step)`` is called once, right after the first held decision."""
     x = x0
     host = None if params is None else jax.tree.map(np.asarray, params)  # rows as views: no dispatch each
     rows = [None if host is None else jax.tree.map(lambda a, k=k: a[k, ...], host) for k in range(steps)]
@@ -177,13 +180,27 @@ def run_python(decide: Callable, plant: Callable, state, x0, params, steps: int,
                 raise TypeError(f"plant(x, u[, p]) must return the next plant state of shape {tuple(x.shape)} "
                                 f"like x0, got {type(x_next).__name__} of shape {np.shape(x_next)} at step {k}")
             x = x_next if ready(x_next) and x_next.dtype == x.dtype else np.asarray(x_next, x.dtype)
-            records.append((x, u, _kept(info)))  # each field is read back to the host once
+            records.append((x, u, _kept(info)))  # each field is read back to the host once (held: here, kept)
+            if on_held is not None and np.asarray(info.held):
+                on_held(k)
+                on_held = None
             if due(k, steps):
                 tick_python(k)
     # Stacked on the host, one device array per field: an eager jnp.stack of T arrays compiles a
     # T-operand concatenation per field on a run's first call.
     stacked = jax.tree.map(lambda *a: jnp.asarray(np.stack(a)), *records)
     return _with_x0(x0, closed_loop(*stacked, None), jnp.asarray(times))
+
+
+def first_held_warning(u_safe: bool, stacklevel: int) -> Callable:
+    """``on_held(step)`` for the runners: a ``RuntimeWarning`` that names the first held step as the run
+    meets it (``warn_held`` counts them after the run)."""
+    def on_held(step: int) -> None:
+        what = "u_safe" if u_safe else "the input applied last"
+        warnings.warn(f"closed loop: no feasible input sequence found (or its first input was not finite) at "
+                      f"step {step}, the first such step; {what} is held there and at any later such step "
+                      "(the run goes on; a count follows it)", RuntimeWarning, stacklevel=stacklevel)
+    return on_held
 
 
 def warn_held(held, decisions: int, u_safe: bool) -> None:
@@ -220,11 +237,19 @@ def _kept(info: StepInfo) -> StepInfo:
         overflow=None, complete=None))
 
 
-def _report(tick: int, x) -> None:
-    """Move the bar to ``tick`` once the chunk that computed ``x`` is done."""
+def _report(tick: int, x, firsts, steps: int, held_seen: bool, on_held) -> bool:
+    """Move the bar to ``tick`` once the chunk that computed ``x`` is done; then, until one is seen, call
+    ``on_held`` with the chunk's first held step (``firsts``: each run's, -1: none; a step from ``steps`` on
+    pads the last chunk). Returns whether a held step has been seen."""
     if not is_tracer(x):
         jax.block_until_ready(x)
     tick_python(tick)
+    if held_seen or any(map(is_tracer, firsts)):
+        return held_seen
+    held = [int(f) for f in firsts if 0 <= int(f) < steps]
+    if held:
+        on_held(min(held))
+    return bool(held)
 
 
 def _records(scan, carry, params, chunks: int) -> ClosedLoop:
@@ -235,10 +260,14 @@ def _records(scan, carry, params, chunks: int) -> ClosedLoop:
 
 def _chunk_into(scan, carry, records: ClosedLoop, params, start):
     """``scan``'s chunk of steps from ``start``, its records written into ``records`` (donated: updated in
-    place) from row ``start``."""
+    place) from row ``start``, and ``[]`` int32 the chunk's first held step (of any loop; -1: none)."""
     carry, rec = scan(carry, params, start)
+    steps = rec.held.shape[0]
+    at = jnp.where(rec.held, jnp.arange(steps, dtype=jnp.int32).reshape((steps,) + (1,) * (rec.held.ndim - 1)), steps)
+    first = jnp.min(at)  # a plain min: XLA:CPU runs an argmax as a scalar loop (nodes.first_min)
+    first = jnp.where(first < steps, start + first, -1)
     return carry, jax.tree.map(lambda whole, part: jax.lax.dynamic_update_slice_in_dim(whole, part, start, 0),
-                               records, rec)
+                               records, rec), first
 
 
 def _finish(x0, records: ClosedLoop, steps: int) -> ClosedLoop:

@@ -98,7 +98,7 @@ def incumbent(rows: Rows, row):
     return rows.cost.at[row].get(mode="fill", fill_value=jnp.inf)
 
 
-def plan(pool: Pool, rows: Rows, head, n_valid, max_nodes, L: int, steal: bool = True
+def plan(pool: Pool, rows: Rows, head, n_valid, max_nodes, L: int, steal: bool = True, reserve=None
          ) -> tuple[Pool, Rows, jax.Array, Plan]:
     """Each slot's next nodes: the K next nodes of its deepest live batch. A
     slot with none takes the next row's root (``head``: the first row not yet
@@ -107,9 +107,13 @@ def plan(pool: Pool, rows: Rows, head, n_valid, max_nodes, L: int, steal: bool =
     incumbent is shared). Every slot expanding a row computes up to ``L``
     children: a row stops where its slots could take its node count above
     ``budget``, and is stolen from only while every slot could join it.
-    Returns the pool with re-assigned slots emptied."""
+    ``reserve`` (``[B]`` or None): held back from a row's budget while the
+    row has no incumbent (``fj.sdfs``'s rule). Returns the pool with
+    re-assigned slots emptied."""
     S, D = pool.row.shape[0], pool.stack.low.shape[1]
     B = rows.cost.shape[0]
+    if reserve is not None:
+        max_nodes = max_nodes - jnp.where(rows.cost < jnp.inf, 0, reserve)
     depths = jnp.arange(D, dtype=jnp.int32)
     live = pool.stack.low < incumbent(rows, pool.row)[:, None]  # [S, D]
     busy = jnp.any(live, axis=1)
@@ -212,34 +216,39 @@ def expand_and_store(problem: Problem, pool: Pool, rows: Rows, work: Work, param
 
 
 def pool_search(problem: Problem, X, params, n_valid, max_nodes, lanes: int, pop_width: int,
-                budgeted: bool = False, warm_start=None, steal: bool = True) -> SearchResult:
+                budgeted: bool = False, warm_start=None, steal: bool = True, reserve=None) -> SearchResult:
     """Exact sDFS of rows ``X[:n_valid]`` of ``[B, n]`` (with ``params[b]``
     for row b) on a pool of ``lanes`` slots. ``max_nodes``: ``[]`` or
     ``[B]``, each row's node budget: a row whose node count exceeds
     ``max_nodes - K M`` is not expanded further (it never starts when that is
-    negative). ``warm_start`` ``[B, N]`` (optional): each row's candidate
-    sequence, evaluated first as ``fj.sdfs`` does. ``budgeted``: each row
-    first gets ``fj.sdfs``'s seeds (``firhc_jax._src.search.sdfs.seed``, vmapped over
-    the rows), within its budget. ``steal``: see ``plan``. Returns a batched
+    negative). ``warm_start`` ``[B, N]`` or ``[B, C, N]`` (optional): each
+    row's candidates, evaluated first as ``fj.sdfs`` does. ``budgeted``: each
+    row first gets ``fj.sdfs``'s seeds (``firhc_jax._src.search.sdfs.seed``,
+    vmapped over the rows), within its budget. ``reserve`` (``[]``, ``[B]`` or
+    None): held back from each row's budget while the row has no sequence, as
+    in ``fj.sdfs``'s ``search``. ``steal``: see ``plan``. Returns a batched
     result."""
     N, M, K, S = problem.horizon, problem.num_controls, pop_width, lanes
     B = X.shape[0]
     dtype = cost_dtype(problem, X[0], params, batched_params=True)
     max_nodes = jnp.broadcast_to(jnp.asarray(max_nodes, jnp.int32), (B,))
+    if reserve is not None:
+        reserve = jnp.broadcast_to(jnp.asarray(reserve, jnp.int32), (B,))
+    own = max_nodes if reserve is None else max_nodes - reserve  # each row's budget while it has no sequence
     one = stacks.init(N + 1, K, M, N, X[0], dtype)
     pool = Pool(stack=jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (S,) + a.shape), one)._replace(
         low=jnp.full((S, N + 1), jnp.inf, dtype)), row=jnp.full((S,), B, jnp.int32))
     # A budget below one expansion stops its row before the root, as fj.sdfs stops before an iteration could
     # take the count above it: no nodes, complete=False.
     cut = (max_nodes < K * M).astype(jnp.int32)
-    start = jax.vmap(lambda x, p, w, b: start_incumbent(problem, x, p, w, b, dtype),
-                     in_axes=(0, 0, None if warm_start is None else 0, 0))(X, params, warm_start, max_nodes)
+    start = jax.vmap(lambda x, p, w, b: start_incumbent(problem, x, p, w, b, dtype, budgeted=budgeted),
+                     in_axes=(0, 0, None if warm_start is None else 0, 0))(X, params, warm_start, own)
     if budgeted:
-        start = jax.vmap(lambda x, p, s, b: seed(problem, x, p, s, b, pop_width=K))(X, params, start, max_nodes)
+        start = jax.vmap(lambda x, p, s, b: seed(problem, x, p, s, b, pop_width=K))(X, params, start, own)
     rows = Rows(cost=start.cost, path=start.path, stats=start.stats, cut=cut)
 
     def next_work(pool, rows, head):
-        pool, rows, head, todo = plan(pool, rows, head, n_valid, max_nodes, K * M, steal)
+        pool, rows, head, todo = plan(pool, rows, head, n_valid, max_nodes, K * M, steal, reserve)
         pool, work = take(pool, todo, X, K)
         return pool, rows, head, work
 

@@ -146,9 +146,10 @@ class Incumbent(NamedTuple):
 
 
 def _dfs(problem: Problem, x0, params, start: Incumbent, limit, *, pop_width: int, prune: bool = True,
-         leaf_depth=None, leaves=None) -> tuple[Incumbent, jax.Array]:
+         leaf_depth=None, leaves=None, reserve=None) -> tuple[Incumbent, jax.Array]:
     """The sorted DFS from the root ``x0`` with a first incumbent ``start``,
-    while the node count stays at most ``limit`` before an iteration. Returns
+    while the node count stays at most ``limit`` before an iteration (``limit
+    - reserve`` while there is no incumbent: ``search``'s reserve). Returns
     the incumbent and whether the search ran to the end. ``leaf_depth`` and
     ``leaves(children, depth) -> children`` serve the seeds' shorter problems
     (``seed``); the main search leaves them None."""
@@ -177,8 +178,12 @@ def _dfs(problem: Problem, x0, params, start: Incumbent, limit, *, pop_width: in
         stack = stacks.push(c.stack, c.row + 1, step.x.astype(x0.dtype), step.cost, step.key, c.popped.path)
         return _Carry(*next_nodes(stack, best_cost), best_cost, best_path, step.stats)
 
+    def more(c: _Carry):
+        room = limit if reserve is None else limit - jnp.where(c.best_cost < jnp.inf, 0, reserve)
+        return (c.row >= 0) & (c.stats.nodes <= room)
+
     carry = _Carry(*next_nodes(stack, start.cost), start.cost, start.path, start.stats)
-    out = jax.lax.while_loop(lambda c: (c.row >= 0) & (c.stats.nodes <= limit), body, carry)
+    out = jax.lax.while_loop(more, body, carry)
     return Incumbent(out.best_cost, out.best_path, out.stats), out.row < 0
 
 
@@ -188,17 +193,28 @@ def _rollout(problem: Problem, x0, params, prefix, length, start: Incumbent) -> 
     ``terminal_cost`` (the value of the state reached, where the problem has
     one; the last step's cost holds it already) among those the constraints
     allow and the bound does not rule out (at the last step: that meet the
-    terminal test). The prefix is replayed one node a step; every later step
-    expands one node (M children). Costs accumulate as in every search.
-    Returns the cheaper of ``start`` and the extension (+inf if it
-    dead-ends)."""
+    terminal test). The prefix is replayed one node a step, under the rules of
+    every search (constraints, finite states; the terminal test and cost when
+    it is the whole horizon); every later step expands one node (M children).
+    Costs accumulate as in every search. Returns the cheaper of ``start`` and
+    the extension (+inf if it dead-ends or the prefix breaks a rule)."""
     N = problem.horizon
     controls = jnp.asarray(problem.controls)
 
     def replay(carry, k):
         x, cost, ok, path, stats = carry
-        x, s, _ = one_child(problem, x, controls[prefix[k]], k, params)
-        return x, cost + s.astype(cost.dtype), ok, path.at[k].set(prefix[k]), stats._replace(nodes=stats.nodes + 1)
+        x, s, allowed = one_child(problem, x, controls[prefix[k]], k, params)
+        s = s.astype(cost.dtype)
+        if problem.terminal_cost is not None:
+            s = s + jnp.where(k == N - 1, call(problem.terminal_cost, params, x), 0).astype(cost.dtype)
+        total = cost + s
+        nonfinite = jnp.isnan(total) | jnp.any(~jnp.isfinite(x))
+        met = ok & allowed  # flags as the search raises them: not for children a constraint discards
+        overflow = jnp.isinf(total) & jnp.isfinite(cost) & jnp.isfinite(s)
+        stats = stats._replace(nodes=stats.nodes + 1, negative=stats.negative | (met & (s < 0)),
+                               nonfinite=stats.nonfinite | (met & nonfinite),
+                               overflow=stats.overflow | (met & overflow))
+        return x, total, met & ~nonfinite, path.at[k].set(prefix[k]), stats
 
     def greedy(carry, k):
         x, cost, ok, path, stats = carry
@@ -218,7 +234,9 @@ def _rollout(problem: Problem, x0, params, prefix, length, start: Incumbent) -> 
         return jax.lax.cond(k < length, replay, greedy, carry, k), None
 
     init = (x0, jnp.zeros((), start.cost.dtype), jnp.ones((), bool), jnp.full((N,), -1, jnp.int32), start.stats)
-    (_, cost, ok, path, stats), _ = jax.lax.scan(step, init, jnp.arange(N, dtype=jnp.int32))
+    (x, cost, ok, path, stats), _ = jax.lax.scan(step, init, jnp.arange(N, dtype=jnp.int32))
+    if problem.terminal is not None:  # a whole-horizon replay meets the terminal test too (greedy's last step did)
+        ok = ok & ((length < N) | call(problem.terminal, params, x))
     cost = jnp.where(ok, cost, jnp.inf)
     better = cost < start.cost
     return Incumbent(jnp.where(better, cost, start.cost), jnp.where(better, path, start.path), stats)
@@ -233,10 +251,11 @@ def seed(problem: Problem, x0, params, start: Incumbent, max_nodes, *, pop_width
     sequence extended to N by ``_rollout`` seeds the search when cheaper than
     the incumbent. The seeds take at most half the budget (each level stops
     where the next node could leave no room for its extension), and none run
-    where that half holds less than two extensions (``2 N M`` nodes) and one
-    expansion (below that, the search's own first dive is as good): deepening
-    stops after ``D = N - 1`` or at the first level stopped (its best so far
-    is still extended). docs/guide/budgets.md states what this guarantees."""
+    where that half holds less than level 1 whole, its extension and one
+    expansion (``M + N M + K M`` nodes: half of ``B(1)``, the least budget
+    that guarantees anything): deepening stops after ``D = N - 1`` or at the
+    first level stopped (its best so far is still extended).
+    docs/guide/budgets.md states what this guarantees."""
     N, M, K = problem.horizon, problem.num_controls, pop_width
     L = K * M
     level = problem.replace(terminal=None, terminal_cost=None, lower_bound=None)
@@ -267,38 +286,60 @@ def seed(problem: Problem, x0, params, start: Incumbent, max_nodes, *, pop_width
         best = jax.lax.cond(fits, lambda: _rollout(problem, x0, params, found.path, D, best), lambda: best)
         return D + 1, best, done
 
-    def more(c):  # no seeds where half the budget does not hold two extensions and an expansion
+    def more(c):  # no seeds where half the budget does not hold level 1, its extension and an expansion
         D, best, done = c
-        return done & (D < N) & (best.stats.nodes <= share - N * M - L) & (share >= 2 * N * M + L)
+        return done & (D < N) & (best.stats.nodes <= share - N * M - L) & (share >= M + N * M + L)
 
     _, best, _ = jax.lax.while_loop(more, body, (jnp.ones((), jnp.int32), start, jnp.ones((), bool)))
     return best
 
 
-def start_incumbent(problem: Problem, x0, params, warm_start, max_nodes, dtype) -> Incumbent:
-    """The first incumbent: none, or the ``warm_start`` sequence ``[N]`` where it is feasible. An all -1
-    warm start is no warm start; one whose N nodes do not fit in the budget is not evaluated."""
+def _prefix_length(sequence):
+    """[] int32 the leading entries of ``sequence`` ``[N]`` that are input indices (the rest: -1)."""
+    return jnp.sum(jnp.cumprod(sequence >= 0), dtype=jnp.int32)
+
+
+def start_incumbent(problem: Problem, x0, params, warm_start, max_nodes, dtype, *, budgeted: bool = False
+                    ) -> Incumbent:
+    """The first incumbent: none, or the cheapest feasible candidate of ``warm_start`` (``[N]`` or ``[C, N]``,
+    evaluated in order, each only where its nodes fit in ``max_nodes`` with those before it). A candidate is a
+    sequence; all -1 is none. In a ``budgeted`` search a candidate may also be a prefix followed by -1: the
+    prefix is completed to the horizon by the greedy rollout (``_rollout``: ``k + (N - k) M`` nodes for a
+    prefix of k); unbudgeted, such a candidate is not evaluated."""
     N, M = problem.horizon, problem.num_controls
-    inf = jnp.array(jnp.inf, dtype)
-    start = Incumbent(inf, jnp.full((N,), -1, jnp.int32), no_stats())
+    start = Incumbent(jnp.array(jnp.inf, dtype), jnp.full((N,), -1, jnp.int32), no_stats())
     if warm_start is None:
         return start
-    cost, flags = rollout_cost(problem, x0, warm_start, dtype, params)
-    used = jnp.all((warm_start >= 0) & (warm_start < M)) & (N <= max_nodes)
-    cost = jnp.where(used, cost, inf)
-    return Incumbent(cost, jnp.where(cost < inf, warm_start, start.path),
-                     no_stats(jnp.where(used, N, 0), jnp.where(used, flags, 0)))
+    for candidate in jnp.reshape(warm_start, (-1, N)):
+        if budgeted:
+            k = _prefix_length(candidate)
+            fits = (k > 0) & (start.stats.nodes + k + (N - k) * M <= max_nodes)
+            start = jax.lax.cond(fits, lambda s, w=candidate, k=k: _rollout(problem, x0, params, w, k, s),
+                                 lambda s: s, start)
+            continue
+        cost, flags = rollout_cost(problem, x0, candidate, dtype, params)
+        used = jnp.all((candidate >= 0) & (candidate < M)) & (start.stats.nodes + N <= max_nodes)
+        better = used & (cost < start.cost)
+        spent = no_stats(jnp.where(used, N, 0), jnp.where(used, flags, 0))
+        start = Incumbent(jnp.where(better, cost, start.cost), jnp.where(better, candidate, start.path),
+                          SearchStats(start.stats.nodes + spent.nodes, start.stats.iterations,
+                                      *(a | b for a, b in zip(start.stats[2:], spent[2:], strict=True))))
+    return start
 
 
 def search(problem: Problem, x0, params, warm_start, max_nodes, *, pop_width: int = 1, prune: bool = True,
-           budgeted: bool = False, **_) -> SearchResult:
+           budgeted: bool = False, reserve=None, **_) -> SearchResult:
     """The sorted search, traced: the ``search`` of the solver table (``firhc_jax.solvers``). ``max_nodes``
-    ``[]`` int32 (``INT32_MAX``: none); ``budgeted`` (static): seed the incumbent first (``seed``)."""
+    ``[]`` int32 (``INT32_MAX``: none); ``budgeted`` (static): seed the incumbent first (``seed``);
+    ``reserve`` (``[]`` int32, or None: 0): nodes of ``max_nodes`` held back while the search has no
+    sequence (a controller's fallback gets them): until it has one, the warm start, the seeds and the search
+    stay within ``max_nodes - reserve``."""
     K = pop_width
     L = K * problem.num_controls
-    start = start_incumbent(problem, x0, params, warm_start, max_nodes, cost_dtype(problem, x0, params))
+    own = max_nodes if reserve is None else max_nodes - reserve
+    start = start_incumbent(problem, x0, params, warm_start, own, cost_dtype(problem, x0, params), budgeted=budgeted)
     if budgeted:
-        start = seed(problem, x0, params, start, max_nodes, pop_width=K)
+        start = seed(problem, x0, params, start, own, pop_width=K)
     # An iteration computes at most L children.
-    out, done = _dfs(problem, x0, params, start, max_nodes - L, pop_width=K, prune=prune)
+    out, done = _dfs(problem, x0, params, start, max_nodes - L, pop_width=K, prune=prune, reserve=reserve)
     return finish(problem, out.cost, out.path, out.stats, done, x0, params)

@@ -5,15 +5,20 @@ A ``Solver`` is what the controller (``FIRHC(solver=...)``), ``solve_batch``,
 know of a search. Its two traced entry points share one signature (mctx's
 ``search(params, ...)`` taking its strategy as functions):
 
-* ``search(problem, x, params, warm_start, max_nodes, *, budgeted, **options)``
-  solves one state ``x`` ``[n]``: ``warm_start`` ``[N]`` int32 or None (all
-  -1: none), ``max_nodes`` ``[]`` int32 (``INT32_MAX``: no budget; traced,
-  so budgets never recompile), ``budgeted`` (static) whether a budget was
-  set at all (a budgeted search seeds its incumbent first, docs/guide/budgets.md).
+* ``search(problem, x, params, warm_start, max_nodes, *, budgeted, reserve=None, **options)``
+  solves one state ``x`` ``[n]``: ``warm_start`` ``[N]`` or ``[C, N]`` int32
+  candidates or None (all -1: none; budgeted, a prefix followed by -1 is
+  completed by the greedy rollout), ``max_nodes`` ``[]`` int32
+  (``INT32_MAX``: no budget; traced, so budgets never recompile), ``budgeted``
+  (static) whether a budget was set at all (a budgeted search seeds its
+  incumbent first, docs/guide/budgets.md), ``reserve`` ``[]`` int32 (or
+  None) nodes held back while the search has no sequence (a controller's
+  fallback gets them).
 * ``batch(problem, X, params, warm_start, max_nodes, n_valid, *, budgeted,
-  **options)`` solves the rows ``X[:n_valid]`` of ``[R, n]`` (``params``
-  leaves ``[R, ...]``, ``warm_start`` ``[R, N]`` or None, ``max_nodes``
-  ``[R]``); rows from ``n_valid`` on are padding, their results unused.
+  reserve=None, **options)`` solves the rows ``X[:n_valid]`` of ``[R, n]``
+  (``params`` leaves ``[R, ...]``, ``warm_start`` ``[R, N]``, ``[R, C, N]``
+  or None, ``max_nodes`` and ``reserve`` ``[R]``); rows from ``n_valid`` on
+  are padding, their results unused.
   ``steal=False``: no nodes are shared between rows, so every row is searched
   node for node as ``search`` searches it (a budget cuts it where it cuts
   ``search``).
@@ -61,24 +66,25 @@ class Solver(NamedTuple):
 def _vmapped(search: Callable) -> Callable:
     """A ``batch`` that runs ``search`` on every row, each to its own end (lanes lock-step: a vmapped
     while-loop runs until its slowest row is done)."""
-    def batch(problem, X, params, warm_start, max_nodes, n_valid, **options):
-        one = lambda x, p, w, b: search(problem, x, p, w, b, **options)  # noqa: E731
-        return jax.vmap(one, in_axes=(0, 0, None if warm_start is None else 0, 0))(X, params, warm_start,
-                                                                                max_nodes)
+    def batch(problem, X, params, warm_start, max_nodes, n_valid, reserve=None, **options):
+        one = lambda x, p, w, b, r: search(problem, x, p, w, b, reserve=r, **options)  # noqa: E731
+        return jax.vmap(one, in_axes=(0, 0, None if warm_start is None else 0, 0, None if reserve is None else 0))(
+            X, params, warm_start, max_nodes, reserve)
     return batch
 
 
-def _pool_batch(problem, X, params, warm_start, max_nodes, n_valid, *, budgeted, pop_width, lanes, steal=True, **_):
+def _pool_batch(problem, X, params, warm_start, max_nodes, n_valid, *, budgeted, pop_width, lanes, steal=True,
+                reserve=None, **_):
     return pool_search(problem, X, params, n_valid, max_nodes, lanes_for(lanes, X.shape[0]), pop_width, budgeted,
-                       warm_start=warm_start, steal=steal)
+                       warm_start=warm_start, steal=steal, reserve=reserve)
 
 
-def _pool_one(problem, x, params, warm_start, max_nodes, *, budgeted, pop_width, lanes, **_):
+def _pool_one(problem, x, params, warm_start, max_nodes, *, budgeted, pop_width, lanes, reserve=None, **_):
     """One decision on ``lanes`` slots: the root on one, the others steal its nodes."""
     lanes = DECISION_LANES if lanes is None else lanes
     row = lambda a: None if a is None else jnp.asarray(a)[None]  # noqa: E731
     out = pool_search(problem, x[None], jax.tree_util.tree_map(row, params), 1, row(max_nodes), lanes, pop_width,
-                      budgeted, warm_start=row(warm_start))
+                      budgeted, warm_start=row(warm_start), reserve=row(reserve))
     return jax.tree_util.tree_map(lambda a: a[0], out)
 
 
