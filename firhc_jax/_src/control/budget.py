@@ -13,7 +13,7 @@ from ..search import solvers
 from .controller import FIRHC
 
 
-def budget_for(target, n0: int, *, pop_width: int = 1, warm_start: bool = False) -> int:
+def budget_for(target: Problem | FIRHC, n0: int, *, pop_width: int = 1, warm_start: bool = False) -> int:
     """``B(n0)``: the least ``max_nodes`` that guarantees level ``n0`` (docs/guide/budgets.md).
 
     Args:
@@ -22,8 +22,8 @@ def budget_for(target, n0: int, *, pop_width: int = 1, warm_start: bool = False)
         fallback twice the budget, since the fallback may get only half; each of the two searches then keeps
         the guarantee).
       n0: the level, ``1 <= n0 <= N - 1``.
-      pop_width, warm_start: the search's (a ``Problem`` only): K, and whether a warm start's N nodes come
-        first.
+      pop_width: the search's K (a ``Problem`` only).
+      warm_start: whether a warm start's N nodes come first (a ``Problem`` only).
 
     Returns ``2 (sum_{D=1..n0} (T_D + N M) + K M + W)`` with ``T_D = M + ... + M^D`` and ``W`` the nodes of
     the candidates evaluated first (``N`` for a warm start; in a decision ``N - 1 + M`` for the previous plan
