@@ -1,10 +1,8 @@
 """fj.solve_batch: exactness per row, parameters, validation, memory, retracing."""
 import functools
 import os
-import re
 import subprocess
 import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -14,6 +12,7 @@ from compiles import compile_count
 from jaxlib import xla_client
 from random_problems import make
 from reference import brute_force, same_cost
+from repository import ROOT, TESTS
 
 import firhc_jax as fj
 from firhc_jax._src.runtime.sharding import usable_cores
@@ -247,10 +246,10 @@ print("same on 1 and 4 devices")
 @pytest.mark.slow
 def test_four_host_devices_give_the_same_results():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
-               PYTHONPATH=os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")]))
+               PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
     script = f"SOLVERS = {SOLVERS!r}\n" + FOUR_DEVICES
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env,
-                         cwd=Path(__file__).parent.parent)
+                         cwd=ROOT)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "same on 1 and 4 devices" in out.stdout
 
@@ -265,19 +264,6 @@ def test_error_flags_reach_the_caller():
         r = solve_batch(nan, jnp.array([[1.0], [2.0]]))
     np.testing.assert_array_equal(r.sequence, [[0, 0], [0, 0]])
     assert np.all(r.nan_encountered) and not np.any(r.negative_cost)
-
-
-@pytest.mark.slow
-def test_docs_example_runs():
-    """docs/guide/batches.md's example runs as written and its results are exact."""
-    text = (Path(__file__).parent.parent / "docs" / "guide" / "batches.md").read_text()
-    namespace = {}
-    exec(compile(re.search(r"```python\n(.*?)```", text, re.S).group(1), "docs/guide/batches.md", "exec"), namespace)
-    problem, X0, res = namespace["problem"], namespace["X0"], namespace["res"]
-    ref = solve_batch(problem, X0[:4], solver="exhaustive")
-    np.testing.assert_allclose(res.cost[:4], ref.cost, rtol=1e-12)
-    assert namespace["costs"].shape == (10, 256) and namespace["tracked"].cost.shape == (256,)
-    np.testing.assert_allclose(namespace["costs"][0], res.cost, rtol=1e-12)
 
 
 # ---------------------------------------------------------------- property test of the pool

@@ -6,6 +6,7 @@ import sys
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from repository import BENCHMARKS
 
 import firhc_jax as fj
 from firhc_jax.apps import bench
@@ -93,9 +94,8 @@ def test_the_monte_carlo_bench_quick_makes_the_same_decisions_every_way():
     """``benchmarks/monte_carlo_bench.py --quick``: every way of batching closed loops runs, and each makes
     (d) simulate_batch's decisions, which fj.exhaustive confirms."""
     import re
-    from pathlib import Path
 
-    script = Path(__file__).parent.parent / "benchmarks" / "monte_carlo_bench.py"
+    script = BENCHMARKS / "monte_carlo_bench.py"
     proc = subprocess.run([sys.executable, str(script), "--quick", "--repeats", "1"], capture_output=True,
                           text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-2000:]

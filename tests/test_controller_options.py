@@ -2,6 +2,7 @@
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from reference import same_cost
 
 import firhc_jax as fj
 
@@ -120,7 +121,8 @@ def test_a_budget_beyond_int32_is_clamped_as_fj_sdfs_clamps_it(solver):
     assert fj.FIRHC(p, solver, max_nodes=2**40).options.key == huge.options.key
     u, info = huge(x)
     ref = fj.sdfs(p, x, max_nodes=2**31)
-    assert bool(info.complete) and float(info.result.cost) == float(ref.cost) == float(fj.exhaustive(p, x).cost)
+    exact = fj.exhaustive(p, x).cost  # the decision is compiled apart from fj.sdfs: equal up to the last bits
+    assert bool(info.complete) and same_cost(info.result.cost, exact) and same_cost(ref.cost, exact)
     run = huge.simulate(x, 3)
     assert np.asarray(run.complete).all()
 

@@ -5,13 +5,13 @@ looser bound, or a search that spends nodes elsewhere (a budgeted search's seedi
 them, so each horizon's mean may not exceed its recorded figure by more than ``HEADROOM`` (room for rounding to
 move a near-tie). Both ways of solving decide every step with the same nodes: ``lt.solve`` and ``fj.sdfs`` on
 ``lt.problem``."""
-import pathlib
 import sys
 
 import numpy as np
 import pytest
+from repository import BENCHMARKS
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(BENCHMARKS))
 from converter_bench import node_counts  # noqa: E402
 
 from firhc_jax.models import grid_converter, three_level  # noqa: E402

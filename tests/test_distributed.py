@@ -5,12 +5,12 @@ import os
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import _distributed_worker as worker
 import jax
 import numpy as np
 import pytest
+from repository import TESTS
 
 import firhc_jax as fj
 from firhc_jax import distributed
@@ -18,7 +18,6 @@ from firhc_jax._src.runtime.sharding import mesh_of
 from firhc_jax.cli import main as cli_main
 from firhc_jax.models.synthetic import benchmark_state
 
-TESTS = Path(__file__).parent
 ROOT = TESTS.parent
 TIMEOUT = 300  # s for a whole job (a safety net: the job takes seconds, 2-3 min on a loaded 2-core machine)
 

@@ -8,11 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from reference import same_cost
+from repository import DOCS, ROOT
 
 import firhc_jax as fj
 
-ROOT = Path(__file__).parent.parent
-DOCS = ROOT / "docs"
 USER_PAGES = sorted(p for p in DOCS.rglob("*.md") if "dev" not in p.relative_to(DOCS).parts)
 NAMESPACES = {"solvers": fj.solvers, "linear_tracking": fj.linear_tracking, "diagnostics": fj.diagnostics,
               "distributed": fj.distributed}
@@ -145,3 +144,8 @@ def test_parameters_and_batches_agree_with_the_tour(tour, guide):
     assert runs.states.shape == (33, 41, 2) and runs.plans.shape == (33, 40, 8)
     np.testing.assert_allclose(np.asarray(runs.states[-1]), np.asarray(tour[0]["run"].states[:41]),
                                rtol=1e-12, atol=1e-15)
+    ns = next(n for n in batches if "X_T" in n)  # the self-contained block: exact per row, scan agrees
+    ref = fj.solve_batch(ns["problem"], ns["X0"][:4], solver="exhaustive")
+    np.testing.assert_allclose(np.asarray(ns["res"].cost[:4]), np.asarray(ref.cost), rtol=1e-12)
+    assert ns["costs"].shape == (10, 256) and ns["tracked"].cost.shape == (256,)
+    np.testing.assert_allclose(np.asarray(ns["costs"][0]), np.asarray(ns["res"].cost), rtol=1e-12)

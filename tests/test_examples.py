@@ -3,11 +3,10 @@ root), exits 0, prints its figures and writes the figure it promises."""
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
+from repository import ROOT
 
-ROOT = Path(__file__).parent.parent
 EXAMPLES = sorted(p.name for p in (ROOT / "examples").glob("*.py") if not p.name.startswith("_"))
 PRINTS = {  # what each example reports, checked in its output
     "quickstart.py": "sDFS: cost", "tracking_reference.py": "rms angle error", "realtime_loop.py": "decisions: median",

@@ -19,6 +19,7 @@ import reference
 from compiles import compile_count
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from repository import DOCS
 
 import firhc_jax as fj
 
@@ -316,9 +317,8 @@ def test_fallback_keeps_constraints_and_terminal_cost():
 @pytest.mark.slow
 def test_the_documented_plants_run():
     """docs/guide/formulation.md's three plants, as written there (each block in its own namespace)."""
-    import pathlib
     import re
-    text = (pathlib.Path(__file__).parent.parent / "docs" / "guide" / "formulation.md").read_text()
+    text = (DOCS / "guide" / "formulation.md").read_text()
     blocks = re.findall(r"```python\n(.*?)```", text, re.S)
     assert len(blocks) == 3
     for block in blocks:

@@ -576,18 +576,17 @@ def test_thermal_model_steady_state_and_calm_states():
 
 
 @pytest.mark.slow
-def test_readme_long_horizon_snippet_runs():
-    """The README's "Long horizons for linear plants" block, after the API tour's imports, as written."""
+def test_the_long_horizon_guide_runs_and_agrees():
+    """The first block of docs/guide/long-horizons.md, after the tour's imports, as written."""
     import re
-    from pathlib import Path
 
-    text = (Path(__file__).parent.parent / "README.md").read_text()
-    tour = re.findall(r"```python\n(.*?)```", text, re.S)[0]
-    section = text.split("### Long horizons for linear plants", 1)[1].split("\n#", 1)[0]
-    block = re.findall(r"```python\n(.*?)```", section, re.S)[0]
+    from repository import DOCS
+
+    tour = re.findall(r"```python\n(.*?)```", (DOCS / "getting-started.md").read_text(), re.S)[0]
+    block = re.findall(r"```python\n(.*?)```", (DOCS / "guide" / "long-horizons.md").read_text(), re.S)[0]
     namespace = {}
-    exec(compile(tour.split("\n\n", 1)[0], "README.md tour imports", "exec"), namespace)
-    exec(compile(block, "README.md long horizons", "exec"), namespace)
+    exec(compile(tour.split("\n\n", 1)[0], "getting-started.md tour imports", "exec"), namespace)
+    exec(compile(block, "long-horizons.md", "exec"), namespace)
     res, loop, many, lt = namespace["res"], namespace["loop"], namespace["many"], namespace["lt"]
     assert bool(res.feasible) and not np.any(np.isnan(np.asarray(loop.inputs))) and loop.states.shape == (41, 2)
     assert same_cost(float(loop.predicted_costs[0]), float(res.cost))  # the loop's first decision is res's

@@ -169,7 +169,7 @@ class _Pendulum(_run.App):
 
     def simulate(self, args):
         ctrl = fj.FIRHC(example_app.make_problem(3), fallback="unconstrained")
-        return _Run(ctrl.simulate(jnp.array([0.6, 0.0]), args.steps))
+        return _Run(ctrl.simulate(jnp.array([0.6, 0.0]), args.steps, progress=not args.no_progress))
 
     def summarize(self, args, run):
         return {"steps": args.steps, "final": np.asarray(run.loop.states[-1]).tolist()}

@@ -8,7 +8,6 @@ Numba is installed: ``python -m pytest --full tests/test_numba_peer.py``. Slow (
 the library's searches: 20-40 s), so the quick suite leaves it out.
 """
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +18,9 @@ from firhc_jax.models.synthetic import SyntheticParams, benchmark_state, make_pr
 
 pytest.importorskip("numba", reason="the Numba peer check needs the bench extra: pip install -e '.[test,bench]' "
                                     "(README, Tests)")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from repository import BENCHMARKS
+
+sys.path.insert(0, str(BENCHMARKS))
 import numba_peer as peer  # noqa: E402
 
 pytestmark = pytest.mark.slow

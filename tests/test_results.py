@@ -2,11 +2,11 @@
 page includes, under a header that names the machine, the load and the command; nothing is written without
 ``--publish``."""
 import sys
-from pathlib import Path
 
 import pytest
+from repository import BENCHMARKS
 
-sys.path.insert(0, str(Path(__file__).parent.parent / "benchmarks"))
+sys.path.insert(0, str(BENCHMARKS))
 import _results  # noqa: E402
 
 

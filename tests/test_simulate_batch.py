@@ -8,6 +8,7 @@ import random_problems
 from compiles import compile_count
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from repository import ROOT, TESTS
 from test_step import CONTROLS, PROBLEM, N, actuate, counting_controller, observe, plant
 
 import firhc_jax as fj
@@ -235,12 +236,11 @@ def test_loops_split_over_four_devices_equal_their_single_loops():
     import os
     import subprocess
     import sys
-    from pathlib import Path
 
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
-               PYTHONPATH=os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")]))
+               PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
     out = subprocess.run([sys.executable, "-c", FOUR_DEVICES], capture_output=True, text=True, env=env,
-                         cwd=Path(__file__).parent.parent, timeout=900)
+                         cwd=ROOT, timeout=900)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "loops on 4 devices equal their single loops" in out.stdout
 

@@ -11,6 +11,7 @@ import pytest
 COMMON = """
 import gc, json
 import jax, jax.numpy as jnp, numpy as np, firhc_jax as fj
+from firhc_jax._src.runtime.memory_cache import MIN_SIZE
 
 def usage():
     gc.collect()
@@ -33,8 +34,8 @@ def test_rebuilt_problems_do_not_pile_up():
     after the cache has begun to evict (and the allocator has warmed up) leave maps and memory flat. Unbounded
     (checked with ``set_cache_size(10**6)``), 12 problems added about 970 maps and 43 MB."""
     r = _run("""
-        fj.set_cache_size(fj.cache.MIN_SIZE)
-        first = fj.cache.MIN_SIZE // 2 + 2  # 2 problems after the first eviction
+        fj.set_cache_size(MIN_SIZE)
+        first = MIN_SIZE // 2 + 2  # 2 problems after the first eviction
         counts = {}
         for i in range(first + 13):
             p = fj.Problem(lambda x, u: 0.5 * x + u, [-1.0, 0.0, 1.0], fj.quadratic_cost(1.0, 0.001 * i), 2)
@@ -43,7 +44,7 @@ def test_rebuilt_problems_do_not_pile_up():
                 counts[i] = usage()
         print(json.dumps({"maps": [counts[first][0], counts[first + 12][0]],
                           "rss": [counts[first][1], counts[first + 12][1]],
-                          "cache": fj.cache_info()["size"], "max": fj.cache.MIN_SIZE}))
+                          "cache": fj.cache_info()["size"], "max": MIN_SIZE}))
     """)
     assert r["maps"][1] - r["maps"][0] < 200, r
     assert r["rss"][1] - r["rss"][0] < 20 * 2**20, r
@@ -95,7 +96,7 @@ def test_no_accepted_cache_size_makes_a_call_evict_its_own_entries():
                 x, 3, progress=True),
         }
         refused, again = [], {}
-        for size in (1, 2, 3, fj.cache.MIN_SIZE):
+        for size in (1, 2, 3, MIN_SIZE):
             try:
                 fj.set_cache_size(size)
             except ValueError as e:
@@ -107,7 +108,7 @@ def test_no_accepted_cache_size_makes_a_call_evict_its_own_entries():
                 misses, n = fj.cache_info()["misses"], len(traces)
                 call()
                 again[f"{size} {name}"] = (fj.cache_info()["misses"] - misses, len(traces) - n)
-        print(json.dumps({"refused": refused, "again": again, "min": fj.cache.MIN_SIZE}))
+        print(json.dumps({"refused": refused, "again": again, "min": MIN_SIZE}))
     """)
     assert r["refused"] == [1, 2, 3], r
     assert all(v == [0, 0] for v in r["again"].values()) and len(r["again"]) == 9, r

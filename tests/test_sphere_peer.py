@@ -1,12 +1,12 @@
 """The scalar Python sphere decoder of benchmarks/sphere_peer.py (the peer of ``lt.solve``) finds the
 brute-force minimum of J, max_step and the disturbance included."""
 import itertools
-import pathlib
 import sys
 
 import numpy as np
+from repository import BENCHMARKS
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(BENCHMARKS))
 from sphere_peer import SphereDecoder  # noqa: E402
 
 from firhc_jax.models import three_level  # noqa: E402
