@@ -8,7 +8,7 @@ Sections (each prints a table):
 
 * nodes: per N (``--node-horizons``), the nodes of ``lt.solve`` (``shared_problem``, the model in the params)
   and of ``fj.sdfs`` on ``lt.problem`` (the model as constants) on every decision, and whether they are equal
-  step by step (they must be: one search). ``tests/test_converter_nodes.py`` holds the N = 5 and 10 means as
+  step by step (they must be: one search). ``tests/linear/test_converter_nodes.py`` holds the N = 5 and 10 means as
   recorded here.
 * peer: per N (``--horizons``), each decision timed as ``lt.solve`` (eager, compiled first) takes it, then
   solved by the scalar Python sphere decoder of ``benchmarks/sphere_peer.py`` (same J asserted; up to

@@ -16,7 +16,7 @@ its use count in that kernel; the peer fuses the first, as LLVM does by default,
 bit on a few children of those two modes. Inside the search loop XLA also fuses the synthetic plant's cost
 differently from a lone expansion, and with XLA's optimizations off (the quick test suite) the linear
 plant's too, so the peer's costs can differ in the last bits (4e-16 relative seen). Sequences and node
-counts agree, and costs to 1e-12 relative (checked by ``tests/test_numba_peer.py`` and ``engine_bench.py``).
+counts agree, and costs to 1e-12 relative (checked by ``tests/project/test_numba_peer.py`` and ``engine_bench.py``).
 """
 from __future__ import annotations
 

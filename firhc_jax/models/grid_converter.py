@@ -13,7 +13,7 @@ tracks a current reference in phase with the grid (unity power factor) whose amp
 step and forbids a leg to jump from -1 to +1 (max_step = 1). Ts = 100 us.
 
 This is the plant whose node counts watch ``LinearTracking``'s bound (``benchmarks/converter_bench.py``,
-``tests/test_converter_nodes.py``): a realistic per-unit model, small switching weight, and a large
+``tests/linear/test_converter_nodes.py``): a realistic per-unit model, small switching weight, and a large
 reference step, where the continuous cost-to-go is far below J for several steps.
 """
 from __future__ import annotations

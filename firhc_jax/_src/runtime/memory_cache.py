@@ -26,7 +26,7 @@ DEFAULT_MAX_SIZE = 64
 # At least the most entries one call uses (12: a closed loop with a fallback on the exhaustive solver and a
 # progress bar, while it compiles; docs/guide/caching.md), with room for a few more: LRU at this size keeps them
 # all, so a repeated call finds every one; below it, a call can evict its own and recompile every time.
-# tests/test_soak.py checks every kind of call.
+# tests/runtime/test_soak.py checks every kind of call.
 MIN_SIZE = 16
 _entries: "collections.OrderedDict[Hashable, Any]" = collections.OrderedDict()
 _max_size = DEFAULT_MAX_SIZE

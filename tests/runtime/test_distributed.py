@@ -10,7 +10,7 @@ import _distributed_worker as worker
 import jax
 import numpy as np
 import pytest
-from repository import TESTS
+from repository import ROOT, TESTS
 
 import firhc_jax as fj
 from firhc_jax import distributed
@@ -18,7 +18,6 @@ from firhc_jax._src.runtime.sharding import mesh_of
 from firhc_jax.cli import main as cli_main
 from firhc_jax.models.synthetic import benchmark_state
 
-ROOT = TESTS.parent
 TIMEOUT = 300  # s for a whole job (a safety net: the job takes seconds, 2-3 min on a loaded 2-core machine)
 
 

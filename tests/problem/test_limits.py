@@ -45,7 +45,7 @@ def test_a_budget_is_honest(case, budget, pop_width):
 @given(cases(tightness=("none", "loose")), st.integers(1, 40), st.integers(0, 2**32 - 1), st.booleans())
 def test_a_budget_bounds_the_count_with_a_warm_start(case, budget, seed, none):
     """``nodes <= max_nodes`` in every case, a warm start's N nodes included: a warm start that does not fit in
-    the budget is not evaluated (one compile per shape, shared with tests/test_exactness.py's warm start)."""
+    the budget is not evaluated (one compile per shape, shared with tests/search/test_exactness.py's warm start)."""
     shape, params, x0 = case
     N, M, prm = shape[3], shape[2], as_jax(params)
     warm = np.full(N, -1) if none else np.random.default_rng(seed).integers(0, M, N)

@@ -4,7 +4,7 @@ multiply-adds differently from one program to another and with its optimizations
 costs differ in their last bits (up to 4e-16 relative here), between ``fj.sdfs`` and ``fj.exhaustive`` too.
 
 Needs the bench extra (``pip install -e ".[test,bench]"``); without Numba it is skipped, so it is run where
-Numba is installed: ``python -m pytest --full tests/test_numba_peer.py``. Slow (JIT-compiling the peers and
+Numba is installed: ``python -m pytest --full tests/project/test_numba_peer.py``. Slow (JIT-compiling the peers and
 the library's searches: 20-40 s), so the quick suite leaves it out.
 """
 import sys

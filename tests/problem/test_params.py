@@ -15,7 +15,7 @@ import firhc_jax as fj
 SETTINGS = settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
-# pop_width 3 (2 is in tests/test_limits.py): at most five compiled searches per shape serve every example.
+# pop_width 3 (2 is in tests/problem/test_limits.py): at most five compiled searches per shape serve every example.
 # Also run with x64 off (pytest --float32).
 @pytest.mark.float32
 @SETTINGS

@@ -1,6 +1,5 @@
 """Batched closed loops: ``ctrl.simulate_batch`` runs B loops in one compiled run, loop b deciding as
 ``ctrl.simulate`` of loop b, with everything a single loop has."""
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -8,51 +7,23 @@ import random_problems
 from compiles import compile_count
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from loops import (
+    CONTROLS,
+    PROBLEM,
+    N,
+    T,
+    actuate,
+    assert_same_loop,
+    counting_controller,
+    loop_params,
+    observe,
+    plant,
+    row,
+)
 from repository import ROOT, TESTS
-from test_step import CONTROLS, PROBLEM, N, actuate, counting_controller, observe, plant
+from trackers import Case
 
 import firhc_jax as fj
-
-T = 8
-
-
-def loop_params(rng, B):
-    """[B, T] parameters: a reference, a plant gain and a terminal band per loop and step; some bands are
-    out of reach (the fallback decides there) and some loose."""
-    k = np.arange(T)
-    phase = rng.uniform(0, 2 * np.pi, (B, 1))
-    return {"ref": 0.5 * np.sin(0.5 * k + phase), "gain": 1.0 + 0.1 * rng.uniform(-1, 1, (B, T)),
-            "band": np.where((k + rng.integers(0, 4, (B, 1))) % 4 == 1, 1e-6, 0.6)}
-
-
-def row(tree, b):
-    return jax.tree_util.tree_map(lambda a: a[b], tree)
-
-
-FIELDS = ("inputs", "plans", "used_fallback", "feasible", "held", "complete")
-# Numbers XLA may round apart in the last bit in a batched program (its vector width is not the unbatched one's).
-COSTS = ("states", "predicted_costs", "stage_costs")
-
-
-def assert_same_loop(batched, one, label: str, nodes: bool = False) -> int:
-    """Loop ``batched`` (one row of a batched run) makes ``one``'s decisions: equal fields (equal to the last
-    bits for ``COSTS``, and node counts with ``nodes``) up to the first step whose plans differ, and there an
-    exact tie (the same optimal cost from the same state), after which the loops may part. Returns the
-    number of steps compared."""
-    plans, ref = np.asarray(batched.plans), np.asarray(one.plans)
-    differ = np.flatnonzero(np.any(plans != ref, axis=1))
-    k = int(differ[0]) if differ.size else len(plans)
-    for field in FIELDS + (("decision_nodes",) if nodes else ()):
-        np.testing.assert_array_equal(np.asarray(getattr(batched, field))[:k], np.asarray(getattr(one, field))[:k],
-                                      err_msg=f"{label}, {field}")
-    for field in COSTS:  # the state decided from and the optimal cost (a tie) at step k too
-        upto = k if field == "stage_costs" else k + 1
-        np.testing.assert_allclose(np.asarray(getattr(batched, field))[:upto], np.asarray(getattr(one, field))[:upto],
-                                   rtol=1e-12, atol=1e-15, err_msg=f"{label}, {field}")
-    if k < len(plans):  # a tie: both sequences optimal from that state
-        assert np.isfinite(float(one.predicted_costs[k])), f"{label}: step {k} differs without a cost"
-    return k
-
 
 CONTROLLERS = {
     "full": dict(fallback="unconstrained", warm_start=True, observe=observe, actuate=actuate),
@@ -194,8 +165,6 @@ def test_float32_loops_equal_their_single_loops():
 def test_linear_tracking_loops_apply_first_input_of_as_single_loops():
     """A LinearTracking problem (classes of inputs, first_input_of picking the member) batched over loops
     with per-loop references and disturbances."""
-    from test_linear_tracking import Case
-
     case = Case("common", True, 5)
     lt = case.tracker()
     B, steps = 3, 4
@@ -217,8 +186,7 @@ FOUR_DEVICES = """
 import jax, numpy as np
 jax.config.update("jax_enable_x64", True)
 import firhc_jax as fj
-from test_step import PROBLEM, observe, actuate, plant
-from test_simulate_batch import assert_same_loop, loop_params, row, T
+from loops import PROBLEM, T, actuate, assert_same_loop, loop_params, observe, plant, row
 assert jax.local_device_count() == 4, jax.local_devices()
 ctrl = fj.FIRHC(PROBLEM, fallback="unconstrained", warm_start=True, observe=observe, actuate=actuate)
 rng = np.random.default_rng(4)

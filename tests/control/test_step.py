@@ -5,42 +5,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from compiles import compile_count
+from loops import PROBLEM, actuate, counting_controller, observe, plant
 
 import firhc_jax as fj
 
-# A plant that is not the model: a cart with friction the model ignores, driven through a gain, with a
-# second plant input set by a fixed law (actuate). The model state carries the input applied last (observe),
-# whose change is charged. The terminal band comes from the parameters: some steps it is out of reach and the
-# fallback decides; some steps' band is loose and the warm start's seed is the answer.
-N, T = 3, 12
-CONTROLS = np.array([-1.0, 0.0, 1.0])
-
-
-def plant(x, u, p):  # x [2] plant state, u [2] plant input
-    return jnp.stack([x[0] + 0.1 * x[1], 0.97 * x[1] + 0.1 * p["gain"] * u[0] + 0.01 * u[1]])
-
-
-def observe(x, u_prev, p):  # model state [position, velocity, input applied last, its switching cost]
-    return jnp.concatenate([x, u_prev, jnp.zeros(1)])
-
-
-def actuate(x, u, p):
-    return jnp.concatenate([u, -jnp.sign(x[1:2])])
-
-
-def dynamics(z, u, p):
-    return jnp.stack([z[0] + 0.1 * z[1], z[1] + 0.1 * u[0], u[0], 0.05 * (u[0] - z[2]) ** 2])
-
-
-def stage_cost(z, u, p):
-    return (z[0] - p["ref"]) ** 2 + 0.1 * z[1] ** 2 + z[3]
-
-
-def terminal(z, p):
-    return jnp.abs(z[0] - p["ref"]) < p["band"]
-
-
-PROBLEM = fj.Problem(dynamics, CONTROLS, stage_cost, N, terminal=terminal)
+T = 12
 
 
 def per_step_params():
@@ -103,17 +72,6 @@ def test_step_under_jit_vmap_and_scan(ctrl):
     (_, x_end), _ = jax.lax.scan(body, (ctrl.init(x0, U[0]), x0), params)
     run = ctrl.simulate(x0, T, plant, params=params, u0=U[0])
     np.testing.assert_array_equal(np.asarray(x_end), np.asarray(run.states[-1]))
-
-
-def counting_controller(traces: list) -> fj.FIRHC:
-    """These tests' controller (fallback, observe, actuate), its dynamics appending to ``traces`` when traced."""
-    def counted(z, u, p):
-        if isinstance(z, jax.core.Tracer):
-            traces.append(1)
-        return dynamics(z, u, p)
-
-    return fj.FIRHC(fj.Problem(counted, CONTROLS, stage_cost, N, terminal=terminal), fallback="unconstrained",
-                    observe=observe, actuate=actuate)
 
 
 def test_eager_steps_never_retrace_or_recheck():

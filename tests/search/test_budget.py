@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from loops import assert_same_loop
 from param_problems import as_jax, as_seen
 from reference import same_cost, tolerance
-from test_simulate_batch import assert_same_loop
 
 import firhc_jax as fj
 

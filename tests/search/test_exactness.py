@@ -12,7 +12,7 @@ from reference import same_cost
 import firhc_jax as fj
 
 # Breadth of shapes (n, m, M, N drawn, M = 1 and N = 1 included): every example compiles its own problem, so
-# few examples; tests/test_params.py carries the breadth of values on one compile per shape.
+# few examples; tests/problem/test_params.py carries the breadth of values on one compile per shape.
 SETTINGS = settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from reference import same_cost
-from test_linear_tracking import NONE, Case
+from trackers import NONE, Case
 
 import firhc_jax as fj
 from firhc_jax._src.linear.tracking import input_classes
