@@ -53,18 +53,11 @@ def test_bad_options_are_refused():
         fj.FIRHC(p, "exhaustive", warm_start=lambda *a: None)
 
 
-def test_a_progress_bar_costs_at_most_TICKS_host_callbacks(capsys, monkeypatch):
+def test_a_progress_bar_costs_at_most_TICKS_host_callbacks(capsys, ticks):
     """A host callback per step made progress=True 23x slower: a run reports every
     interval(T) steps and at its end, whatever T, compiled or not."""
-    from firhc_jax._src.control import runner as loop
     from firhc_jax._src.runtime import progress
 
-    ticks = []
-    original = progress.tick_python
-    counting = lambda step: (ticks.append(int(step)), original(step))  # noqa: E731
-    monkeypatch.setattr(progress, "tick_python", counting)  # reached from the compiled loop's callback
-    monkeypatch.setattr(loop, "tick_python", counting)  # called by the Python loop
-    fj.clear_cache()  # a closed loop compiled earlier would hold the original callback
     ctrl = fj.FIRHC(fj.Problem(dyn, CONTROLS, COST, 2))
     for steps, compiled in ((1_000, True), (1_001, True), (250, False)):
         ticks.clear()
