@@ -161,3 +161,32 @@ def test_parameters_and_batches_agree_with_the_tour(tour, guide):
     np.testing.assert_allclose(np.asarray(ns["res"].cost[:4]), np.asarray(ref.cost), rtol=1e-12)
     assert ns["costs"].shape == (10, 256) and ns["tracked"].cost.shape == (256,)
     np.testing.assert_allclose(np.asarray(ns["costs"][0]), np.asarray(ns["res"].cost), rtol=1e-12)
+
+
+def test_the_caching_page_names_every_part_of_a_controllers_key():
+    """The key table names every field of a controller's options (the key is derived from all of them) and the
+    plant of a compiled closed loop."""
+    import dataclasses
+
+    from firhc_jax._src.control.controller import Options
+
+    rows = {line.split("|")[1].strip(): line for line in (DOCS / "guide" / "caching.md").read_text().splitlines()
+            if line.startswith("| `")}
+    step, loop = rows["`ctrl.step`, `ctrl(x)`, `ctrl.solve`"], rows["`ctrl.simulate` (compiled)"]
+    words = {"problem": "the problem", "solver_options": "every solver option"}
+    for field in dataclasses.fields(Options):
+        assert words.get(field.name, f"`{field.name}`") in step, field.name
+    assert "the plant, as an object" in loop
+
+
+@pytest.mark.slow
+def test_the_realtime_recipe_runs_its_loop_with_the_collector_paused(guide):
+    """The real-time page's recipe: every plant write of its loop happens with the cyclic collector off, and the
+    collector is back on after the loop."""
+    import gc
+
+    ns, seen = dict(guide[-1]), []
+    dynamics = ns["dynamics"]
+    ns["dynamics"] = lambda x, u: (seen.append(gc.isenabled()), dynamics(x, u))[1]  # what the page's write calls
+    exec(compile(_blocks(DOCS / "guide" / "realtime.md")[0], "realtime.md python block 0", "exec"), ns)
+    assert len(seen) == 80 and not any(seen) and gc.isenabled()
