@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+from repository import ROOT
 
 import firhc_jax as fj
 from firhc_jax import cli
@@ -449,3 +450,20 @@ def test_the_profile_chart_says_what_its_red_bar_means(tmp_path, monkeypatch):
                                                                 strict=True)}
     meaning = [text for text, color in entries.items() if to_rgba(color) in fastest]
     assert len(meaning) == 1 and "fastest" in meaning[0], entries
+
+
+@pytest.mark.slow
+def test_batch_float32_refuses_a_parameter_beyond_float32_in_one_line(tmp_path):
+    """``batch --float32 --params`` with a finite float64 value float32 cannot hold: one line naming the
+    parameters and the value, exit status not 0, nothing written (it was searched as inf and exited 0).
+    A subprocess: ``--float32`` turns x64 off for the process."""
+    (tmp_path / "fj_batch_array_user.py").write_text(BATCH_ARRAY_USER)
+    np.save(tmp_path / "X0.npy", np.array([[0.0], [1.0]]))
+    np.save(tmp_path / "P.npy", np.array([[1.0], [1e39]]))
+    proc = subprocess.run([sys.executable, "-m", "firhc_jax", "batch", "--problem", "fj_batch_array_user:tracking",
+                           "--states", "X0.npy", "--params", "P.npy", "--float32", "--out", "r.npz"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=600,
+                          env=dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(ROOT)])))
+    last = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else ""
+    assert proc.returncode != 0 and not (tmp_path / "r.npz").exists(), proc.stderr[-2000:]
+    assert "1e+39" in last and "float32" in last and "params" in last and "Traceback" not in proc.stderr, proc.stderr
