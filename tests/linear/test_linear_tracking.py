@@ -13,6 +13,7 @@ from reference import same_cost
 from trackers import NONE, Case
 
 import firhc_jax as fj
+from firhc_jax._src.linear import tracking
 from firhc_jax._src.linear.tracking import Node
 from firhc_jax.apps._timing import TRACED
 from firhc_jax.apps._timing import compile_events as compilations
@@ -101,6 +102,13 @@ def test_the_l1_switching_cost_is_the_brute_force_minimum(case):
     check(case, result, "solve, L1")
 
 
+def members_of(lt, node):
+    """``[R, m]`` the members of the class of ``node`` (a ``Node`` below the root), in the order of its ``o``
+    (padding repeats the first)."""
+    row = lt.classes[int(node.j)]
+    return lt.controls[np.where(row >= 0, row, row[0])]
+
+
 def discrete_cost_to_go(case, k, x, u_last):
     """min over the controls u(k .. N-1) of J's steps k .. N-1 from x(k) = x after u_last (brute force)."""
     rest = Case.__new__(Case)
@@ -129,7 +137,7 @@ def test_the_l1_bound_is_below_every_discrete_completion(case):
         if not reached.any():  # max_step: no child, its bound unused
             continue
         best = min(float(o) + discrete_cost_to_go(case, k, np.asarray(node.x), np.asarray(u))
-                   for u, o, ok in zip(node.U, node.o, reached, strict=True) if ok)
+                   for u, o, ok in zip(members_of(lt, node), node.o, reached, strict=True) if ok)
         assert float(node.W) <= best * (1 + 1e-9) + 1e-12, (k, float(node.W), best)
 
 
@@ -396,8 +404,8 @@ def test_the_bound_is_the_unconstrained_cost_to_go(case):
         z = child(parent, u, np.int32(k - 1), params)
         if not bool(lt.problem.allowed(z, u, k - 1, params)):  # max_step: no child, its bound unused
             continue
-        n, m = case.x.shape[0], case.controls.shape[1]
-        true = unconstrained_cost_to_go(case, k, np.asarray(z[:n]), np.asarray(z[n:n + m]))
+        node = Node.unpack(np.asarray(z), lt.class_size, lt.m)
+        true = unconstrained_cost_to_go(case, k, np.asarray(node.x), members_of(lt, node)[0])
         w = float(lt.problem.lower_bound(z, np.int32(case.N - k), params))
         assert abs(w - true) <= 1e-9 * max(true, 1.0), (k, w, true)  # both exact up to rounding
     # In float32 W is rounded down by a bound on its own rounding: never above the true cost-to-go.
@@ -410,8 +418,8 @@ def test_the_bound_is_the_unconstrained_cost_to_go(case):
         z = child(parent, u, np.int32(k - 1), params)
         if not bool(lt.problem.allowed(z, u, k - 1, params)):
             continue
-        n, m = case.x.shape[0], case.controls.shape[1]
-        true = unconstrained_cost_to_go(case, k, np.asarray(z[:n], float), np.asarray(z[n:n + m], float))
+        node = Node.unpack(np.asarray(z, float), lt.class_size, lt.m)
+        true = unconstrained_cost_to_go(case, k, np.asarray(node.x), members_of(lt, node)[0])
         w = float(lt.problem.lower_bound(z, np.int32(case.N - k), params))
         # (1e-12: the float64 reference's own rounding; float32's is 1e-7 relative)
         assert true - 1e-3 * max(true, 1.0) <= w <= true + 1e-12 * max(true, 1.0), (k, w, true)
@@ -565,11 +573,35 @@ def test_an_input_outside_the_controls_has_no_child():
     assert bool(lt.problem.allowed(lt.problem.next_state(z, rep, 0, p), rep, 0, p))
 
 
+@pytest.mark.parametrize("norm, max_step", [("abs", 1.0), ("squared", None)])
+def test_switchings_from_the_members_search_as_the_table(monkeypatch, norm, max_step):
+    """Classes too many for the switching table (beyond MAX_TABLE_BYTES) compute the switchings between members
+    from the members: the same nodes, cost and plan as the table, from roots after a control and after an input
+    that is none (the five-level inverter's 61 classes of up to 5, N = 3)."""
+    A, B = three_level.model()
+    controls = fj.product_controls([-2.0, -1.0, 0.0, 1.0, 2.0], repeat=3)
+    make = lambda: fj.LinearTracking(A, B / 2, controls, 3, lambda_u=0.5, norm=norm, max_step=max_step)  # noqa: E731
+    table = make()
+    monkeypatch.setattr(tracking, "MAX_TABLE_BYTES", 0)
+    members = make()
+    assert table._tables.switch is not None and members._tables.switch is None
+    rng = np.random.default_rng(3)
+    for u_prev in (controls[17], controls[90], np.array([0.5, -0.25, 0.0])):
+        x, y_ref = rng.normal(scale=10.0, size=2), rng.normal(scale=20.0, size=(3, 2))
+        out = [fj.sdfs(lt.problem, lt.observe(x, u_prev), params=lt.params(y_ref)) for lt in (table, members)]
+        assert bool(out[0].feasible)
+        assert int(out[0].nodes) == int(out[1].nodes) and float(out[0].cost) == float(out[1].cost)
+        np.testing.assert_array_equal(out[0].first_input, out[1].first_input)
+        plans = [lt.sequence(lt.observe(x, u_prev), o.sequence, lt.params(y_ref)) for lt, o in zip(
+            (table, members), out, strict=True)]
+        np.testing.assert_array_equal(plans[0], plans[1])
+
+
 @pytest.mark.parametrize("which", ["five-level, shuffled", "random reals"])
 def test_every_control_reaches_the_node_of_its_class(which):
     """The dynamics finds the class of any control it is given (the searches give it each class's first member, a
-    closed loop without a plant applies any member): its node holds that class's members and the state A x + B u,
-    and an input that is no control has no child."""
+    closed loop without a plant applies any member): its node is of that class (whose members ``lt.classes``
+    lists) with the state A x + B u, and an input that is no control has no child."""
     rng = np.random.default_rng(1)
     if which == "random reals":  # 37 inputs, some sharing a component: ties decided by the next one
         controls = np.round(rng.normal(size=(37, 2)), 1)
@@ -585,7 +617,8 @@ def test_every_control_reaches_the_node_of_its_class(which):
     for i, u in enumerate(controls):
         node = Node.unpack(child(u), lt.class_size, controls.shape[1])
         members = controls[lt.class_of == lt.class_of[i]]
-        assert {tuple(v) for v in np.asarray(node.U)} == {tuple(v) for v in members}, i
+        assert int(node.j) == lt.class_of[i], i
+        assert {tuple(v) for v in members_of(lt, node)} == {tuple(v) for v in members}, i
         np.testing.assert_allclose(node.x, A @ x + B @ u, rtol=1e-12, atol=1e-12)
     for stray in (controls[0] + 0.05, controls.max(axis=0) + 1.0, controls.min(axis=0) - 1.0):
         assert not bool(lt.problem.allowed(child(stray), stray, 0, p)), stray
@@ -599,9 +632,10 @@ def test_the_search_state_is_a_packed_node():
     x, u_prev = np.array([1.0, -2.0]), np.array([1.0, 0.0, -1.0])
     z = lt.observe(x, u_prev)
     root = Node.unpack(z, lt.class_size, lt.m)
-    assert z.shape == (2 + 3 * (3 + 1) + 2,)
+    assert z.shape == (2 + 3 + 3 + 3,)
     np.testing.assert_array_equal(root.x, x)
-    np.testing.assert_array_equal(root.U, np.tile(u_prev, (3, 1)))
+    np.testing.assert_array_equal(root.u_prev, u_prev)
+    assert float(root.j) == -1.0
     np.testing.assert_array_equal(root.o, [0.0, -1.0, -1.0])
     assert float(root.stage) == 0.0 and float(root.W) == 0.0
     np.testing.assert_array_equal(root.pack(), z)
@@ -611,6 +645,7 @@ def test_the_search_state_is_a_packed_node():
         child = Node.unpack(lt.problem.next_state(z, rep, 0, params), lt.class_size, lt.m)
         x_next = A @ x + B @ rep
         np.testing.assert_allclose(child.x, x_next, rtol=1e-12, atol=1e-12)
+        assert int(child.j) == j
         members = lt.controls[lt.class_of == j]
         steps = np.abs(members - u_prev)
         switching = np.where(np.all(steps <= 1, axis=1), 0.3 * np.sum(steps**2, axis=1), np.inf)

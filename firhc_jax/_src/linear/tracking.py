@@ -33,7 +33,8 @@ switching term. Branching on both would search the same subtree twice for
 every such choice along a path, so a node branches on the C *classes* of
 inputs (``input_classes``) and keeps, for each member of its class, the
 cheapest switching of the steps so far that ends on that member (a min-plus
-step per child: the Viterbi recursion over at most R members). Its cost is
+step: the Viterbi recursion over at most R members, once per node for all its
+children, from a table of the switchings between members). Its cost is
 then J's minimum over every sequence of inputs of that class sequence, and
 its bound the smallest of (member's switching + W from that member). Exact:
 the optimum is the cheapest class sequence with its cheapest members, which
@@ -43,9 +44,9 @@ the optimum is the cheapest class sequence with its cheapest members, which
 nodes than the plain sorted search (docs/applications/inverter.md); without equal-effect
 inputs (R = 1) the node is the plain one.
 
-In this form the search state is the plant's own: a ``Node`` (x, the
-class's R inputs U, their switching costs o above the cheapest, the stage cost
-and the bound W; n + R (m + 1) + 2 numbers instead of the decoder's N m
+In this form the search state is the plant's own: a ``Node`` (x, the root's
+u_prev, the class, its members' switching costs o above the cheapest, the stage
+cost and the bound W; n + m + R + 3 numbers instead of the decoder's N m
 partial sums), and the cost a search returns is J itself, accumulated stage by
 stage. W_k is kept factored, W_k(s) = ||T_k s + w_k||^2 + s_k for
 s = [x; u_prev]: T_k is static (a ``TrackingModel``), w_k and s_k are linear
@@ -91,46 +92,59 @@ NORMS = ("squared", "abs")  # the switching term: lambda_u ||du||^2 or lambda_u 
 # ---------------------------------------------------------------------------
 
 class Node(NamedTuple):
-    """A node of the search: the plant state that a class of inputs of equal effect reached, the class's
-    members with the cheapest switching that ends on each, the step's stage cost and the bound.
+    """A node of the search: the plant state that a class of inputs of equal effect reached, the cheapest
+    switching that ends on each of the class's members, the step's stage cost and the bound.
 
-    ``o[e]`` is the cheapest switching of the steps so far that ends on member e, less that of the cheapest
-    member (whose cost ``stage`` carries), so o >= 0; -1 marks a member that no allowed switching reaches (a
-    marker no cost can take, and finite: the searches discard non-finite states). ``fj.Problem`` states are
-    vectors that every search stacks ``[..., n]``, so the searches hold a node packed, ``[n + R (m + 1) + 2]``
-    (``pack``; ``LinearTracking.observe`` packs the root), and the callables read it back (``unpack``)."""
-    x: jax.Array      # [n] the plant state
-    U: jax.Array      # [R, m] the class's members (padding repeats the first)
-    o: jax.Array      # [R] each member's switching so far above the cheapest member's; -1: not reached
-    stage: jax.Array  # [] the stage cost of the step into the node: tracking error plus the cheapest switching
-    W: jax.Array      # [] the bound on the cost to go: the least o[e] + W_k(x, U[e]) over the members
+    ``j`` is the class of the step into the node (its members: ``lt.classes[j]``, in the order of ``o``); the
+    root has none (-1) and switches from ``u_prev``, the input applied last, which its children read (the
+    other nodes carry the root's). ``o[e]`` is the cheapest switching of the steps so far that ends on member e,
+    less that of the cheapest member (whose cost ``stage`` carries), so o >= 0; -1 marks a member that no
+    allowed switching reaches (a marker no cost can take, and finite: the searches discard non-finite states).
+    ``fj.Problem`` states are vectors that every search stacks ``[..., n]``, so the searches hold a node packed,
+    ``[n + m + R + 3]`` (``pack``; ``LinearTracking.observe`` packs the root), and the callables read it back
+    (``unpack``)."""
+    x: jax.Array       # [n] the plant state
+    u_prev: jax.Array  # [m] the input applied before the root
+    j: jax.Array       # [] the class of the step into the node, as a number of the node's dtype; -1: the root
+    o: jax.Array       # [R] each member's switching so far above the cheapest member's; -1: not reached
+    stage: jax.Array   # [] the stage cost of the step into the node: tracking error plus the cheapest switching
+    W: jax.Array       # [] the bound on the cost to go: the least o[e] + W_k(x, member e) over the members
 
     def pack(self) -> jax.Array:
-        """``[n + R (m + 1) + 2]``: the node as the searches hold it."""
-        return jnp.concatenate([self.x, self.U.reshape(-1), self.o, self.stage[None], self.W[None]])
+        """``[n + m + R + 3]``: the node as the searches hold it."""
+        return jnp.concatenate([self.x, self.u_prev, self.j[None], self.o, self.stage[None], self.W[None]])
 
     @classmethod
     def unpack(cls, z, R: int, m: int) -> Node:
-        """The node packed in ``z`` ``[n + R (m + 1) + 2]``, its classes of ``R`` members of ``m`` inputs."""
-        n = z.shape[0] - R * (m + 1) - 2
-        return cls(z[:n], z[n:n + R * m].reshape(R, m), z[n + R * m:n + R * (m + 1)], z[-2], z[-1])
+        """The node packed in ``z`` ``[n + m + R + 3]``, its classes of ``R`` members of ``m`` inputs."""
+        n = z.shape[0] - m - R - 3
+        return cls(z[:n], z[n:n + m], z[n + m], z[n + m + 1:n + m + 1 + R], z[-2], z[-1])
 
 
 class TrackingModel(NamedTuple):
-    """What the callables read of a tracker's model: its factorisation (``linear_factor.child_map``) and its
-    classes of inputs. Trackers of equal shapes (A, B, C, controls, horizon, classes, a ``max_step`` or none)
-    have models of equal shapes, whatever their values, Q and lambda_u."""
+    """What the callables read of a tracker's weights and plant: its factorisation (``linear_factor.child_map``)
+    and lambda_u. Trackers of equal shapes (A, B, C and Q shapes, horizon) have models of equal shapes,
+    whatever their values; the classes of inputs and the switching term's norm and ``max_step`` are the
+    callables' own (``shared_problem``: one set per controls, norm and max_step)."""
     M: jax.Array             # [N, 2n + p + m, n + m] step k's map of [x; u]: x(k+1), -sqrt(Q) C x(k+1), W's residual
     M_norm: jax.Array        # [N] Frobenius norm of M's rows of W's residual: a bound on their rounding
     lambda_u: jax.Array      # [] the weight of the switching term
-    l1: jax.Array            # [] 1: the switching term is lambda_u ||u(k) - u(k-1)||_1; 0: lambda_u ||...||^2
     Tu: jax.Array            # [N, n + m, m] how W's residual moves with the child's input (the other members)
     Tu_norm: jax.Array       # [N] Frobenius norm of Tu
     err_s: jax.Array         # [N] the factorisation's error in sqrt(W_{k+1}) per unit of ||[x(k+1); u]||
-    members: jax.Array       # [C, R, m] each class's inputs (padding repeats the first)
-    member_index: jax.Array  # [C, R] their indices into controls, as numbers of the model's dtype
-    member_ok: jax.Array     # [C, R] 1 for a member, 0 for padding
-    max_step: Optional[jax.Array] = None  # [] the bound on |u_i(k) - u_i(k-1)|; None: no bound
+
+
+class _Classes(NamedTuple):
+    """The classes of inputs of equal effect and the switching between their members: what depends on the
+    controls, the norm and max_step only, held by the callables as constants (float64 NumPy)."""
+    members: np.ndarray       # [C, R, m] each class's inputs (padding repeats the first)
+    member_index: np.ndarray  # [C, R] their indices into controls, as numbers
+    member_ok: np.ndarray     # [C, R] 1 for a member, 0 for padding
+    du_norm: np.ndarray       # [C, R] ||member e - member 0||: how far W's residual moves from member 0's
+    l1: np.ndarray            # [] 1: the switching term is lambda_u ||u(k) - u(k-1)||_1; 0: lambda_u ||...||^2
+    max_step: Optional[np.ndarray]  # [] the bound on |u_i(k) - u_i(k-1)|; None: no bound
+    switch: Optional[np.ndarray]    # [C, R, C, R] switching per unit lambda_u from member (i, e) to (j, f), -1
+    #                                 where not allowed (max_step, padding); None: computed from the members
 
 
 class _DataMaps(NamedTuple):
@@ -189,7 +203,7 @@ class LinearTracking:
     Attributes:
       problem: the ``fj.Problem`` the search solves (``step_index=True``): one
         child per class of inputs (its controls ``[C, m]``: each class's first
-        input), state a packed ``Node`` ``[n + R (m + 1) + 2]`` (``observe``),
+        input), state a packed ``Node`` ``[n + m + R + 3]`` (``observe``),
         params of one decision from ``params``, ``lower_bound`` the
         cost-to-go W, ``first_input_of`` the member to apply. Use it with any
         solver: ``fj.sdfs``, ``fj.solve_batch``, ``fj.FIRHC``: their
@@ -205,8 +219,8 @@ class LinearTracking:
         ``x`` after input ``u_prev``.
 
     Weights per closed loop or per row, without recompiling: trackers of equal
-    shapes (A, B, C and Q shapes, the same ``controls`` and classes, horizon, a
-    ``max_step`` or none) differ only in their ``TrackingModel``'s values. So
+    shapes (A, B, C and Q shapes, the same ``controls`` and classes, horizon,
+    ``norm`` and ``max_step``) differ only in their ``TrackingModel``'s values. So
     ``fj.FIRHC(lt.shared_problem, observe=lt.observe)`` with
     ``other.params(y_ref, d, with_model=True)`` decides as ``other``'s own
     controller, and a batch whose rows (or loops) carry params of different
@@ -253,25 +267,25 @@ class LinearTracking:
             raise ValueError(f"controls must have m = {m} columns like B, got shape {controls.shape}")
         self._controls = controls
         members = input_classes(B, controls)  # [C, R]
+        self._classes = members
         self.num_classes, self.class_size = members.shape
         self._class_of = np.zeros(len(controls), np.int32)  # [M] the class of each input
         for j, row in enumerate(members):
             self._class_of[row[row >= 0]] = j
         M, M_data, Ms, Tu, err_s, err_d = child_map(A, B, C, psd_factor("Q", Q), _squared_weight(
             lambda_u, norm, controls, max_step), N)
-        filled = np.where(members >= 0, members, members[:, :1])  # padding repeats the first member
         # float64, NumPy: the constants of problem's callables, and what params applies to the data
         self._model = TrackingModel(
-            M=M, M_norm=np.linalg.norm(M[:, n + p:], axis=(1, 2)), lambda_u=np.float64(lambda_u),
-            l1=np.float64(norm == "abs"), Tu=Tu,
-            Tu_norm=np.linalg.norm(Tu, axis=(1, 2)), err_s=err_s, members=controls.astype(float)[filled],
-            member_index=filled.astype(float), member_ok=(members >= 0).astype(float),
-            max_step=None if max_step is None else np.float64(max_step))
+            M=M, M_norm=np.linalg.norm(M[:, n + p:], axis=(1, 2)), lambda_u=np.float64(lambda_u), Tu=Tu,
+            Tu_norm=np.linalg.norm(Tu, axis=(1, 2)), err_s=err_s)
         self._maps = _DataMaps(M_data, Ms, err_d)
-        self._device = {}  # dtype -> the model and the data maps on the device
+        self._device = {}  # dtype -> the model, the data maps and the classes on the device
+        classes = _class_tables(controls, members, norm, max_step)
         reps = controls[members[:, 0]]
-        self.problem = Problem(controls=reps, horizon=N, step_index=True, **_callables(self._model))
-        self.shared_problem = Problem(controls=reps, horizon=N, step_index=True, **_SHARED)
+        self.problem = Problem(controls=reps, horizon=N, step_index=True, **_callables(classes, self._model))
+        self.shared_problem = Problem(controls=reps, horizon=N, step_index=True,
+                                      **_shared_callables(classes, controls, members, norm, max_step))
+        self._tables = classes
         self.observe = _observer(self.class_size)
 
     @property
@@ -284,6 +298,12 @@ class LinearTracking:
         """``[M]`` the class (row of ``problem.controls``) of each input (read-only)."""
         return self._class_of
 
+    @property
+    def classes(self) -> np.ndarray:
+        """``[C, R]`` each class's members, indices into ``controls`` in the order of a ``Node``'s ``o``, -1
+        padding a class of fewer than R (read-only)."""
+        return self._classes
+
     def sequence(self, z0: ArrayLike, classes: ArrayLike, params: TrackingParams | SharedParams) -> jax.Array:
         """``[N]`` int32 indices into ``controls``: the cheapest inputs of the
         optimal class sequence ``classes`` ``[N]`` (a ``SearchResult.sequence``
@@ -291,8 +311,9 @@ class LinearTracking:
         (``observe``), with the model of ``params`` (a ``SharedParams``) or
         this tracker's; -1 where it is -1 (infeasible). Its J is the search's cost."""
         z0 = jnp.asarray(z0)
-        model = params.model if isinstance(params, SharedParams) else self._on_device(z0.dtype)[0]
-        return _sequence(z0, classes, _in_dtype(model, z0.dtype))
+        model, _, tables = self._on_device(z0.dtype)
+        model = params.model if isinstance(params, SharedParams) else model
+        return _sequence(z0, classes, _in_dtype(model, z0.dtype), tables)
 
     def params(self, y_ref: ArrayLike, d: ArrayLike | None = None, *,
                with_model: bool = False) -> TrackingParams | SharedParams:
@@ -320,18 +341,18 @@ class LinearTracking:
         if d.shape != lead + (N, self.n):
             raise ValueError(f"d must be [N, n] = [{N}, {self.n}] with y_ref's leading axes {lead}, "
                              f"got shape {tuple(d.shape)}")
-        model, maps = self._on_device(y_ref.dtype)
+        model, maps, _ = self._on_device(y_ref.dtype)
         data = _params(maps, y_ref, d)
         if not with_model:
             return data
         return SharedParams(data, jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, lead + a.shape), model))
 
-    def _on_device(self, dtype) -> tuple[TrackingModel, _DataMaps]:
-        """The model and the data maps on the device in ``dtype`` (made once per dtype)."""
+    def _on_device(self, dtype) -> tuple[TrackingModel, _DataMaps, _Classes]:
+        """The model, the data maps and the classes on the device in ``dtype`` (made once per dtype)."""
         key = jnp.dtype(dtype)
         if key not in self._device:
             with jax.ensure_compile_time_eval():  # concrete arrays even when first asked for inside a trace
-                self._device[key] = _in_dtype((self._model, self._maps), key)
+                self._device[key] = _in_dtype((self._model, self._maps, self._tables), key)
         return self._device[key]
 
     def solve(self, x: ArrayLike, u_prev: ArrayLike, y_ref: ArrayLike, d: ArrayLike | None = None, *,
@@ -361,7 +382,7 @@ class LinearTracking:
                                    warm_start, budget))
 
 
-def _solve(problem, model, maps, controls, class_of, x, u_prev, y_ref, d, warm_start, budget, *, observe):
+def _solve(problem, model, maps, tables, controls, class_of, x, u_prev, y_ref, d, warm_start, budget, *, observe):
     """``LinearTracking.solve`` after its checks, traced (``problem``: ``shared_problem``)."""
     if warm_start is not None:  # indices into controls -> their classes (all -1 stays none)
         M = class_of.shape[0]
@@ -372,27 +393,28 @@ def _solve(problem, model, maps, controls, class_of, x, u_prev, y_ref, d, warm_s
     z0 = observe(x, u_prev)
     result = sdfs(problem, z0, params=SharedParams(_params(maps, y_ref, d), model), warm_start=warm_start,
                   max_nodes=budget)
-    sequence = _sequence(z0, result.sequence, model)
+    sequence = _sequence(z0, result.sequence, model, tables)
     # the first of these inputs (first_input_of may break a tie between members the other way)
     first = controls.astype(result.first_input.dtype)[jnp.maximum(sequence[0], 0)]
     return result._replace(sequence=sequence, first_input=jnp.where(result.feasible, first, jnp.nan))
 
 
 # ---------------------------------------------------------------------------
-# The problem's callables: one set for every model, ``fn(z, ..., data, model)``. ``problem`` binds its model as
-# constants (``_callables(model)``: a closed loop's per-step params carry only the step's data); ``shared_problem``
-# reads it from the params (``_SHARED``: a new A, B, Q or lambda_u of the same shapes reuses its compiled search).
-# A child is a *class* of inputs with the same effect B u on the plant (the inverter's switch states of one voltage
-# vector: ``input_classes``); only the switching term tells its members apart, so the child keeps all R of them
-# (``Node``), with a min-plus step per child (the Viterbi recursion), and the tree branches on the C classes and
-# never on members of one class. One affine map of [x; u] per child (``child_map``) gives its state, the residual
-# of its stage cost and that of its cost-to-go (one matrix product instead of several: measured in
-# docs/applications/inverter.md).
+# The problem's callables: one set per classes of inputs, ``fn(z, ..., data, model, classes)``. ``problem`` binds
+# its model as constants (``_callables(classes, model)``: a closed loop's per-step params carry only the step's
+# data); ``shared_problem`` reads it from the params (``_shared_callables``: a new A, B, Q or lambda_u of the same
+# shapes reuses its compiled search). A child is a *class* of inputs with the same effect B u on the plant (the
+# inverter's switch states of one voltage vector: ``input_classes``); only the switching term tells its members
+# apart, so the child keeps the cheapest switching to each of its R members (``Node``), and the tree branches on
+# the C classes and never on members of one class. The min-plus step from a node's members to every class's is
+# computed once per node (it depends on the node alone: ``vmap`` over the children leaves it unbatched), from a
+# table of the switchings between members (``_Classes.switch``), and each child reads its row. One affine map of
+# [x; u] per child (``child_map``) gives its state, the residual of its stage cost and that of its cost-to-go.
 # ---------------------------------------------------------------------------
 
-def _callables(model: Optional[TrackingModel] = None) -> dict:
-    """The ``fj.Problem`` callables, each ``(z, ..., p)``: with ``model`` (float64 NumPy) held as constants
-    (``problem``), or, for None, the model read from the params (``shared_problem``)."""
+def _callables(classes: _Classes, model: Optional[TrackingModel] = None) -> dict:
+    """The ``fj.Problem`` callables, each ``(z, ..., p)``, with ``classes`` (float64 NumPy) held as constants and
+    ``model`` too (``problem``), or, for None, the model read from the params (``shared_problem``)."""
     def reading(fn):
         def call(z, *args):
             *rest, p = args
@@ -404,13 +426,26 @@ def _callables(model: Optional[TrackingModel] = None) -> dict:
                 data, held = p.data, p.model
             else:
                 data, held = _tracking_params(p), model
-            return fn(z, *rest, data, _in_dtype(held, z.dtype))
+            return fn(z, *rest, data, *_in_dtype((held, classes), z.dtype))
 
         return call
 
     return {"dynamics": reading(_dynamics), "stage_cost": reading(_stage_cost),
             "lower_bound": reading(_lower_bound), "constraint": reading(_constraint),
             "first_input_of": reading(_first_input)}
+
+
+_SHARED = {}  # (controls, classes, norm, max_step) -> shared_problem's callables
+
+
+def _shared_callables(classes: _Classes, controls, members, norm: str, max_step) -> dict:
+    """``shared_problem``'s callables: one set per controls, classes (``members``), norm and max_step, so that
+    trackers of equal shapes that differ in A, B, C, Q or lambda_u share its compiled searches."""
+    key = (controls.shape, controls.tobytes(), members.shape, members.tobytes(), norm, max_step,
+           classes.switch is None)
+    if key not in _SHARED:
+        _SHARED[key] = _callables(classes)
+    return _SHARED[key]
 
 
 def _tracking_params(p) -> TrackingParams:
@@ -430,33 +465,67 @@ def _in_dtype(tree, dtype):
     return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), tree)
 
 
-def _node(z, model: TrackingModel) -> Node:
-    return Node.unpack(z, *model.members.shape[-2:])
+def _node(z, classes: _Classes) -> Node:
+    return Node.unpack(z, *classes.members.shape[-2:])
 
 
-def _switch(u_from, o_from, u_to, ok_to, model: TrackingModel):
-    """One min-plus step of the switching costs: for each member ``u_to`` ``[R', m]`` the cheapest
-    o_from[e] + the switching from u_from[e] to u_to over the allowed predecessors e (``[R', R]``; +inf where there
-    is none), and the argmin."""
-    cost, allowed = _switching(u_from[None, :, :], u_to[:, None, :], model)
-    allowed &= ok_to[:, None] & (o_from[None, :] >= 0)
-    S = jnp.where(allowed, o_from[None, :] + cost, jnp.inf)
-    return jnp.min(S, axis=1), jnp.argmin(S, axis=1)
+# The switching table's size beyond which the switchings are computed from the members instead (each node then
+# computes R x C x R of them, m components each: a table lookup saves that work, a node of the five-level
+# inverter's 61 classes of 5 half the time; a 16 MiB constant is the most a compiled search should carry).
+MAX_TABLE_BYTES = 1 << 24
 
 
-def _switching(u_from, u_to, model: TrackingModel):
-    """``(cost, allowed)`` of switching from ``u_from`` to ``u_to`` (``[..., m]``, broadcast against each other):
-    lambda_u ||du||_1 or lambda_u ||du||^2, and whether every component keeps within max_step. Summed one
-    component at a time, so that XLA fuses the pairs of members into one elementwise kernel (a reduction over
-    the last axis of the [.., R, R, m] differences took several kernels: the five-level inverter's nodes
-    0.7x the time)."""
+def _class_tables(controls, members, norm: str, max_step) -> _Classes:
+    """The ``_Classes`` of ``controls`` ``[M, m]`` grouped as ``members`` ``[C, R]`` (``input_classes``)."""
+    filled = np.where(members >= 0, members, members[:, :1])  # padding repeats the first member
+    U = controls.astype(float)[filled]  # [C, R, m]
+    ok = members >= 0
+    classes = _Classes(members=U, member_index=filled.astype(float), member_ok=ok.astype(float),
+                       du_norm=np.linalg.norm(U - U[:, :1], axis=-1), l1=np.float64(norm == "abs"),
+                       max_step=None if max_step is None else np.float64(max_step), switch=None)
+    if 8 * members.size ** 2 > MAX_TABLE_BYTES:
+        return classes
+    unit, allowed = _switching(U[:, :, None, None, :], U[None, None, :, :, :], classes, xp=np)
+    allowed &= ok[:, :, None, None] & ok[None, None, :, :]
+    return classes._replace(switch=np.where(allowed, unit, -1.0))
+
+
+def _switching(u_from, u_to, classes: _Classes, xp=jnp):
+    """``(cost, allowed)`` of switching from ``u_from`` to ``u_to`` (``[..., m]``, broadcast against each other)
+    per unit lambda_u: ||du||_1 or ||du||^2, and whether every component keeps within max_step. Summed one
+    component at a time (XLA fuses that into one elementwise kernel; ``xp=np``: the same sums in NumPy, for the
+    table)."""
     change = worst = 0
     for i in range(u_to.shape[-1]):
-        step = jnp.abs(u_to[..., i] - u_from[..., i])
-        change = change + jnp.where(model.l1 > 0, step, step * step)
-        worst = jnp.maximum(worst, step)
-    allowed = jnp.ones_like(worst, bool) if model.max_step is None else worst <= model.max_step
-    return model.lambda_u * change, allowed
+        step = xp.abs(u_to[..., i] - u_from[..., i])
+        change = change + xp.where(classes.l1 > 0, step, step * step)
+        worst = xp.maximum(worst, step)
+    allowed = xp.ones_like(worst, bool) if classes.max_step is None else worst <= classes.max_step
+    return change, allowed
+
+
+def _steps(i, j, model: TrackingModel, classes: _Classes):
+    """``[..., R, R]``: lambda_u times the switching from each member of classes ``i`` to each of classes ``j``
+    (int arrays, broadcast against each other), +inf where it is not allowed."""
+    if classes.switch is not None:
+        unit = classes.switch[i, :, j, :]
+        allowed = unit >= 0
+    else:
+        unit, allowed = _switching(classes.members[i][..., :, None, :], classes.members[j][..., None, :, :], classes)
+        allowed &= (classes.member_ok[i][..., :, None] > 0) & (classes.member_ok[j][..., None, :] > 0)
+    return jnp.where(allowed, model.lambda_u * unit, jnp.inf)
+
+
+def _from_node(node: Node, model: TrackingModel, classes: _Classes):
+    """``[C, R]`` the cheapest switching of the steps so far that ends on each member of each class after the
+    node (+inf where none is allowed): from the root's ``u_prev``, or the min-plus step from the node's members."""
+    unit, allowed = _switching(node.u_prev, classes.members, classes)
+    from_root = jnp.where(allowed & (classes.member_ok > 0), model.lambda_u * unit, jnp.inf)
+    C = classes.members.shape[0]
+    via = jnp.where(node.o[None, :, None] >= 0,
+                    node.o[None, :, None] + _steps(jnp.maximum(node.j, 0).astype(jnp.int32), jnp.arange(C), model,
+                                                   classes), jnp.inf)  # [C, R (from), R (to)]
+    return jnp.where(node.j < 0, from_root, jnp.min(via, axis=1))
 
 
 def _squared_weight(lambda_u, norm, controls, max_step) -> float:
@@ -473,113 +542,108 @@ def _squared_weight(lambda_u, norm, controls, max_step) -> float:
     return lambda_u / D if D > 0 else lambda_u  # D = 0: no input ever changes, any weight is a bound
 
 
-def _class(u, model: TrackingModel):
+def _class(u, classes: _Classes):
     """``(class, found)``: the first class whose members include input ``u`` ``[m]``, and whether one does. (The
     searches give every child a constant input, so XLA computes this once per search, outside its loop.)"""
-    hit = jnp.any(jnp.all(model.members == u.astype(model.members.dtype), axis=-1) & (model.member_ok > 0),
+    hit = jnp.any(jnp.all(classes.members == u.astype(classes.members.dtype), axis=-1) & (classes.member_ok > 0),
                   axis=-1)
     C = hit.shape[0]
     return jnp.minimum(jnp.min(jnp.where(hit, jnp.arange(C), C)), C - 1), jnp.any(hit)
 
 
-def _dynamics(z, u, k, data: TrackingParams, model: TrackingModel):
-    node = _node(z, model)
-    n, m = node.x.shape[0], node.U.shape[1]
+def _dynamics(z, u, k, data: TrackingParams, model: TrackingModel, classes: _Classes):
+    node = _node(z, classes)
+    n, m = node.x.shape[0], node.u_prev.shape[0]
     p = model.M.shape[1] - 2 * n - m
-    j, found = _class(u, model)  # an input of no class (not a control) has no child
-    U, ok = model.members[j].astype(z.dtype), (model.member_ok[j] > 0) & found  # [R, m], [R]
+    j, found = _class(u, classes)  # an input of no class (not a control) has no child
+    U, ok = classes.members[j], (classes.member_ok[j] > 0) & found  # [R, m], [R]
     xu = jnp.concatenate([node.x, U[0]])
-    # The two products as sums of elementwise products: XLA:CPU runs a batch of these tiny matrix products as
+    # The product as a sum of elementwise products: XLA:CPU runs a batch of these tiny matrix products as
     # library calls, one kernel each, which cost a node more than the arithmetic (docs/applications/inverter.md)
     out = jnp.sum(model.M[k] * xu, axis=1) + data.off[k]  # [x(k+1) (n), sqrt(Q) (y_ref[k] - C x(k+1)) (p), W's v]
-    dU = U - U[0]
-    v = out[n + p:] + jnp.sum(dU[:, None, :] * model.Tu[k], axis=2)  # [R, n + m] W_{k+1}'s residual, per member
+    # W_{k+1}'s residual per member: member 0's plus how it moves with the member's input (a dot product here:
+    # as elementwise products with a traced k, XLA gathered Tu[k] for every element, 1.5x the node's time)
+    v = out[n + p:] + jnp.einsum("ri,ci->rc", U - U[0], model.Tu[k])  # [R, n + m]
     # W = ||v||^2 + s, rounded down by a bound on the rounding of v (its terms nearly cancel, and W must stay
     # admissible): ||v_true|| >= ||v|| - ||v - v_true||, with ||v - v_true|| <= gamma (||M_v|| ||[x; u]|| + ||off_v||
     # + ||Tu|| ||du||) + the rounding of off_v.
     off_v = data.off[k][n + p:]
     g = _gamma(z.dtype, n + 2 * m)
     err = g * (model.M_norm[k] * jnp.sqrt(xu @ xu) + jnp.sqrt(off_v @ off_v)
-               + model.Tu_norm[k] * jnp.sqrt(jnp.sum(dU * dU, axis=1))) + data.off_err[k]
+               + model.Tu_norm[k] * classes.du_norm[j]) + data.off_err[k]
     W = jnp.maximum(jnp.sqrt(jnp.sum(v * v, axis=1)) - err, 0) ** 2 * (1 - g) + data.s[k]
     # and by the factorisation's own error (``cost_to_go``): sqrt(W) is off by at most
     # err_s ||[x(k+1); u]|| + g_err
     x_next = out[:n]
     off_by = model.err_s[k] * jnp.sqrt(x_next @ x_next + jnp.sum(U * U, axis=1)) + data.g_err[k]
     W = jnp.maximum(jnp.sqrt(W) - off_by, 0) ** 2 * (1 - g)
-    cost, _ = _switch(node.U, node.o, U, ok, model)
+    cost = jnp.where(ok, _from_node(node, model, classes)[j], jnp.inf)  # [R]: the node's part is once per node
     reached = jnp.isfinite(cost)
     switching = jnp.min(cost)  # +inf where no member is reached: the constraint discards that child
     o = jnp.where(reached, cost - switching, -1)
     # o + W: one more rounding of each sum, taken off the bound too
     bound = jnp.min(jnp.where(reached, (o + W) * (1 - g), jnp.inf))
     e = out[n:n + p]
-    return Node(x_next, U, o, e @ e + switching, bound).pack()
+    return Node(x_next, node.u_prev, j.astype(z.dtype), o, e @ e + switching, bound).pack()
 
 
-def _stage_cost(z, u, k, data, model):
-    return _node(z, model).stage
+def _stage_cost(z, u, k, data, model, classes):
+    return _node(z, classes).stage
 
 
-def _lower_bound(z, steps_left, data, model):
-    return _node(z, model).W
+def _lower_bound(z, steps_left, data, model, classes):
+    return _node(z, classes).W
 
 
-def _constraint(z, u, k, data, model):
+def _constraint(z, u, k, data, model, classes):
     """Some member of the class can follow the node's (max_step). Decided on the switching costs alone, so a
     NaN state or reference reaches the searches' own check of non-finite nodes (``nan_encountered``)."""
-    return jnp.any(_node(z, model).o >= 0)
+    return jnp.any(_node(z, classes).o >= 0)
 
 
-def _members(z0, classes, model: TrackingModel):
-    """``[N]`` the member (0 .. R-1) of each class of ``classes`` on the cheapest switching path from the
+def _members(z0, sequence, model: TrackingModel, classes: _Classes):
+    """``[N]`` the member (0 .. R-1) of each class of ``sequence`` on the cheapest switching path from the
     root ``z0``: the min-plus recursion of ``_dynamics`` forward, then its argmins backward."""
-    root = _node(z0, model)
-    j = jnp.maximum(classes, 0)
+    j = jnp.maximum(sequence, 0)
+    first = _from_node(_node(z0, classes), model, classes)[j[0]]  # [R]
 
-    def forward(carry, jk):
-        U_from, o_from = carry
-        U, ok = model.members[jk].astype(z0.dtype), model.member_ok[jk] > 0
-        cost, came_from = _switch(U_from, o_from, U, ok, model)
-        return (U, cost), came_from
+    def forward(o_from, step):
+        S = o_from[:, None] + _steps(step[0], step[1], model, classes)  # [R (from), R (to)]
+        return jnp.min(S, axis=0), jnp.argmin(S, axis=0)
 
-    (_, last), came_from = jax.lax.scan(forward, (root.U, root.o), j)  # came_from [N, R]
+    last, came_from = jax.lax.scan(forward, first, jnp.stack([j[:-1], j[1:]], axis=1))  # came_from [N - 1, R]
 
     def backward(e, came):
         return came[e], e
 
-    _, picked = jax.lax.scan(backward, jnp.argmin(last).astype(came_from.dtype), came_from, reverse=True)
-    return picked
+    start, picked = jax.lax.scan(backward, jnp.argmin(last).astype(came_from.dtype), came_from, reverse=True)
+    return jnp.concatenate([start[None], picked])
 
 
 @jax.jit
-def _sequence(z0, classes, model: TrackingModel):
-    picked = _members(z0, classes, model)
-    return jnp.where(classes >= 0, model.member_index[jnp.maximum(classes, 0), picked].astype(jnp.int32), -1)
+def _sequence(z0, sequence, model: TrackingModel, classes: _Classes):
+    picked = _members(z0, sequence, model, classes)
+    index = classes.member_index[jnp.maximum(sequence, 0), picked].astype(jnp.int32)
+    return jnp.where(sequence >= 0, index, -1)
 
 
-def _first_input(z0, classes, data, model: TrackingModel):
-    """``first_input_of``: the first member on the cheapest switching path of ``classes`` from ``z0``.
+def _first_input(z0, sequence, data, model: TrackingModel, classes: _Classes):
+    """``first_input_of``: the first member on the cheapest switching path of the class ``sequence`` from
+    ``z0``.
 
     This runs in every decision, so without a loop: the switching costs between the members of consecutive
-    classes are R x R matrices, all built at once, and their min-plus product (associative) is reduced
+    classes are R x R matrices, all read at once, and their min-plus product (associative) is reduced
     pairwise, log2(N) vectorised levels (a scan costs several microseconds a step on XLA:CPU, and an
     unrolled recursion made the work pool's compile time grow steeply with N: 340 s at N = 10)."""
-    root = _node(z0, model)
-    j = jnp.maximum(classes, 0)
-    U, ok = model.members[j].astype(z0.dtype), model.member_ok[j] > 0  # [N, R, m], [N, R]
-    first, _ = _switch(root.U, root.o, U[0], ok[0], model)  # [R] the root to each first member
-    cost, allowed = _switching(U[:-1, :, None, :], U[1:, None, :, :], model)  # [N-1, R (from), R (to)]
-    chain = jnp.where(allowed & ok[:-1, :, None] & ok[1:, None, :], cost, jnp.inf)
+    j = jnp.maximum(sequence, 0)
+    first = _from_node(_node(z0, classes), model, classes)[j[0]]  # [R] the root to each first member
+    chain = _steps(j[:-1], j[1:], model, classes)  # [N-1, R (from), R (to)]
     while chain.shape[0] > 1:  # min-plus products of neighbours; an odd one out waits a level
         pairs = chain.shape[0] // 2 * 2
         product = jnp.min(chain[:pairs:2, :, :, None] + chain[1:pairs:2, None, :, :], axis=2)
         chain = jnp.concatenate([product, chain[pairs:]])
-    rest = jnp.min(chain[0], axis=1) if chain.shape[0] else jnp.zeros(U.shape[1:2], z0.dtype)
-    return U[0][jnp.argmin(first + rest)]
-
-
-_SHARED = _callables()  # shared_problem's: one set of callables, so trackers of equal shapes share its searches
+    rest = jnp.min(chain[0], axis=1) if chain.shape[0] else jnp.zeros(first.shape, z0.dtype)
+    return classes.members[j[0]][jnp.argmin(first + rest)]
 
 
 _OBSERVERS = {}
@@ -590,14 +654,14 @@ def _observer(R: int):
     equal shapes share their compiled loop."""
     if R not in _OBSERVERS:
         def observe(x, u_prev, p=None):
-            """The search state, the root ``Node`` packed ``[n + R (m + 1) + 2]``: plant state ``x`` ``[n]``
-            after the input applied last ``u_prev`` ``[m]`` (every member, switching costs [0, -1, ...],
-            stage cost and bound 0). The signature of ``fj.FIRHC``'s ``observe`` (``p`` unused)."""
+            """The search state, the root ``Node`` packed ``[n + m + R + 3]``: plant state ``x`` ``[n]`` after
+            the input applied last ``u_prev`` ``[m]`` (no class, switching costs [0, -1, ...], stage cost and
+            bound 0). The signature of ``fj.FIRHC``'s ``observe`` (``p`` unused)."""
             x = jnp.asarray(x)
             u_prev = jnp.asarray(u_prev, x.dtype)
             zero = jnp.zeros((), x.dtype)
             o = jnp.full((R,), -1, x.dtype).at[0].set(0)
-            return Node(x, jnp.broadcast_to(u_prev, (R,) + u_prev.shape), o, zero, zero).pack()
+            return Node(x, u_prev, -jnp.ones((), x.dtype), o, zero, zero).pack()
 
         _OBSERVERS[R] = observe
     return _OBSERVERS[R]
