@@ -49,10 +49,8 @@ def loops(lt: fj.LinearTracking, steps: int):
     ours = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
     plain, plain_observe = plain_problem(lt)
     theirs = fj.FIRHC(plain, observe=lambda x, u, p=None: plain_observe(x, u), warm_start=True)
-    # the plain problem's params: the reference and the weights per step (max_step = 1 makes L1 = squared)
-    plain_params = {"y_ref": refs, "d": jnp.zeros(refs.shape), "lambda_u": jnp.full(steps, lt.lambda_u),
-                    "max_step": jnp.full(steps, lt.max_step)}
     ours_params = lt.params(refs)
+    plain_params = {"y_ref": refs, "d": jnp.zeros(refs.shape)}  # max_step = 1 makes L1 = squared for the plain one
     return {"LinearTracking": lambda: ours.simulate(x0, steps, plant, params=ours_params, u0=u0),
             "plain": lambda: theirs.simulate(x0, steps, plant, params=plain_params, u0=u0)}
 

@@ -58,20 +58,24 @@ def shifted(seq):
 
 def plain_problem(lt):
     """The plain sDFS of ``lt``'s problem, as a user writes it without LinearTracking: every input of
-    ``lt.controls`` a child (no classes), state ``[x, u, u - u_prev]``, no bound; the data from
-    ``lt.params``. Returns ``(problem, observe(x, u_prev))``."""
+    ``lt.controls`` a child (no classes), state ``[x, u, u - u_prev]``, no bound, lt's weights (the squared
+    switching term: the L1 one where every step is 0 or 1, max_step = 1); params: ``lt.params(y_ref, d)``
+    or a dict of the two. Returns ``(problem, observe(x, u_prev))``."""
     A, B, C, Q = (jnp.asarray(a) for a in (lt.A, lt.B, lt.C, lt.Q))
-    n, m = lt.n, lt.m
+    n, m, lambda_u, max_step = lt.n, lt.m, lt.lambda_u, lt.max_step
+
+    def data(p):
+        return (p["y_ref"], p["d"]) if isinstance(p, dict) else (p.y_ref, p.d)
 
     def dynamics(z, u, k, p):
-        return jnp.concatenate([A @ z[:n] + B @ u + p["d"][k], u, u - z[n:n + m]])
+        return jnp.concatenate([A @ z[:n] + B @ u + data(p)[1][k], u, u - z[n:n + m]])
 
     def stage_cost(z, u, k, p):
-        e, du = p["y_ref"][k] - C @ z[:n], z[n + m:]
-        return jnp.maximum(e @ Q @ e, 0.0) + p["lambda_u"] * (du @ du)
+        e, du = data(p)[0][k] - C @ z[:n], z[n + m:]
+        return jnp.maximum(e @ Q @ e, 0.0) + lambda_u * (du @ du)
 
     def constraint(z, u, k, p):
-        return jnp.all(jnp.abs(z[n + m:]) <= p["max_step"])
+        return jnp.all(jnp.abs(z[n + m:]) <= max_step)
 
     prob = fj.Problem(dynamics, lt.controls, stage_cost, lt.horizon,
                       constraint=None if lt.max_step is None else constraint, step_index=True)

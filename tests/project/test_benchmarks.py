@@ -1,0 +1,31 @@
+"""The benchmarks that compare LinearTracking with the plain search of every input run end to end on a small
+size (a subprocess from the repository's root, as the performance page's commands run them) and print their
+tables: a change of LinearTracking's params or of the plain peer cannot leave them broken unnoticed."""
+import os
+import subprocess
+import sys
+
+import pytest
+from repository import BENCHMARKS, ROOT
+
+pytestmark = pytest.mark.slow
+
+RUNS = {  # script and a small size: what its table must show
+    "classes_bench.py": (["--levels", "3", "--horizons", "1", "2", "--steps", "20", "--rounds", "1"],
+                         ["19 of 3"]),
+    "sphere_bench.py": (["--sections", "inverter", "thermal", "--horizons", "1", "2", "--steps", "20",
+                         "--plain-until", "2", "--thermal-states", "2", "--thermal-horizon", "4",
+                         "--thermal-max-nodes", "200000"],
+                        ["plain sDFS", "LinearTracking"]),
+}
+
+
+@pytest.mark.parametrize("script", sorted(RUNS))
+def test_benchmark_runs_small(script):
+    args, shows = RUNS[script]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    done = subprocess.run([sys.executable, str(BENCHMARKS / script), *args], capture_output=True, text=True,
+                          env=env, cwd=ROOT, timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    for text in shows:
+        assert text in done.stdout, done.stdout
