@@ -3,11 +3,15 @@
 
 Short calls (well under the 2 s after which an automatic bar appears) must cost what they cost without a bar:
 the ratio of medians None / False is the figure of merit. Each row alternates the two settings ``--rounds``
-times after one warm-up call of each (compiled before timing). The long call (``--long-steps`` steps of the
-inverter at N = 6, a few seconds) runs in chunks under the automatic bar once its first run was timed long, and
-is compared with the one-program run; its bar goes to a discarded stream.
+times after one warm-up call of each (compiled before timing). The long calls (``--long-steps`` steps of the
+inverter's closed loop at N = 6, which runs in chunks under the automatic bar once its last run was timed
+long; ``--long-rows`` rows of the three-level inverter at N = 10 through ``fj.solve_batch``, which runs as one
+program under a bar of the time elapsed and expected) are compared with ``progress=False`` the same way, after
+a first call each: the first ``None`` call after a long one is timed apart (it compiles the chunk's program
+where the call runs in chunks). Bars go to a discarded stream.
 
-    python benchmarks/progress_bench.py [--rounds 61] [--long-steps 40000] [--long-rounds 3] [--skip-long] [--publish]
+    python benchmarks/progress_bench.py [--rounds 61] [--long-steps 40000] [--long-rows 8192] [--long-rounds 3]
+        [--skip-long] [--publish]
 """
 from __future__ import annotations
 
@@ -26,7 +30,7 @@ import numpy as np
 from _results import published
 
 import firhc_jax as fj
-from firhc_jax.models import inverter
+from firhc_jax.models import inverter, three_level
 
 
 def inverter_loop(N: int, T: int):
@@ -38,6 +42,21 @@ def inverter_loop(N: int, T: int):
     plant = jax.jit(lambda i, u, p: rl(i, u))
     return (fj.FIRHC(mem.problem, observe=mem.observe), plant, jnp.asarray(inverter.initial_currents(prm)),
             jnp.zeros(3), params)
+
+
+def inverter_rows(B: int):
+    """``call(progress)``: ``fj.solve_batch`` over ``B`` three-level inverter states at N = 10 (the work pool, 256
+    lanes)."""
+    N = 10
+    lt = three_level.make_problem(N, lambda_u=0.1)
+    rng = np.random.default_rng(0)
+    phase = rng.uniform(0, 1 / three_level.PARAMS.frequency, B)
+    X = inverter.reference(three_level.PARAMS, phase) + rng.uniform(-1.0, 1.0, (B, 2))
+    U = three_level.SWITCH_STATES[rng.integers(0, 27, B)]
+    t = phase[:, None] + np.arange(1, N + 1) * three_level.PARAMS.ts
+    Z = jax.vmap(lt.observe)(jnp.asarray(X), jnp.asarray(U))
+    P = lt.params(inverter.reference(three_level.PARAMS, t))
+    return lambda p: fj.solve_batch(lt.problem, Z, params=P, lanes=256, progress=p).cost
 
 
 def cases():
@@ -68,9 +87,13 @@ def timed(fn, setting) -> float:
     return time.perf_counter() - t0
 
 
-def compare(fn, rounds: int) -> tuple[float, float]:
-    """Median seconds of ``fn(False)`` and ``fn(None)``, alternated ``rounds`` times after a warm-up call each."""
-    timed(fn, False), timed(fn, None)
+def compare(fn, rounds: int, first=None) -> tuple[float, float]:
+    """Median seconds of ``fn(False)`` and ``fn(None)``, alternated ``rounds`` times after a warm-up call each
+    (``first``: a list that gets the warm-up ``None`` call's seconds)."""
+    timed(fn, False)
+    warm = timed(fn, None)
+    if first is not None:
+        first.append(warm)
     times = {False: [], None: []}
     for _ in range(rounds):
         for setting in (False, None):
@@ -82,6 +105,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rounds", type=int, default=61)
     ap.add_argument("--long-steps", type=int, default=40_000)
+    ap.add_argument("--long-rows", type=int, default=8192)
     ap.add_argument("--long-rounds", type=int, default=3)
     ap.add_argument("--skip-long", action="store_true")
     ap.add_argument("--publish", action="store_true", help="also write the tables to benchmarks/results/progress.md")
@@ -106,14 +130,19 @@ def tables(args):
         return
     T = args.long_steps
     ctrl, plant, x0, u0, params = inverter_loop(6, T)
-    run = lambda p: ctrl.simulate(x0, T, plant, params=params, u0=u0, progress=p).states  # noqa: E731
-    with contextlib.redirect_stderr(io.StringIO()):
-        off, auto = compare(run, args.long_rounds)
-    print(f"\n## A long call: inverter N = 6, {T:,} steps ({args.long_rounds} rounds; None runs in chunks "
-          "under the bar)\n")
-    print("| False s | None s | None / False |")
-    print("|---:|---:|---:|")
-    print(f"| {off:.2f} | {auto:.2f} | {auto / off:.3f}x |")
+    long_calls = {
+        f"`simulate`, inverter N = 6, {T:,} steps (None: in chunks)":
+            lambda p: ctrl.simulate(x0, T, plant, params=params, u0=u0, progress=p).states,
+        f"`solve_batch`, {args.long_rows:,} three-level inverter rows, N = 10 (None: one program)":
+            inverter_rows(args.long_rows)}
+    print(f"\n## Long calls ({args.long_rounds} rounds after a first call of each)\n")
+    print("| call | False s | None s | None / False | the first None call after a long one (s) |")
+    print("|---|---:|---:|---:|---:|")
+    for name, run in long_calls.items():
+        first = []
+        with contextlib.redirect_stderr(io.StringIO()):
+            off, auto = compare(run, args.long_rounds, first)
+        print(f"| {name} | {off:.2f} | {auto:.2f} | {auto / off:.3f}x | {first[0]:.2f} |", flush=True)
     print(f"\nload at the end: {os.getloadavg()[0]:.1f}", file=sys.stdout)
 
 

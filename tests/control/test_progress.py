@@ -1,6 +1,7 @@
 """Long calls show progress by default: ``simulate``, ``simulate_batch``, ``solve_batch`` and ``fj.profile`` draw
 a bar once a call has run ``progress.AFTER_S`` seconds (here 0: every call is long), counted with an estimate
-where the call runs in chunks (the last call of the same program was long), else the time elapsed; short calls
+where a closed loop runs in chunks (the last call of the same program was long), else the time elapsed (and
+for a batch, which runs as one program unless ``progress=True``, the time its last call took); short calls
 draw nothing, and ``progress=False`` never does."""
 import jax.numpy as jnp
 import numpy as np
@@ -8,6 +9,8 @@ import pytest
 
 import firhc_jax as fj
 from firhc_jax._src.runtime import progress
+from firhc_jax.apps._timing import TRACED
+from firhc_jax.apps._timing import compile_events as compilations
 
 
 def _problem(N=3):
@@ -50,12 +53,31 @@ def test_solve_batch_and_profile_draw_a_bar_by_default(capsys, monkeypatch):
     X = np.linspace(-2, 2, 80)[:, None]
     whole = fj.solve_batch(problem, X, progress=False, lanes=4)
     assert capsys.readouterr().err == ""
-    chunked = fj.solve_batch(problem, X, lanes=4)
-    err = capsys.readouterr().err
-    assert "solve_batch" in err and "80/80" in err
+    with compilations(TRACED) as seen:  # the last call was long: still the one program (no chunk compiled)
+        again = fj.solve_batch(problem, X, lanes=4)
+    assert seen == [], seen
+    np.testing.assert_array_equal(np.asarray(again.nodes), np.asarray(whole.nodes))
+    capsys.readouterr()
+    chunked = fj.solve_batch(problem, X, lanes=4, progress=True)  # counted rows: in chunks
+    assert "80/80" in capsys.readouterr().err
     np.testing.assert_array_equal(np.asarray(chunked.cost), np.asarray(whole.cost))
     np.testing.assert_array_equal(np.asarray(chunked.sequence), np.asarray(whole.sequence))
     fj.profile(problem, X[:4], pop_widths=(1,), lanes=(4,), repeats=1)
     assert "profile" in capsys.readouterr().err
     with pytest.raises(TypeError, match="progress must be None, True or False"):
         fj.solve_batch(problem, X, progress="yes")
+
+
+def test_a_bar_that_cannot_count_says_how_long_the_last_call_took(capsys):
+    """A call run as one program (a batch after a long one) shows the time elapsed and the time its last call
+    took, read from the record of that program's rate."""
+    progress.record(("a test's program",), 100, 84.0)
+    assert progress.expected_s(("a test's program",), 50) == 42.0
+    assert progress.expected_s(("a program never run",), 50) is None
+    with progress.Progress(50, "solve_batch", enabled=True, counted=False,
+                           expected=progress.expected_s(("a test's program",), 50)):
+        pass
+    assert "solve_batch (one compiled run of about 42 s, as the last one: not counted" in capsys.readouterr().err
+    with progress.Progress(50, "solve_batch", enabled=True, counted=False, expected=600.0):
+        pass
+    assert "of about 10 min" in capsys.readouterr().err

@@ -13,11 +13,12 @@ compiled chunk dispatched again from Python, and reports between chunks.
 seconds: a watcher thread draws it then if the call has not reported yet
 (the elapsed time, where a call runs as one compiled program and cannot
 report), else the first report after that does. Until then an automatic call
-costs a few microseconds. A call that can report only by running in chunks
-(a compiled loop, a batch) asks ``chunked``: from the seconds a unit of
-work took in the last call of the same compiled program (``record``), chunks
-only when this call is expected to run over ``AFTER_S``; a first call runs
-as one program.
+costs a few microseconds. A compiled loop, which can report only by running
+in chunks, asks ``chunked``: from the seconds a unit of work took in the
+last call of the same compiled program (``record``), chunks only when this
+call is expected to run over ``AFTER_S``; a first call runs as one program.
+A batch of rows chunks only with ``progress=True`` (``solve_batch``); its
+automatic bar shows the time elapsed and the time expected (``expected_s``).
 
 The bar reads "compiling" until the first step is done and its clock starts
 then, so rates and ETAs exclude compilation. tqdm picks the notebook or
@@ -61,6 +62,13 @@ def chunked(progress: Optional[bool], key: Hashable, units: int) -> bool:
     return rate is not None and rate * units >= AFTER_S
 
 
+def expected_s(key: Hashable, units: int) -> Optional[float]:
+    """The seconds a call of ``units`` units of the compiled program ``key`` should take, from its last call
+    (``record``); None before its first."""
+    rate = _rates.get(key)
+    return None if rate is None else rate * units
+
+
 def record(key: Hashable, units: int, seconds: float) -> None:
     """``key``'s last call ran ``units`` units in ``seconds`` (compilation excluded)."""
     _rates[key] = seconds / max(units, 1)
@@ -72,11 +80,13 @@ def record(key: Hashable, units: int, seconds: float) -> None:
 class Progress:
     """A tqdm bar of ``total`` steps labelled ``label``: drawn at once (``enabled`` True), never (False), or
     once the call has run ``AFTER_S`` seconds (None). ``counted=False``: a call that cannot report its steps
-    (one compiled program); its automatic bar shows the time elapsed."""
+    (one compiled program); its automatic bar shows the time elapsed, and the seconds the call should take
+    where ``expected`` says (the last call of the same program: ``expected_s``)."""
 
     def __init__(self, total: int, label: str = "", enabled: Optional[bool] = True, stream=None,
-                 counted: bool = True):
+                 counted: bool = True, expected: Optional[float] = None):
         self.total, self.label, self.enabled, self.counted = max(int(total), 1), label, enabled, counted
+        self.expected = expected
         self.stream = stream or sys.stderr
         self._bar, self._started, self._since, self._done = None, False, 0.0, 0
         self._waiting = " (compiling)"  # said until the first step is done
@@ -102,9 +112,11 @@ class Progress:
                 self._bar = tqdm(total=self.total, desc=self.label + self._waiting, file=self.stream,
                                  mininterval=0.1, dynamic_ncols=True)
             elif self._bar is None:
-                self._bar = tqdm(total=None, desc=f"{self.label} (compiling, then one compiled run: not counted; "
-                                 "progress=True counts its steps)", file=self.stream, dynamic_ncols=True,
-                                 bar_format="{desc}: {elapsed}", delay=1e-9)  # drawn below, with the call's time
+                run = ("compiling, then one compiled run" if self.expected is None else
+                       f"one compiled run of about {_duration(self.expected)}, as the last one")
+                self._bar = tqdm(total=None, desc=f"{self.label} ({run}: not counted; progress=True counts its "
+                                 "steps)", file=self.stream, dynamic_ncols=True, bar_format="{desc}: {elapsed}",
+                                 delay=1e-9)  # drawn below, with the call's time
                 self._bar.start_t -= time.monotonic() - self._since
                 self._bar.refresh()
             if self._done and not self._started:  # first step: compilation is over, start the clock now
@@ -150,6 +162,15 @@ class Progress:
             self._closed = True
             if self._bar is not None:
                 self._bar.close()
+
+
+def _duration(seconds: float) -> str:
+    """``seconds`` as a bar says it: "40 s", "12 min", "3.5 h"."""
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 class _Watcher:

@@ -35,7 +35,7 @@ from ..checks import is_tracer, positive_int
 from ..problem.callables import search_inputs
 from ..problem.problem import Problem
 from ..runtime.memory_cache import compiled
-from ..runtime.progress import TICKS, Progress, chunked, record, tick_python
+from ..runtime.progress import TICKS, Progress, expected_s, record, tick_python
 from ..runtime.sharding import AXIS, default_parts, global_rows, mesh_of, replicated, run_parts
 from . import solvers
 from .exhaustive import DEFAULT_CHUNK_NODES
@@ -245,12 +245,16 @@ def solve_batch(problem: Problem, X0: ArrayLike, *, solver: str = "sdfs", params
 
 
 def _in_chunks(solve, X, params, progress, key, min_rows: int) -> SearchResult:
-    """``solve(X, params)`` under a bar counting rows (``progress``: True, False, None: automatic): in one call,
-    or (``chunked``) in up to ``TICKS`` calls of equal rows (at least ``min_rows``; the last padded by
-    repeating the last row), each counted as it ends."""
+    """``solve(X, params)`` under a bar (``progress``: True, False, None: automatic): in one call (False, and
+    None, whose bar shows the time elapsed and the time the last call of the program says it takes), or (True)
+    in up to ``TICKS`` calls of equal rows (at least ``min_rows``; the last padded by repeating the last row),
+    each counted as it ends. A batch is not split by default: each chunk waits for its slowest row (the work
+    pool lends the lanes that end early no rows of the next chunk), and a chunk's shape compiles a program of
+    its own (benchmarks/progress_bench.py)."""
     B = X.shape[0]
-    chunks = chunked(progress, key, B)
-    with Progress(B, "solve_batch", enabled=progress, counted=chunks):
+    chunks = bool(progress)
+    with Progress(B, "solve_batch", enabled=progress, counted=chunks,
+                  expected=None if chunks else expected_s(key, B)):
         if not chunks:
             out = solve(X, params)
             started = time.perf_counter()  # compiled (the first call), now running
