@@ -470,8 +470,8 @@ def _node(z, classes: _Classes) -> Node:
 
 
 # The switching table's size beyond which the switchings are computed from the members instead (each node then
-# computes R x C x R of them, m components each: a table lookup saves that work, a node of the five-level
-# inverter's 61 classes of 5 half the time; a 16 MiB constant is the most a compiled search should carry).
+# computes R x C x R of them, m components each, which a table lookup saves: docs/dev/xla_notes.md; a 16 MiB
+# constant is the most a compiled search should carry).
 MAX_TABLE_BYTES = 1 << 24
 
 
