@@ -8,7 +8,7 @@ program the first time too: a test makes its inputs before it reads the count.
 """
 import jax
 
-from firhc_jax.apps._timing import LOWERED
+from firhc_jax.apps._timing import LOWERED, compile_events
 
 _count = [0]
 
@@ -24,3 +24,21 @@ jax.monitoring.register_event_duration_secs_listener(_listen)
 def compile_count() -> int:
     """Programs lowered so far in this process."""
     return _count[0]
+
+
+def compiles_inside(monkeypatch, owner, name: str, run) -> tuple:
+    """``(run's value, everything, inside)``: the compilations (``(name, seconds)``) while ``run()`` runs, and
+    those made inside ``owner.name`` (patched to record them), e.g. the closed loop an application times, so that
+    a test can tell what compiled before that loop from what compiled in it."""
+    inside, method = [], getattr(owner, name)
+
+    def recorded(*args, **kwargs):
+        with compile_events() as seen:
+            out = method(*args, **kwargs)
+        inside.extend(seen)
+        return out
+
+    monkeypatch.setattr(owner, name, recorded)
+    with compile_events() as everything:
+        value = run()
+    return value, everything, inside

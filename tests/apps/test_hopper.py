@@ -7,11 +7,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiles import compiles_inside
 
 import firhc_jax as fj
 from firhc_jax import cli
 from firhc_jax.apps import hopper as app
-from firhc_jax.apps._timing import compile_events as compilations
 from firhc_jax.models import hopper as hm
 
 P = hm.HopperParams()
@@ -165,17 +165,9 @@ def test_cli_runs_the_timed_loop_of_the_compiled_one_and_writes_its_results(sdfs
     decision is timed; compile_time_s covers XLA's compilation of the decision, done before the timed loop; the
     summary is the one recorded before the port; the figures and the saved closed loop are written."""
     out = tmp_path / "hop"
-    in_loop, simulate = [], fj.FIRHC._run
-
-    def recorded(self, *args, **kwargs):
-        with compilations() as seen:
-            result = simulate(self, *args, **kwargs)
-        in_loop.extend(seen)
-        return result
-
-    monkeypatch.setattr(fj.FIRHC, "_run", recorded)
-    with compilations() as seen:
-        assert cli.main(["hopper", "--horizon", "4", "--seconds", "0.6", "--out", str(out), "--no-progress"]) == 0
+    argv = ["hopper", "--horizon", "4", "--seconds", "0.6", "--out", str(out), "--no-progress"]
+    code, seen, in_loop = compiles_inside(monkeypatch, fj.FIRHC, "_run", lambda: cli.main(argv))
+    assert code == 0
     decision = max((c for c in seen if c not in in_loop), key=lambda c: c[1])  # (name, s) the longest before
     assert decision[0] not in {name for name, _ in in_loop}  # the timed loop never compiles the decision
     summary = json.loads((out / "summary.json").read_text())

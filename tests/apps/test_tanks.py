@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiles import compiles_inside
 from scipy.integrate import solve_ivp
 
 import firhc_jax as fj
@@ -158,17 +159,9 @@ def test_cli_runs_the_timed_loop_of_the_compiled_one_and_writes_its_results(sdfs
     with compilations() as seen:  # the event is still reported under this name (else the checks below are void)
         jax.jit(lambda a: a * 2)(np.arange(3.0))
     assert seen, "no compile event observed: jax.monitoring's event name changed"
-    in_loop, simulate = [], fj.FIRHC.simulate
-
-    def recorded(self, *args, **kwargs):
-        with compilations() as seen:
-            out = simulate(self, *args, **kwargs)
-        in_loop.extend(seen)
-        return out
-
-    monkeypatch.setattr(fj.FIRHC, "simulate", recorded)
-    with compilations() as seen:
-        assert cli.main(["tanks", "--horizon", "3", "--seconds", "60", "--out", str(tmp_path), "--no-progress"]) == 0
+    argv = ["tanks", "--horizon", "3", "--seconds", "60", "--out", str(tmp_path), "--no-progress"]
+    code, seen, in_loop = compiles_inside(monkeypatch, fj.FIRHC, "simulate", lambda: cli.main(argv))
+    assert code == 0
     said = capsys.readouterr().err  # every stage of the run is announced, then timed
     stages = [line[:-4] for line in said.splitlines() if line.endswith(" ...")]
     assert stages[0] == "compiling the decision" and stages[-1].startswith("writing summary.json"), said

@@ -584,7 +584,7 @@ def test_switchings_from_the_members_search_as_the_table(monkeypatch, norm, max_
     table = make()
     monkeypatch.setattr(tracking, "MAX_TABLE_BYTES", 0)
     members = make()
-    assert table._tables.switch is not None and members._tables.switch is None
+    assert table._classes.switch is not None and members._classes.switch is None
     rng = np.random.default_rng(3)
     for u_prev in (controls[17], controls[90], np.array([0.5, -0.25, 0.0])):
         x, y_ref = rng.normal(scale=10.0, size=2), rng.normal(scale=20.0, size=(3, 2))

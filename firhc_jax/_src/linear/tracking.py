@@ -267,7 +267,7 @@ class LinearTracking:
             raise ValueError(f"controls must have m = {m} columns like B, got shape {controls.shape}")
         self._controls = controls
         members = input_classes(B, controls)  # [C, R]
-        self._classes = members
+        self._members = members
         self.num_classes, self.class_size = members.shape
         self._class_of = np.zeros(len(controls), np.int32)  # [M] the class of each input
         for j, row in enumerate(members):
@@ -280,12 +280,12 @@ class LinearTracking:
             Tu_norm=np.linalg.norm(Tu, axis=(1, 2)), err_s=err_s)
         self._maps = _DataMaps(M_data, Ms, err_d)
         self._device = {}  # dtype -> the model, the data maps and the classes on the device
-        classes = _class_tables(controls, members, norm, max_step)
+        classes = _classes_of(controls, members, norm, max_step)
         reps = controls[members[:, 0]]
         self.problem = Problem(controls=reps, horizon=N, step_index=True, **_callables(classes, self._model))
         self.shared_problem = Problem(controls=reps, horizon=N, step_index=True,
                                       **_shared_callables(classes, controls, members, norm, max_step))
-        self._tables = classes
+        self._classes = classes
         self.observe = _observer(self.class_size)
 
     @property
@@ -302,7 +302,7 @@ class LinearTracking:
     def classes(self) -> np.ndarray:
         """``[C, R]`` each class's members, indices into ``controls`` in the order of a ``Node``'s ``o``, -1
         padding a class of fewer than R (read-only)."""
-        return self._classes
+        return self._members
 
     def sequence(self, z0: ArrayLike, classes: ArrayLike, params: TrackingParams | SharedParams) -> jax.Array:
         """``[N]`` int32 indices into ``controls``: the cheapest inputs of the
@@ -352,7 +352,7 @@ class LinearTracking:
         key = jnp.dtype(dtype)
         if key not in self._device:
             with jax.ensure_compile_time_eval():  # concrete arrays even when first asked for inside a trace
-                self._device[key] = _in_dtype((self._model, self._maps, self._tables), key)
+                self._device[key] = _in_dtype((self._model, self._maps, self._classes), key)
         return self._device[key]
 
     def solve(self, x: ArrayLike, u_prev: ArrayLike, y_ref: ArrayLike, d: ArrayLike | None = None, *,
@@ -382,7 +382,7 @@ class LinearTracking:
                                    warm_start, budget))
 
 
-def _solve(problem, model, maps, tables, controls, class_of, x, u_prev, y_ref, d, warm_start, budget, *, observe):
+def _solve(problem, model, maps, classes, controls, class_of, x, u_prev, y_ref, d, warm_start, budget, *, observe):
     """``LinearTracking.solve`` after its checks, traced (``problem``: ``shared_problem``)."""
     if warm_start is not None:  # indices into controls -> their classes (all -1 stays none)
         M = class_of.shape[0]
@@ -393,7 +393,7 @@ def _solve(problem, model, maps, tables, controls, class_of, x, u_prev, y_ref, d
     z0 = observe(x, u_prev)
     result = sdfs(problem, z0, params=SharedParams(_params(maps, y_ref, d), model), warm_start=warm_start,
                   max_nodes=budget)
-    sequence = _sequence(z0, result.sequence, model, tables)
+    sequence = _sequence(z0, result.sequence, model, classes)
     # the first of these inputs (first_input_of may break a tie between members the other way)
     first = controls.astype(result.first_input.dtype)[jnp.maximum(sequence[0], 0)]
     return result._replace(sequence=sequence, first_input=jnp.where(result.feasible, first, jnp.nan))
@@ -475,7 +475,7 @@ def _node(z, classes: _Classes) -> Node:
 MAX_TABLE_BYTES = 1 << 24
 
 
-def _class_tables(controls, members, norm: str, max_step) -> _Classes:
+def _classes_of(controls, members, norm: str, max_step) -> _Classes:
     """The ``_Classes`` of ``controls`` ``[M, m]`` grouped as ``members`` ``[C, R]`` (``input_classes``)."""
     filled = np.where(members >= 0, members, members[:, :1])  # padding repeats the first member
     U = controls.astype(float)[filled]  # [C, R, m]
