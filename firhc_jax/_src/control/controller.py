@@ -55,11 +55,20 @@ import numpy as np
 from ..annotations import ArrayLike, PyTree
 from ..checks import as_batch, as_inputs, as_sequence, as_state, check_params, is_tracer, positive_int, sample_times
 from ..problem.problem import Problem, input_dtype
+from ..runtime import lean
 from ..runtime.memory_cache import cached
+from ..runtime.packed import compile_packed
 from ..search.result import SearchResult, raise_on_errors
 from .closed_loop import ClosedLoop
 from .decision import ControllerState, StepInfo, decide, decide_rows
-from .decision_checks import check_closed_loop, controller_options, decide_checked, no_input_message, solve_checked
+from .decision_checks import (
+    check_closed_loop,
+    controller_options,
+    decide_checked,
+    no_input_message,
+    one_shot,
+    solve_checked,
+)
 from .runner import first_held_warning, ready, run_compiled, run_loops, run_python, user_plant, warn_held
 
 
@@ -219,15 +228,29 @@ class FIRHC:
         if type(state) is not ControllerState:
             raise TypeError(f"state must be the ControllerState from ctrl.init or ctrl.step, got "
                             f"{type(state).__name__}")
+        run = lean.recall(("step", self), (state, x, params))
+        if run is not None:
+            return run(state, x, params)
         if not ready(x):
             x = as_state(x, "x")
         if params is not None and not all(map(ready, jax.tree_util.tree_leaves(params))):
             params = check_params(params)
-        return self._decide()(state, x, params)
+        if any(map(is_tracer, jax.tree_util.tree_leaves((state, x, params)))):
+            return self._decide()(state, x, params)
+        return self._eager("step", decide_checked, (state, x, params))(state, x, params)
 
     def _decide(self) -> Callable:
         """The jitted decision of this controller's key (checked while traced: once per signature)."""
         return cached(("step", self.options.key), lambda: jax.jit(functools.partial(decide_checked, self.options)))
+
+    def _eager(self, name: str, fn: Callable, args: tuple) -> Callable:
+        """``fn(self.options, *args)`` compiled for these checked arguments' shapes and dtypes (one output
+        buffer: ``compile_packed``), shared by controllers of equal options and remembered for this controller's
+        calls whose arguments, unchecked, have the signature of ``args`` (``lean``)."""
+        program = cached((name, "eager", self.options.key, lean.spec(args)),
+                         lambda: compile_packed(functools.partial(fn, self.options), *args))
+        lean.remember((name, self), args, program)
+        return program
 
     def __call__(self, x: ArrayLike, params: PyTree = None, *,
                  u_prev: ArrayLike | None = None) -> tuple[jax.Array, StepInfo]:
@@ -241,11 +264,24 @@ class FIRHC:
         instead of holding. Inside ``jit``/``vmap`` it holds and flags like
         ``step``. In a loop over time use ``init``/``step``.
         """
-        x = as_state(x)
-        u, _, info = self.step(self.init(x, u_prev), x, check_params(params))
-        if not is_tracer(info.held):
+        run = lean.recall(("call", self), (x, params, u_prev))
+        if run is None:
+            x = as_state(x)
+            state, params = self.init(x, u_prev), check_params(params)
+            if any(map(is_tracer, jax.tree_util.tree_leaves((x, params)))):
+                u, _, info = self.step(state, x, params)
+                return u, info
+            run = self._eager("call", one_shot, (x, params, state.u))
+            lean.remember(("call", self), (x, params, u_prev), run)
+            u_prev = state.u
+        else:
+            u_prev = np.zeros(*self._input_form) if u_prev is None else np.asarray(u_prev, self._input_form[1])
+        u, info, alarm = run(x, params, u_prev)
+        if alarm:  # the checks of the first call on these values, then the search's error flags, then no input
+            self.init(x, u_prev)
+            check_params(params)
             raise_on_errors(info.result)
-            if np.asarray(info.held):
+            if info.held:
                 raise InfeasibleError(no_input_message(self.options, info))
         return u, info
 

@@ -13,10 +13,12 @@ import numpy as np
 from ..checks import as_inputs
 from ..problem.callables import check_state, params_spec, shape_of
 from ..problem.problem import Problem, input_dtype
+from ..runtime.lean import non_finite
 from ..runtime.memory_cache import cached
 from ..search import solvers
+from ..search.result import alarms
 from ..search.sdfs import node_budget
-from .decision import decide, solve
+from .decision import ControllerState, decide, solve
 
 _DEFAULT_PLANT_HINT = ("; the default plant is the model's dynamics, which with observe set runs on model states: "
                        "pass plant= with the plant's own dynamics")
@@ -155,6 +157,14 @@ def decide_checked(opts, state, x, p):
     cached(("step check", opts.key, spec(state.u), spec(state.plan), spec(x), pkey),
            lambda: check_decision(opts, spec(state.u), spec(state.plan), spec(x), pspec))
     return decide(opts, state, x, p)
+
+
+def one_shot(opts, x, p, u_prev):
+    """``FIRHC.__call__``'s decision after the checks: ``(u, info, alarm)``; ``alarm``: a value fails the
+    checks (a non-finite state or parameter), the search raised an error flag, or no input was found."""
+    plan = jnp.full((opts.problem.horizon,), -1, jnp.int32)
+    u, _, info = decide_checked(opts, ControllerState(u=u_prev, plan=plan), x, p)
+    return u, info, non_finite(x, p, u_prev) | alarms(info.result) | info.held
 
 
 def solve_checked(opts, x, params, previous):

@@ -49,6 +49,15 @@ def cached(key: Hashable, build: Callable[[], Any]) -> Any:
     return value
 
 
+def peek(key: Hashable) -> Any:
+    """The entry for ``key``, or None (nothing is built)."""
+    value = _entries.get(key)
+    if value is not None:
+        _stats["hits"] += 1
+        _entries.move_to_end(key)
+    return value
+
+
 def compiled(fn: Callable, problem, **static) -> Callable:
     """``jax.jit`` of ``fn(problem, *args, **static)`` for this problem and
     these static options, from the cache."""

@@ -3,16 +3,20 @@ by the solver table's rules (``solvers.check_options``, ``check_tree``, ``check_
 search per problem, options and argument shapes."""
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ..annotations import ArrayLike, PyTree
-from ..checks import as_sequence
+from ..checks import as_sequence, is_tracer
 from ..problem.callables import search_inputs
 from ..problem.problem import Problem
-from ..runtime.memory_cache import compiled
+from ..runtime import lean
+from ..runtime.memory_cache import cached, compiled
+from ..runtime.packed import compile_packed
 from . import solvers
 from .exhaustive import DEFAULT_CHUNK_NODES, levels_executable
-from .result import SearchResult, raise_on_errors
+from .result import SearchResult, alarms, raise_on_errors
 from .sdfs import DEFAULT_MAX_MEMORY, INT32_MAX, node_budget
 from .sdfs import search as sdfs_search
 
@@ -51,12 +55,47 @@ def sdfs(problem: Problem, x0: ArrayLike, *, params: PyTree = None, pop_width: i
     un-jitted call a negative stage cost raises ``ValueError``. Not
     differentiable (a discrete search); see ``fj.rollout_cost``.
     """
-    x0, params = search_inputs(problem, x0, params)
-    options = solvers.check_options("sdfs", {"pop_width": pop_width, "max_nodes": max_nodes, "max_memory": max_memory})
-    solvers.check_memory("sdfs", options, problem, x0.shape[0], max(x0.dtype.itemsize, 4))
-    ws = as_sequence(warm_start, problem.horizon, problem.num_controls)
-    run = compiled(sdfs_search, problem, pop_width=options["pop_width"], budgeted=max_nodes is not None)
-    return raise_on_errors(run(x0, params, ws, node_budget(max_nodes)))
+    budgeted = max_nodes is not None
+    entry = ("sdfs", problem, pop_width, budgeted, max_memory)
+    args = (x0, params, warm_start)
+    run = None if is_tracer(max_nodes) else lean.recall(entry, args)
+    if run is None:  # the first call of this signature (or a traced one): every check
+        x0, params = search_inputs(problem, x0, params)
+        options = solvers.check_options("sdfs", {"pop_width": pop_width, "max_nodes": max_nodes,
+                                                 "max_memory": max_memory})
+        solvers.check_memory("sdfs", options, problem, x0.shape[0], max(x0.dtype.itemsize, 4))
+        ws = as_sequence(warm_start, problem.horizon, problem.num_controls)
+        if any(map(is_tracer, (x0, ws, max_nodes, *jax.tree_util.tree_leaves(params)))):
+            run = compiled(sdfs_search, problem, pop_width=options["pop_width"], budgeted=budgeted)
+            return raise_on_errors(run(x0, params, ws, node_budget(max_nodes)))
+        checked = (x0, params, ws, node_budget(max_nodes))
+        run = lean.first_call(entry, args, lambda: cached(
+            ("eager", sdfs_search, problem.key, options["pop_width"], budgeted, lean.spec(checked[:3])),
+            lambda: compile_packed(_eager_search(problem, options["pop_width"], budgeted), *checked)))
+        args = checked[:3]
+    result, alarm = run(*args[:2], _indices(args[2]), node_budget(max_nodes))
+    if alarm:  # the value checks of the first call, on these values (each raises with its own message), then
+        search_inputs(problem, x0, params)  # the result's error flags
+        as_sequence(warm_start, problem.horizon, problem.num_controls)
+        raise_on_errors(result)
+    return result
+
+
+def _indices(warm_start):
+    return None if warm_start is None else np.asarray(warm_start, np.int32)
+
+
+def _eager_search(problem: Problem, pop_width: int, budgeted: bool):
+    """The search of an eager ``fj.sdfs`` call, and one alarm: its values would fail the checks (``lean``), or
+    it raised an error flag (``raise_on_errors``)."""
+    def run(x0, params, warm_start, max_nodes):
+        bad = lean.non_finite(x0, params)
+        if warm_start is not None:
+            M = problem.num_controls
+            bad = bad | ~(jnp.all((warm_start >= 0) & (warm_start < M)) | jnp.all(warm_start == -1))
+        result = sdfs_search(problem, x0, params, warm_start, max_nodes, pop_width=pop_width, budgeted=budgeted)
+        return result, bad | alarms(result)
+    return run
 
 
 def exhaustive(problem: Problem, x0: ArrayLike, *, params: PyTree = None, method: str = "levels",

@@ -48,6 +48,11 @@ def finish(problem: Problem, cost, sequence, stats: SearchStats, complete, x0, p
                         complete=jnp.asarray(complete, bool))
 
 
+def alarms(result: SearchResult) -> jax.Array:
+    """[] bool (traced): an error flag that ``raise_on_errors`` reports is up."""
+    return jnp.any(result.negative_cost | result.nan_encountered | result.overflow)
+
+
 def raise_on_errors(result: SearchResult) -> SearchResult:
     """In an un-jitted call, turn the result's error flags into exceptions.
 
