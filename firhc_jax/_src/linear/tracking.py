@@ -67,6 +67,7 @@ named structures and the traced callables.
 """
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Mapping
 from typing import NamedTuple, Optional
@@ -78,9 +79,11 @@ import numpy as np
 from ..annotations import ArrayLike
 from ..checks import as_sequence, as_state, finite, is_tracer, matrix, non_negative, numeric, positive_int
 from ..problem.problem import Problem, _check_controls
-from ..runtime.memory_cache import compiled
+from ..runtime import lean
+from ..runtime.memory_cache import cached, compiled
+from ..runtime.packed import compile_packed
 from ..search.one_state import sdfs
-from ..search.result import SearchResult, raise_on_errors
+from ..search.result import SearchResult, alarms, raise_on_errors
 from ..search.sdfs import DEFAULT_MAX_MEMORY, node_budget
 from .factor import child_map, factor_memory, input_classes, psd_factor
 
@@ -366,20 +369,61 @@ class LinearTracking:
         ``max_nodes`` as in ``fj.sdfs``. Runs in ``x``'s floating dtype;
         works under ``jax.jit`` and ``jax.vmap``, and new values never
         recompile."""
+        args = (x, u_prev, y_ref, d, warm_start)
+        entry = ("lt.solve", self, max_nodes is None)
+        run = None if is_tracer(max_nodes) else lean.recall(entry, args)
+        if run is None:  # the first call of this signature (or a traced one): every check
+            x, u_prev, y_ref, d, warm_start = self._checked(*args)
+            # No budget is no budget (None): fj.sdfs seeds a budgeted search first, which costs nodes
+            budget = None if max_nodes is None else node_budget(max_nodes)
+            checked = (x, u_prev, y_ref, d, warm_start)
+            if any(map(is_tracer, (*checked, budget))):
+                # One compiled call (observe, params, search, members), shared by trackers of equal shapes: the
+                # model travels as an argument, so a new A, B, Q or lambda_u of the same shapes reuses it.
+                run = compiled(_solve, self.shared_problem, observe=self.observe)
+                return raise_on_errors(run(*self._on_device(x.dtype), self._controls, self._class_of, *checked,
+                                           budget))
+            run = lean.first_call(entry, args, lambda: cached(
+                ("lt.solve", "eager", self.shared_problem.key, self.observe, max_nodes is None, lean.spec(checked)),
+                lambda: compile_packed(functools.partial(_solve_eager, self.shared_problem, observe=self.observe,
+                                                         budgeted=max_nodes is not None),
+                                       *self._on_device(x.dtype), self._controls, self._class_of, *checked,
+                                       node_budget(max_nodes))))
+            args = checked
+        x, u_prev, y_ref, d, warm_start = args
+        result, alarm = run(*self._on_device(jax.dtypes.canonicalize_dtype(x.dtype)), self._controls,
+                            self._class_of, x, u_prev, y_ref, d,
+                            None if warm_start is None else np.asarray(warm_start, np.int32), node_budget(max_nodes))
+        if alarm:  # the value checks of the first call on these values (each raises with its own message), then
+            self._checked(x, u_prev, y_ref, d, warm_start)  # the search's error flags
+            raise_on_errors(result)
+        return result
+
+    def _checked(self, x, u_prev, y_ref, d, warm_start) -> tuple:
+        """``solve``'s arguments, checked: ``x`` a finite state [n] (``as_state``), the vectors of their shapes
+        in its dtype, ``warm_start`` indices into ``controls`` (``as_sequence``)."""
         x = as_state(x, "x")
         if x.shape != (self.n,):
             raise ValueError(f"x must be [n] = [{self.n}], got shape {tuple(x.shape)}")
         u_prev = _vector("u_prev", u_prev, (self.m,), x.dtype)
         y_ref = _vector("y_ref", y_ref, (self.horizon, self.p), x.dtype)
         d = None if d is None else _vector("d", d, (self.horizon, self.n), x.dtype)
-        warm_start = as_sequence(warm_start, self.horizon, len(self._controls))
-        # One compiled call (observe, params, search, members), shared by trackers of equal shapes: the model
-        # travels as an argument, so a new A, B, Q or lambda_u of the same shapes reuses it.
-        run = compiled(_solve, self.shared_problem, observe=self.observe)
-        # No budget is no budget (None): fj.sdfs seeds a budgeted search first, which costs nodes
-        budget = None if max_nodes is None else node_budget(max_nodes)
-        return raise_on_errors(run(*self._on_device(x.dtype), self._controls, self._class_of, x, u_prev, y_ref, d,
-                                   warm_start, budget))
+        return x, u_prev, y_ref, d, as_sequence(warm_start, self.horizon, len(self._controls))
+
+
+def _solve_eager(problem, model, maps, classes, controls, class_of, x, u_prev, y_ref, d, warm_start, budget, *,
+                 observe, budgeted: bool):
+    """An eager ``LinearTracking.solve`` (``lean``): ``(result, alarm)``; ``alarm``: a value fails the checks
+    (a non-finite vector, a warm-start index out of range) or the search raised an error flag."""
+    u_prev, y_ref = u_prev.astype(x.dtype), y_ref.astype(x.dtype)
+    d = None if d is None else d.astype(x.dtype)
+    alarm = lean.non_finite(x, u_prev, y_ref, d)
+    if warm_start is not None:
+        M = class_of.shape[0]
+        alarm = alarm | ~(jnp.all((warm_start >= 0) & (warm_start < M)) | jnp.all(warm_start == -1))
+    result = _solve(problem, model, maps, classes, controls, class_of, x, u_prev, y_ref, d, warm_start,
+                    budget if budgeted else None, observe=observe)
+    return result, alarm | alarms(result)
 
 
 def _solve(problem, model, maps, classes, controls, class_of, x, u_prev, y_ref, d, warm_start, budget, *, observe):
