@@ -229,15 +229,17 @@ class FIRHC:
             raise TypeError(f"state must be the ControllerState from ctrl.init or ctrl.step, got "
                             f"{type(state).__name__}")
         run = lean.recall(("step", self), (state, x, params))
-        if run is not None:
-            return run(state, x, params)
-        if not ready(x):
-            x = as_state(x, "x")
-        if params is not None and not all(map(ready, jax.tree_util.tree_leaves(params))):
-            params = check_params(params)
-        if any(map(is_tracer, jax.tree_util.tree_leaves((state, x, params)))):
-            return self._decide()(state, x, params)
-        return self._eager("step", decide_checked, (state, x, params))(state, x, params)
+        if run is None:
+            raw = (state, x, params)
+            if not ready(x):
+                x = as_state(x, "x")
+            if params is not None and not all(map(ready, jax.tree_util.tree_leaves(params))):
+                params = check_params(params)
+            if any(map(is_tracer, jax.tree_util.tree_leaves((state, x, params)))):
+                return self._decide()(state, x, params)
+            run = self._eager("step", decide_checked, (state, x, params))
+            lean.remember(("step", self), raw, run)
+        return run(state, x, params)
 
     def _decide(self) -> Callable:
         """The jitted decision of this controller's key (checked while traced: once per signature)."""

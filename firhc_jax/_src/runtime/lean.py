@@ -6,8 +6,8 @@ dtypes, and the same x64 setting) would pass the same checks, so it skips them: 
 compiled program of a call under its signature, ``recall`` finds it (about 1 us for a few arrays). What depends
 on the values (finite states and parameters, indices in range) the compiled program checks itself and returns
 as one flag; where it is up, the caller runs its checks again on these values, which raise with their own
-message. Only NumPy and JAX arrays make a signature: other leaves (Python numbers, lists) take the checked
-path on every call.
+message. Only arrays (NumPy, JAX, NumPy scalars) and Python numbers make a signature: other leaves (lists,
+nested sequences) take the checked path on every call.
 """
 from __future__ import annotations
 
@@ -23,13 +23,15 @@ _ARRAY = jax.Array
 
 
 def signature(args) -> tuple | None:
-    """What the checks of ``args`` (a pytree; None leaves allowed) depend on, or None when a leaf is not an
-    array (then every call is checked)."""
+    """What the checks of ``args`` (a pytree; None leaves allowed) depend on, or None when a leaf is neither an
+    array nor a Python number (then every call is checked)."""
     leaves, treedef = jax.tree_util.tree_flatten(args)
     out = [treedef, jax.config.jax_enable_x64]
     for a in leaves:
-        if type(a) is np.ndarray:
+        if type(a) is np.ndarray or isinstance(a, np.generic):
             out.append((a.shape, a.dtype))
+        elif type(a) in (float, int, bool):
+            out.append(type(a))
         elif isinstance(a, _ARRAY) and not isinstance(a, jax.core.Tracer):
             out.append((a.shape, a.dtype, a.weak_type))
         else:

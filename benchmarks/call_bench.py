@@ -1,0 +1,194 @@
+"""Where the time of one eager decision goes: Python, the call and its outputs, the search.
+
+Each public call is timed as users make it (new values every call, float64), and split into
+
+* **Python**: the public call minus its compiled program (the checks, the signature look-up, reading the
+  alarm; ``firhc_jax._src.runtime.lean``);
+* **call**: a compiled program of the same arguments that only adds one to the state (what XLA:CPU and
+  JAX's dispatch charge for these inputs and one output);
+* **outputs**: reading the one output buffer back into the result's NumPy fields
+  (``firhc_jax._src.runtime.packed``);
+* **search**: the compiled program minus the call.
+
+Rows: ``fj.sdfs`` on a 2-state 3-input pendulum at N = 1 and 5, ``ctrl.step`` and the one-shot ``ctrl(x)``
+on the two-level inverter (8 switch states, the reference as per-step parameters) at N = 1 and 3,
+``lt.solve`` on the three-level inverter at N = 5, and the step of ``simulate``'s compiled scan (inverter,
+N = 3: the run's time per step, plant included). Every time is also a multiple of a trivial jitted call
+(``jax.jit(lambda x: x + 1.0)`` on a JAX array), measured in the same rounds. Medians (p50) and 99th
+percentiles (p99) of ``--calls`` calls a round, rounds interleaved; once pinned to one core
+(``os.sched_setaffinity``), once on every core.
+
+    python benchmarks/call_bench.py [--calls 2000] [--rounds 3]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def percentiles(ts) -> tuple[float, float]:
+    return 1e6 * float(np.percentile(ts, 50)), 1e6 * float(np.percentile(ts, 99))
+
+
+def cases(calls: int):
+    """``{name: (public call, compiled program, trivial program of its arguments, unpack, argument sets)}``."""
+    import firhc_jax as fj
+    from firhc_jax._src.runtime import lean
+    from firhc_jax.models import inverter, three_level
+
+    rng = np.random.default_rng(0)
+    out = {}
+
+    def pendulum(x, u):
+        omega = x[1] + 0.05 * (-9.81 * jnp.sin(x[0]) - 0.5 * x[1] + 2.0 * u[0])
+        return jnp.stack([x[0] + 0.05 * omega, omega])
+
+    for N in (1, 5):
+        problem = fj.Problem(dynamics=pendulum, controls=np.array([-1.0, 0.0, 1.0]),
+                             stage_cost=fj.quadratic_cost(lam=np.array([10.0, 1.0]), x_s=np.zeros(2), beta=0.1),
+                             horizon=N)
+        argsets = [(rng.uniform(-0.6, 0.6, 2),) for _ in range(calls)]
+        fj.sdfs(problem, *argsets[0])
+        entry = ("sdfs", problem, 1, False, fj.sdfs.__kwdefaults__["max_memory"])
+        program = lean.recall(entry, (argsets[0][0], None, None))
+        budget = np.int32(2**31 - 1)
+        out[f"`fj.sdfs`, pendulum (2 states, 3 inputs), N = {N}"] = (
+            lambda x, p=problem: fj.sdfs(p, x), lambda x, r=program: r(x, None, None, budget), (argsets[0][0],),
+            argsets)
+
+    prm = inverter.InverterParams()
+    for N in (1, 3):
+        mem = inverter.make_problem(N, prm)
+        refs = inverter.horizon_references(prm, calls, N)
+        ctrl = fj.FIRHC(mem.problem, observe=mem.observe)
+        xs = [np.asarray(inverter.initial_currents(prm)) + rng.normal(size=2) for _ in range(calls)]
+        rows = [{"ref": refs[k], "lambda_u": np.float64(1.0)} for k in range(calls)]
+        state = ctrl.init(xs[0], np.zeros(3))
+        ctrl.step(state, xs[0], rows[0])
+        program = lean.recall(("step", ctrl), (state, xs[0], rows[0]))
+        out[f"`ctrl.step`, inverter (8 inputs), N = {N}"] = (
+            lambda x, p, c=ctrl, s=state: c.step(s, x, p), lambda x, p, r=program, s=state: r(s, x, p),
+            (state, xs[0], rows[0]), list(zip(xs, rows, strict=True)))
+        if N == 3:
+            ctrl(xs[0], rows[0])
+            program = lean.recall(("call", ctrl), (xs[0], rows[0], None))
+            u0 = np.zeros(3)
+            out[f"`ctrl(x, p)`, inverter (8 inputs), N = {N}"] = (
+                lambda x, p, c=ctrl: c(x, p), lambda x, p, r=program: r(x, p, u0), (xs[0], rows[0], u0),
+                list(zip(xs, rows, strict=True)))
+
+    lt = three_level.make_problem(5)
+    A, B = three_level.model()
+    lrefs = inverter.horizon_references(three_level.PARAMS, calls, 5)
+    x, u, largs = inverter.reference(three_level.PARAMS, 0.0), np.zeros(3), []
+    for k in range(calls):  # the states of the closed loop
+        largs.append((x, u, lrefs[k]))
+        u = np.asarray(lt.controls[int(lt.solve(x, u, lrefs[k]).sequence[0])])
+        x = A @ x + B @ u
+    program = lean.recall(("lt.solve", lt, True), largs[0] + (None, None))
+    device = lt._on_device(np.float64) + (lt._controls, lt._class_of)
+    out["`lt.solve`, three-level inverter, N = 5"] = (
+        lambda x, u, y: lt.solve(x, u, y), lambda x, u, y: program(*device, x, u, y, None, None, budget),
+        device + largs[0] + (None, None, budget), largs)
+    return out
+
+
+def trivial_of(args):
+    """A compiled program of these arguments that adds one to the first floating array: the call's cost."""
+    leaves = jax.tree_util.tree_leaves(args)
+    first = next(i for i, a in enumerate(leaves) if np.issubdtype(np.asarray(a).dtype, np.floating))
+    fn = jax.jit(lambda *a: jax.tree_util.tree_leaves(a)[first] + 1.0)
+    return fn.lower(*args).compile()
+
+
+def scan_step(calls: int):
+    import firhc_jax as fj
+    from firhc_jax.models import inverter
+
+    prm = inverter.InverterParams()
+    mem = inverter.make_problem(3, prm)
+    refs = inverter.horizon_references(prm, calls, 3)
+    ctrl = fj.FIRHC(mem.problem, observe=mem.observe)
+    rl = inverter.make_plant(prm)
+    plant = jax.jit(lambda i, u, p: rl(i, u))
+    params = {"ref": refs, "lambda_u": np.ones(calls)}
+    x0 = np.asarray(inverter.initial_currents(prm))
+
+    def run():
+        return ctrl.simulate(x0, calls, plant, params=params, progress=False)
+    run()
+    return run
+
+
+def measure(calls: int, rounds: int) -> list[tuple]:
+    triv = jax.jit(lambda x: x + 1.0)
+    xj = jnp.ones(2)
+    triv(xj).block_until_ready()
+    rows = []
+    table = cases(calls)
+    scan = scan_step(calls)
+    t_triv, t_scan = [], []
+    times = {name: {"public": [], "program": [], "call": []} for name in table}
+    trivials = {name: trivial_of(c[2]) for name, c in table.items()}
+    for _ in range(rounds):
+        for _ in range(calls):
+            t0 = time.perf_counter()
+            triv(xj).block_until_ready()
+            t_triv.append(time.perf_counter() - t0)
+        for name, (public, program, args, argsets) in table.items():
+            for which, fn in (("public", public), ("program", program)):
+                for a in argsets:
+                    t0 = time.perf_counter()
+                    fn(*a)
+                    times[name][which].append(time.perf_counter() - t0)
+            triv_args = trivials[name]
+            for _ in argsets:
+                t0 = time.perf_counter()
+                triv_args(*args).block_until_ready()
+                times[name]["call"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        scan()
+        t_scan.append((time.perf_counter() - t0) / calls)
+    unit = percentiles(t_triv)[0]
+    rows.append(("trivial `jax.jit(lambda x: x + 1.0)`", *percentiles(t_triv), None, None, None, 1.0))
+    for name, t in times.items():
+        p50, p99 = percentiles(t["public"])
+        prog, call = percentiles(t["program"])[0], percentiles(t["call"])[0]
+        rows.append((name, p50, p99, p50 - prog, call, prog - call, p50 / unit))
+    s = 1e6 * float(np.median(t_scan))
+    rows.append(("`simulate`'s compiled scan, one step (inverter, N = 3, plant included)", s, None, None, None,
+                 None, s / unit))
+    return rows
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--calls", type=int, default=2000)
+    ap.add_argument("--rounds", type=int, default=3)
+    args = ap.parse_args(argv)
+    jax.config.update("jax_enable_x64", True)
+    print(f"# One eager decision, split ({platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}, "
+          f"load {os.getloadavg()[0]:.2f})")
+    print("\nPython: the public call minus its compiled program; call: a program of the same arguments that only "
+          "adds one; search + outputs: the program minus that call. us; p50 unless said.")
+    every = os.sched_getaffinity(0)
+    for label, cores in (("pinned to one core", {max(every)}), ("every core", every)):
+        os.sched_setaffinity(0, cores)
+        rows = measure(args.calls, args.rounds)
+        print(f"\n## {label}\n")
+        print("| call | p50 | p99 | Python | call | search + outputs | p50 / trivial call |")
+        print("|---|---:|---:|---:|---:|---:|---:|")
+        fmt = lambda v: "" if v is None else f"{v:.1f}"  # noqa: E731
+        for name, p50, p99, py, call, search, ratio in rows:
+            print(f"| {name} | {p50:.1f} | {fmt(p99)} | {fmt(py)} | {fmt(call)} | {fmt(search)} | {ratio:.1f}x |")
+    os.sched_setaffinity(0, every)
+
+
+if __name__ == "__main__":
+    main()
