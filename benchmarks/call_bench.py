@@ -18,18 +18,18 @@ N = 3: the run's time per step, plant included). Every time is also a multiple o
 percentiles (p99) of ``--calls`` calls a round, rounds interleaved; once pinned to one core
 (``os.sched_setaffinity``), once on every core.
 
-    python benchmarks/call_bench.py [--calls 2000] [--rounds 3]
+    python benchmarks/call_bench.py [--calls 2000] [--rounds 3] [--publish]
 """
 from __future__ import annotations
 
 import argparse
 import os
-import platform
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _results import published
 
 
 def percentiles(ts) -> tuple[float, float]:
@@ -44,6 +44,7 @@ def cases(calls: int):
 
     rng = np.random.default_rng(0)
     out = {}
+    budget, u0 = np.int32(2**31 - 1), np.zeros(3)  # no node budget; the one-shot call's input before
 
     def pendulum(x, u):
         omega = x[1] + 0.05 * (-9.81 * jnp.sin(x[0]) - 0.5 * x[1] + 2.0 * u[0])
@@ -57,7 +58,6 @@ def cases(calls: int):
         fj.sdfs(problem, *argsets[0])
         entry = ("sdfs", problem, 1, False, fj.sdfs.__kwdefaults__["max_memory"])
         program = lean.recall(entry, (argsets[0][0], None, None))
-        budget = np.int32(2**31 - 1)
         out[f"`fj.sdfs`, pendulum (2 states, 3 inputs), N = {N}"] = (
             lambda x, p=problem: fj.sdfs(p, x), lambda x, r=program: r(x, None, None, budget), (argsets[0][0],),
             argsets)
@@ -78,7 +78,6 @@ def cases(calls: int):
         if N == 3:
             ctrl(xs[0], rows[0])
             program = lean.recall(("call", ctrl), (xs[0], rows[0], None))
-            u0 = np.zeros(3)
             out[f"`ctrl(x, p)`, inverter (8 inputs), N = {N}"] = (
                 lambda x, p, c=ctrl: c(x, p), lambda x, p, r=program: r(x, p, u0), (xs[0], rows[0], u0),
                 list(zip(xs, rows, strict=True)))
@@ -171,10 +170,14 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--calls", type=int, default=2000)
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--publish", action="store_true", help="also write the tables to benchmarks/results/call.md")
     args = ap.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
-    print(f"# One eager decision, split ({platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}, "
-          f"load {os.getloadavg()[0]:.2f})")
+    with published("call", args.publish, "python benchmarks/call_bench.py --publish"):
+        tables(args)
+
+
+def tables(args) -> None:
     print("\nPython: the public call minus its compiled program; call: a program of the same arguments that only "
           "adds one; search + outputs: the program minus that call. us; p50 unless said.")
     every = os.sched_getaffinity(0)

@@ -162,9 +162,11 @@ def as_state(x0, name: str = "x0"):
         raise TypeError(f"{name} is None: pass the current state as an array [n]")
     if not is_tracer(x0):
         x_np = numeric(name, x0, "state vector [n]")
-        finite(name, x_np, f": {x_np}")
+        if x_np.dtype.kind in "fc" and not np.isfinite(x_np).all():  # the message is written only when raising
+            finite(name, x_np, f": {x_np}")
         x0 = strong(x0)
-        kept_in_cast(name, x_np, x0, f": {x_np}")
+        if x0.dtype != x_np.dtype:
+            kept_in_cast(name, x_np, x0, f": {x_np}")
     if x0.ndim != 1:
         raise ValueError(
             f"{name} must be a 1-D state vector [n], got shape {tuple(x0.shape)}; "

@@ -49,12 +49,19 @@ def spec(args) -> tuple:
 def recall(entry: Hashable, args) -> Any:
     """The program ``remember`` kept for a call ``entry`` with arguments of ``args``' signature, or None."""
     sig = signature(args)
-    return None if sig is None else peek(("lean", entry, sig))
+    try:
+        return None if sig is None else peek(("lean", entry, sig))
+    except TypeError:  # an option given as an array, or of no use: the checked path takes it or names it
+        return None
 
 
 def remember(entry: Hashable, args, program: Any) -> None:
     """Keep ``program`` for calls ``entry`` with arguments of ``args``' signature (none kept without one)."""
     sig = signature(args)
+    try:
+        hash(entry)
+    except TypeError:  # an option given as an array: every call takes the checked path
+        return
     if sig is not None:
         cached(("lean", entry, sig), lambda: program)
 

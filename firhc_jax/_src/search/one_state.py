@@ -56,7 +56,7 @@ def sdfs(problem: Problem, x0: ArrayLike, *, params: PyTree = None, pop_width: i
     differentiable (a discrete search); see ``fj.rollout_cost``.
     """
     budgeted = max_nodes is not None
-    entry = ("sdfs", problem, pop_width, budgeted, max_memory)
+    entry = ("sdfs", problem, type(pop_width), pop_width, budgeted, type(max_memory), max_memory)  # True is not 1
     args = (x0, params, warm_start)
     run = None if is_tracer(max_nodes) else lean.recall(entry, args)
     if run is None:  # the first call of this signature (or a traced one): every check
