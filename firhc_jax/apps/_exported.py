@@ -143,7 +143,7 @@ def read_header(data: bytes) -> tuple[dict, bytes]:
         header = json.loads(data[len(FORMAT):end])
         if not isinstance(header, dict) or not {"key", "sha256", "label"} <= header.keys():
             raise ValueError
-    except ValueError:
+    except (ValueError, RecursionError):  # RecursionError: JSON nested deeper than Python's parser goes
         raise Refused("has a damaged header") from None
     return header, data[end + 1:]
 
