@@ -424,6 +424,31 @@ def test_cache_lists_the_kept_files_with_their_sizes_and_clears_them(tmp_path, c
     assert sorted(p.name for p in folder.rglob("*")) == [_exported.FOLDER, "notes.txt"]
 
 
+def test_a_tilde_in_the_cache_folder_names_one_folder_for_the_runs_and_for_cache(tmp_path, monkeypatch, capsys):
+    """``JAX_COMPILATION_CACHE_DIR="~/jc"`` (quoted, or from an env file: the shell left the ``~``): the runs' cache
+    setup hands JAX the home folder's ``jc``, where ``cache`` lists and clears; no folder named ``~`` appears."""
+    import jax
+    from jax.experimental.compilation_cache import compilation_cache
+
+    home, work = tmp_path / "home", tmp_path / "work"
+    home.mkdir()
+    work.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.chdir(work)
+    before = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", "~/jc")  # as JAX_COMPILATION_CACHE_DIR sets it
+    try:
+        cli._use_compilation_cache()  # what a run does before its work
+        used = jax.config.jax_compilation_cache_dir
+        assert cli.main(["cache"]) == 0
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
+        compilation_cache.reset_cache()
+    assert used == str(home / "jc")
+    assert capsys.readouterr().out.splitlines()[0] == f"folder: {home / 'jc'}"
+    assert not (work / "~").exists()
+
+
 def test_cache_takes_no_no_cache_and_keeps_no_compilation(monkeypatch, capsys):
     monkeypatch.setattr(cli, "_use_compilation_cache", lambda: pytest.fail("the cache command enabled the cache"))
     message = _refused(capsys, cli.main, ["cache", "--no-cache"])
