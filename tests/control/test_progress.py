@@ -1,8 +1,10 @@
 """Long calls show progress by default: ``simulate``, ``simulate_batch``, ``solve_batch`` and ``fj.profile`` draw
 a bar once a call has run ``progress.AFTER_S`` seconds (here 0: every call is long), counted with an estimate
 where a closed loop runs in chunks (the last call of the same program was long), else the time elapsed (and
-for a batch, which runs as one program unless ``progress=True``, the time its last call took); short calls
-draw nothing, and ``progress=False`` never does."""
+for a batch, which runs as one program unless ``progress=True`` and its rows are solved apart, the time its
+last call took); short calls draw nothing, and ``progress=False`` never does."""
+import re
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -58,10 +60,14 @@ def test_solve_batch_and_profile_draw_a_bar_by_default(capsys, monkeypatch):
     assert seen == [], seen
     np.testing.assert_array_equal(np.asarray(again.nodes), np.asarray(whole.nodes))
     capsys.readouterr()
-    chunked = fj.solve_batch(problem, X, lanes=4, progress=True)  # counted rows: in chunks
+    shown = fj.solve_batch(problem, X, lanes=4, progress=True)  # a pool's rows are never split: not counted
+    assert re.search(r"solve_batch \(one compiled run .*: not counted; its rows share one work pool\): 00:0\d",
+                     capsys.readouterr().err)
+    for field in fj.SearchResult._fields:
+        np.testing.assert_array_equal(np.asarray(getattr(shown, field)), np.asarray(getattr(whole, field)))
+    apart = fj.solve_batch(problem, X, solver="sdfs-vmap", progress=True)  # rows solved apart: counted, in chunks
     assert "80/80" in capsys.readouterr().err
-    np.testing.assert_array_equal(np.asarray(chunked.cost), np.asarray(whole.cost))
-    np.testing.assert_array_equal(np.asarray(chunked.sequence), np.asarray(whole.sequence))
+    np.testing.assert_array_equal(np.asarray(apart.cost), np.asarray(whole.cost))
     fj.profile(problem, X[:4], pop_widths=(1,), lanes=(4,), repeats=1)
     assert "profile" in capsys.readouterr().err
     with pytest.raises(TypeError, match="progress must be None, True or False"):

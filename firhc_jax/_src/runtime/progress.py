@@ -17,8 +17,10 @@ costs a few microseconds. A compiled loop, which can report only by running
 in chunks, asks ``chunked``: from the seconds a unit of work took in the
 last call of the same compiled program (``record``), chunks only when this
 call is expected to run over ``AFTER_S``; a first call runs as one program.
-A batch of rows chunks only with ``progress=True`` (``solve_batch``); its
-automatic bar shows the time elapsed and the time expected (``expected_s``).
+A batch of rows chunks only with ``progress=True``, and only where its rows
+are solved apart (``solve_batch``: chunks would regroup a work pool's rows,
+and so change their results); otherwise its bar shows the time elapsed and
+the time expected (``expected_s``).
 
 The bar reads "compiling" until the first step is done and its clock starts
 then, so rates and ETAs exclude compilation. tqdm picks the notebook or
@@ -80,13 +82,15 @@ def record(key: Hashable, units: int, seconds: float) -> None:
 class Progress:
     """A tqdm bar of ``total`` steps labelled ``label``: drawn at once (``enabled`` True), never (False), or
     once the call has run ``AFTER_S`` seconds (None). ``counted=False``: a call that cannot report its steps
-    (one compiled program); its automatic bar shows the time elapsed, and the seconds the call should take
-    where ``expected`` says (the last call of the same program: ``expected_s``)."""
+    (one compiled program); its bar shows the time elapsed, and the seconds the call should take where
+    ``expected`` says (the last call of the same program: ``expected_s``), and ``uncounted``: why, or what
+    would count them."""
 
     def __init__(self, total: int, label: str = "", enabled: Optional[bool] = True, stream=None,
-                 counted: bool = True, expected: Optional[float] = None):
+                 counted: bool = True, expected: Optional[float] = None,
+                 uncounted: str = "progress=True counts its steps"):
         self.total, self.label, self.enabled, self.counted = max(int(total), 1), label, enabled, counted
-        self.expected = expected
+        self.expected, self.uncounted = expected, uncounted
         self.stream = stream or sys.stderr
         self._bar, self._started, self._since, self._done = None, False, 0.0, 0
         self._waiting = " (compiling)"  # said until the first step is done
@@ -114,8 +118,8 @@ class Progress:
             elif self._bar is None:
                 run = ("compiling, then one compiled run" if self.expected is None else
                        f"one compiled run of about {_duration(self.expected)}, as the last one")
-                self._bar = tqdm(total=None, desc=f"{self.label} ({run}: not counted; progress=True counts its "
-                                 "steps)", file=self.stream, dynamic_ncols=True, bar_format="{desc}: {elapsed}",
+                self._bar = tqdm(total=None, desc=f"{self.label} ({run}: not counted; {self.uncounted})",
+                                 file=self.stream, dynamic_ncols=True, bar_format="{desc}: {elapsed}",
                                  delay=1e-9)  # drawn below, with the call's time
                 self._bar.start_t -= time.monotonic() - self._since
                 self._bar.refresh()
@@ -145,10 +149,10 @@ class Progress:
 
     def __enter__(self):
         _active.append(self)
+        self._since = time.monotonic()  # when the call started: a bar that cannot count shows the time since
         if self.enabled:
             self.show()
         elif self.enabled is None:
-            self._since = time.monotonic()
             _WATCHER.watch(self)
         return self
 
