@@ -1,7 +1,8 @@
 """Progress bars for long runs (closed loops, batches, profiles), drawn by tqdm.
 
 ``with Progress(total, "label", progress) as bar: bar.update(k)`` from Python
-loops; ``tick_python(step)`` reports to the innermost active bar. A run
+loops; ``tick_python(step)`` reports to the innermost active bar of the
+calling thread (calls in other threads have bars of their own). A run
 reports at most ``TICKS`` times: every ``interval(total)`` steps and at its
 last step (``due``). A compiled closed loop never calls back from inside its
 scan (a host callback in the loop's program costs more than cheap steps,
@@ -36,11 +37,26 @@ from typing import Hashable, Optional
 
 from tqdm.auto import tqdm
 
-_active: list = []
+_local = threading.local()  # .bars: each thread's active bars, innermost last
 TICKS = 25  # most updates a run of any length sends to its bar (each costs a compiled loop a dispatch)
 AFTER_S = 2.0  # an automatic bar appears once its call has run this long
 _RATES_KEPT = 64  # compiled programs whose seconds per unit are remembered (least recently used dropped)
 _rates: "collections.OrderedDict[Hashable, float]" = collections.OrderedDict()
+
+
+def _active() -> list:
+    """The bars of this thread's calls, innermost last: a call's steps move its own bar, whatever other threads
+    run."""
+    bars = getattr(_local, "bars", None)
+    if bars is None:
+        bars = _local.bars = []
+    return bars
+
+
+def current() -> Optional["Progress"]:
+    """The innermost bar of this thread's calls, or None."""
+    bars = _active()
+    return bars[-1] if bars else None
 
 
 def interval(total: int) -> int:
@@ -148,7 +164,7 @@ class Progress:
             self._bar.refresh()
 
     def __enter__(self):
-        _active.append(self)
+        _active().append(self)
         self._since = time.monotonic()  # when the call started: a bar that cannot count shows the time since
         if self.enabled:
             self.show()
@@ -157,9 +173,10 @@ class Progress:
         return self
 
     def __exit__(self, *exc):
-        _active.remove(self)
-        if self.enabled is None:  # the enclosing automatic bar, if any, is watched again
-            _WATCHER.watch(next((b for b in reversed(_active) if b.enabled is None), None))
+        bars = _active()
+        bars.remove(self)
+        if self.enabled is None:  # the enclosing automatic bar of this thread, if any, is watched again
+            _WATCHER.watch(next((b for b in reversed(bars) if b.enabled is None), None))
         if self._bar is not None and exc[0] is None and self.counted:
             self.update(self.total)
         with self._lock:
@@ -179,21 +196,26 @@ def _duration(seconds: float) -> str:
 
 class _Watcher:
     """One daemon thread that draws an automatic bar whose call has run ``AFTER_S`` seconds, and redraws its
-    elapsed time. It looks every ``POLL_S`` seconds while calls come, so that a call only sets ``bar`` (no
-    thread is woken: a short call costs a microsecond more), and sleeps until the next call after
-    ``IDLE_S`` seconds without one (so that it never wakes inside a user's real-time loop)."""
+    elapsed time: the innermost automatic bar of each thread's calls. It looks every ``POLL_S`` seconds while
+    calls come, so that a call only sets its thread's entry of ``bars`` (no thread is woken: a short call
+    costs a microsecond more), and sleeps until the next call after ``IDLE_S`` seconds without one (so that
+    it never wakes inside a user's real-time loop)."""
 
     POLL_S, IDLE_S = 0.25, 5.0
 
     def __init__(self):
         self._cond = threading.Condition()
-        self.bar: Optional[Progress] = None  # the call being watched
+        self.bars: dict[int, Progress] = {}  # the call being watched in each thread, by thread
         self._asleep, self._thread = True, None
         self._last = 0.0  # when a call was last watched
 
     def watch(self, bar: Optional[Progress]) -> None:
-        """Watch ``bar`` (None: the call is over)."""
-        self.bar, self._last = bar, time.monotonic()
+        """Watch ``bar`` for the calling thread (None: its calls are over)."""
+        if bar is None:
+            self.bars.pop(threading.get_ident(), None)
+        else:
+            self.bars[threading.get_ident()] = bar
+        self._last = time.monotonic()
         if bar is not None and self._asleep:
             with self._cond:
                 self._asleep = False
@@ -207,23 +229,26 @@ class _Watcher:
             with self._cond:
                 self._cond.wait_for(lambda: not self._asleep)
             time.sleep(self.POLL_S)
-            bar, now = self.bar, time.monotonic()
-            if bar is None:
+            bars, now = tuple(self.bars.values()), time.monotonic()
+            if not bars:
                 if now - self._last > self.IDLE_S:
                     with self._cond:
-                        self._asleep = self.bar is None
+                        self._asleep = not self.bars
                 continue
-            if now - bar._since >= AFTER_S:
-                if bar._bar is None:
-                    bar.show()
-                else:
-                    bar.tick()
+            for bar in bars:
+                if now - bar._since >= AFTER_S:
+                    if bar._bar is None:
+                        bar.show()
+                    else:
+                        bar.tick()
 
 
 _WATCHER = _Watcher()
 
 
 def tick_python(step) -> None:
-    """From a Python loop: report that step ``step`` (0-based) is done (call it when ``due``)."""
-    if _active:
-        _active[-1].update(int(step) + 1)
+    """From a Python loop: report that step ``step`` (0-based) is done (call it when ``due``), to the innermost
+    bar of this thread."""
+    bar = current()
+    if bar is not None:
+        bar.update(int(step) + 1)
