@@ -7,7 +7,7 @@ folder (``cli.cache_folder``): ``$JAX_COMPILATION_CACHE_DIR`` when set (a
 ``~/.cache/firhc_jax``. Nothing there is ever removed by a run: each setting
 adds its files. The listing names each kept decision's application, size and
 date, and marks those this installation never reads again (written by
-another version, source, platform or format, or unreadable).
+another version, source, platform or format, or with a damaged header).
 
 Only files known by their name and contents are listed and cleared: kept
 decisions (``<SHA-256>.jaxexport`` in ``firhc_jax_exported/``, starting with
