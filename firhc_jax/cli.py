@@ -62,26 +62,33 @@ def _leaves(parser: argparse.ArgumentParser):
 
 
 def cache_folder() -> Path:
-    """The folder the commands keep their compilations in: the one this process already set
-    (``JAX_COMPILATION_CACHE_DIR``, a caller), else ``$XDG_CACHE_HOME/firhc_jax`` or ``~/.cache/firhc_jax``."""
+    """The folder the commands keep their compilations and decisions in, absolute and with ``~`` expanded: the one
+    this process already set (``JAX_COMPILATION_CACHE_DIR``, a caller; empty counts as unset), else
+    ``$XDG_CACHE_HOME/firhc_jax`` or ``~/.cache/firhc_jax``. The runs use it (``_use_compilation_cache``) and
+    ``cache`` lists it."""
     import jax
 
-    from ._src.runtime.disk_cache import default_cache_path
+    from ._src.runtime.disk_cache import cache_path
 
-    chosen = jax.config.jax_compilation_cache_dir
-    return Path(chosen).expanduser() if chosen else default_cache_path()
+    return cache_path(jax.config.jax_compilation_cache_dir or None)
 
 
 def _use_compilation_cache() -> None:
-    """The default folder, unless this process already set one (``JAX_COMPILATION_CACHE_DIR``, a caller)."""
+    """Turn on the compilation cache in ``cache_folder()``. A folder this process already set is kept, only
+    written as that function names it: JAX would take a ``~`` in it for a folder of that name."""
     import jax
+    from jax.experimental.compilation_cache import compilation_cache
 
     from ._src.runtime.disk_cache import enable_compilation_cache
 
-    if jax.config.jax_compilation_cache_dir is not None:
+    folder = cache_folder()
+    if jax.config.jax_compilation_cache_dir:
+        if jax.config.jax_compilation_cache_dir != str(folder):
+            compilation_cache.reset_cache()  # a cache JAX already opened is closed, so the folder named is used
+            jax.config.update("jax_compilation_cache_dir", str(folder))
         return
     try:
-        enable_compilation_cache()
+        enable_compilation_cache(folder)
     except OSError as e:  # a read-only home: the run goes on, compiling as if --no-cache were given
         warnings.warn(f"{e}; running without the persistent compilation cache", stacklevel=2)
 

@@ -28,6 +28,8 @@ import functools
 import hashlib
 import json
 import os
+import re
+import stat
 import tempfile
 import warnings
 from pathlib import Path
@@ -43,7 +45,12 @@ from .. import ControllerState, SearchResult, StepInfo
 
 FOLDER = "firhc_jax_exported"  # inside the compilation cache's folder
 SUFFIX = ".jaxexport"
-FORMAT = b"firhc_jax kept decision 1\n"  # the first line of a kept file; the header follows on one line
+MAGIC = b"firhc_jax kept decision "  # how a kept file of any format starts
+FORMAT = MAGIC + b"1\n"  # the first line of a kept file of this format; the header follows on one line
+KEPT_NAME = re.compile(r"[0-9a-f]{64}" + re.escape(SUFFIX))  # kept_path's names
+# The temporary file a decision is written to before it takes its name (``_write``), left where a run was killed
+# in between; before it had the suffix, mkstemp's eight characters alone.
+UNFINISHED_NAME = re.compile(r"\.tmp-\w+" + re.escape(SUFFIX) + r"|\.tmp-\w{8}")
 # The JAX options that change what a trace produces.
 TRACE_CONFIG = ("jax_enable_x64", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion",
                 "jax_default_matmul_precision")
@@ -136,16 +143,28 @@ class Refused(Exception):
 def read_header(data: bytes) -> tuple[dict, bytes]:
     """``(header, program bytes)`` of a kept file's contents. The header holds ``key``, ``sha256`` and ``label``
     (the settings' first entry: the application's name). ``Refused`` when there is no header."""
+    if not data.startswith(MAGIC):
+        raise Refused("is not a kept decision")
     if not data.startswith(FORMAT):
-        raise Refused("is not a kept decision of this version")
+        raise Refused("was written in another format")
     end = data.find(b"\n", len(FORMAT))
     try:
         header = json.loads(data[len(FORMAT):end])
         if not isinstance(header, dict) or not {"key", "sha256", "label"} <= header.keys():
             raise ValueError
-    except ValueError:
+    except (ValueError, RecursionError):  # RecursionError: JSON nested deeper than Python's parser goes
         raise Refused("has a damaged header") from None
     return header, data[end + 1:]
+
+
+def read_regular(path: Path) -> bytes:
+    """The contents of the regular file ``path``; ``Refused`` for anything else (a named pipe would wait for a
+    writer for ever), ``OSError`` where it cannot be read."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
+    with os.fdopen(fd, "rb") as f:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise Refused("is not a regular file")
+        return f.read()
 
 
 def _difference(kept: str, wanted: str) -> str:
@@ -162,7 +181,7 @@ def _read(path: Path, key_text: str):
     """The kept program of ``key_text`` at ``path``, verified; ``None`` when there is none, ``Refused`` when the
     file must not run."""
     try:
-        data = path.read_bytes()
+        data = read_regular(path)
     except (FileNotFoundError, NotADirectoryError):  # none kept yet
         return None
     except OSError as e:
@@ -248,13 +267,17 @@ def decision(ctrl, settings, folder, state, x, params) -> Callable:
 
 
 def _write(path: Path, blob: bytes) -> None:
-    """Write ``blob`` to ``path`` whole or not at all (another process may be reading it)."""
+    """Write ``blob`` to ``path`` whole or not at all (another process may be reading it), through a temporary
+    file named as ``UNFINISHED_NAME`` says, so that ``python -m firhc_jax cache`` finds one a killed run left."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=SUFFIX)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(blob)
         os.replace(tmp, path)
     except BaseException:
-        os.unlink(tmp)
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:  # cleared meanwhile (cache --clear)
+            pass
         raise

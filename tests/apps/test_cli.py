@@ -386,42 +386,181 @@ def _kept_file(path, label: str, **changed) -> None:
     path.write_bytes(_exported.FORMAT + json.dumps(header).encode() + b"\n" + bytes(5000))
 
 
-def test_cache_lists_the_kept_files_with_their_sizes_and_clears_them(tmp_path, capsys):
-    """A folder with three kept decisions (one of this installation, one of another JAX, one damaged), XLA's
-    entries and a file of the user's: each decision listed with its application, size and whether it is ever read
-    again, XLA's entries counted; ``--clear`` removes both and leaves the user's file."""
+def _xla(name: str, digit: str, what: str) -> str:
+    """The name JAX gives an entry of its compilation cache: ``<module>-<SHA-256 in hex>-cache`` (or ``-atime``)."""
+    return f"{name}-{digit * 64}-{what}"
+
+
+def _cache(folder, *args) -> None:
+    """``python -m firhc_jax cache *args`` with ``folder`` as the cache's folder."""
     import jax
 
+    before = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(folder))  # as JAX_COMPILATION_CACHE_DIR sets it
+    try:
+        assert cli.main(["cache", *args]) == 0
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
+
+
+def test_cache_lists_the_kept_files_with_their_sizes_and_clears_them(tmp_path, capsys):
+    """A folder with four kept decisions (one of this installation, one of another JAX, one of another format,
+    one with a damaged header), XLA's entries and files of the user's, some named like XLA's or like kept
+    decisions: each decision listed with its application, size and whether it is ever read again, XLA's
+    entries counted, the user's files counted apart; ``--clear`` removes the decisions and XLA's entries, and
+    leaves every file of the user's."""
     from firhc_jax.apps import _exported
 
     folder = tmp_path / "cache"
     kept = folder / _exported.FOLDER
     _kept_file(kept / f"{'a' * 64}.jaxexport", "hopper")
     _kept_file(kept / f"{'b' * 64}.jaxexport", "tanks", jax="0.4.1")
-    (kept / f"{'c' * 64}.jaxexport").write_bytes(b"damaged")
-    for name, size in (("jit_step-1f-cache", 250_000), ("jit_step-1f-atime", 8), ("jit_loop-2e-cache", 50_000)):
+    (kept / f"{'c' * 64}.jaxexport").write_bytes(b"firhc_jax kept decision 0\n{}\n" + bytes(100))
+    (kept / f"{'e' * 64}.jaxexport").write_bytes(_exported.FORMAT + b"[" * 100_000 + b"\n")
+    for name, size in ((_xla("jit_step", "1", "cache"), 250_000), (_xla("jit_step", "1", "atime"), 8),
+                       (_xla("jit_loop", "2", "cache"), 50_000)):
         (folder / name).write_bytes(bytes(size))
-    (folder / "notes.txt").write_text("mine")
-    kept_bytes = sum(p.stat().st_size for p in kept.iterdir())
-    before = jax.config.jax_compilation_cache_dir
-    jax.config.update("jax_compilation_cache_dir", str(folder))  # as JAX_COMPILATION_CACHE_DIR sets it
-    try:
-        assert cli.main(["cache"]) == 0
-        listed = capsys.readouterr().out.splitlines()
-        assert cli.main(["cache", "--clear"]) == 0
-        cleared = capsys.readouterr().out
-    finally:
-        jax.config.update("jax_compilation_cache_dir", before)
+    users = {folder / "notes.txt": b"mine", folder / "build-cache": b"x" * 7000, folder / "meeting-atime": b"8",
+             folder / _xla("jit_step", "1", "cached"): b"y", kept / f"{'d' * 64}.jaxexport": b"my own program",
+             kept / "mine.jaxexport": b"firhc_jax kept decision 1\n"}
+    for path, data in users.items():
+        path.write_bytes(data)
+    kept_bytes = sum(p.stat().st_size for p in kept.iterdir() if p not in users)
+    _cache(folder)
+    listed = capsys.readouterr().out.splitlines()
+    _cache(folder, "--clear")
+    cleared = capsys.readouterr().out
     assert listed[:2] == [f"folder: {folder}",
-                          f"kept decisions ({_exported.FOLDER}/): 3 files, {kept_bytes / 1e3:.1f} kB"]
-    rows = {line.split()[0]: line for line in listed[2:5]}
+                          f"kept decisions ({_exported.FOLDER}/): 4 files, {kept_bytes / 1e6:.1f} MB"]
+    rows = {line.split()[0]: line for line in listed[2:6]}
     assert re.fullmatch(r" +a{12} +hopper +5\.\d kB +\d{4}-\d\d-\d\d \d\d:\d\d", rows["a" * 12])
     assert re.search(r" tanks +5\.\d kB .*\(never read: written by another jax\)$", rows["b" * 12])
-    assert rows["c" * 12].endswith("(never read: is not a kept decision of this version)")
-    assert listed[5:] == ["XLA's compilations: 2 entries, 0.3 MB"]
-    assert cleared.strip() == (f"removed 3 kept decisions and 3 files of XLA's compilations (0.3 MB) from "
+    assert rows["c" * 12].endswith("(never read: was written in another format)")
+    assert rows["e" * 12].endswith("(never read: has a damaged header)")
+    assert listed[6:] == ["XLA's compilations: 2 entries, 0.3 MB",
+                          f"other files, which --clear leaves: {len(users)}"]
+    assert cleared.strip() == (f"removed 4 kept decisions and 3 files of XLA's compilations (0.4 MB) from "
                                f"{folder}")
-    assert sorted(p.name for p in folder.rglob("*")) == [_exported.FOLDER, "notes.txt"]
+    assert sorted(p for p in folder.rglob("*") if p.is_file()) == sorted(users)
+    assert all(path.read_bytes() == data for path, data in users.items())
+
+
+def _vanishing(monkeypatch, *paths) -> None:
+    """Directory listings that also name ``paths``, files that are gone by the time they are looked at (another
+    ``cache --clear``, JAX's own eviction)."""
+    import pathlib
+
+    iterdir, glob = pathlib.Path.iterdir, pathlib.Path.glob
+
+    def ghosts(folder):
+        return [p for p in paths if p.parent == folder]
+
+    monkeypatch.setattr(pathlib.Path, "iterdir", lambda self: iter([*iterdir(self), *ghosts(self)]))
+    monkeypatch.setattr(pathlib.Path, "glob", lambda self, pattern: iter([*glob(self, pattern), *ghosts(self)]))
+
+
+def test_cache_passes_over_files_that_leave_the_folder_while_it_lists_them(tmp_path, monkeypatch, capsys):
+    from firhc_jax.apps import _exported
+
+    folder = tmp_path / "cache"
+    kept = folder / _exported.FOLDER
+    _kept_file(kept / f"{'a' * 64}.jaxexport", "hopper")
+    (folder / _xla("jit_step", "1", "cache")).write_bytes(bytes(100))
+    _vanishing(monkeypatch, kept / f"{'b' * 64}.jaxexport", folder / _xla("jit_gone", "2", "cache"),
+               kept / ".tmp-abcdefgh.jaxexport")
+    _cache(folder)
+    listed = capsys.readouterr().out.splitlines()
+    assert listed[1].startswith(f"kept decisions ({_exported.FOLDER}/): 1 files") and "hopper" in listed[2]
+    assert listed[3:] == ["XLA's compilations: 1 entries, 0.1 kB"]
+    _cache(folder, "--clear")
+    assert capsys.readouterr().out.startswith("removed 1 kept decisions and 1 files of XLA's compilations")
+    assert os.listdir(kept) == [] and os.listdir(folder) == [_exported.FOLDER]
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")
+def test_cache_reads_only_regular_files(tmp_path, capsys):
+    """A named pipe under a kept decision's name (or XLA's, or an unfinished write's) is another file of the
+    user's: never opened (reading one waits for a writer for ever), never removed."""
+    import threading
+
+    from firhc_jax.apps import _exported
+
+    folder = tmp_path / "cache"
+    kept = folder / _exported.FOLDER
+    _kept_file(kept / f"{'a' * 64}.jaxexport", "hopper")
+    pipes = [kept / f"{'b' * 64}.jaxexport", kept / ".tmp-abcdefgh.jaxexport", folder / _xla("jit_x", "3", "cache")]
+    for pipe in pipes:
+        os.mkfifo(pipe)
+    listing = threading.Thread(target=_cache, args=(folder,), daemon=True)
+    listing.start()
+    listing.join(timeout=10)
+    hung = listing.is_alive()
+    while listing.is_alive():  # let the reader go: a writer opens the pipe it waits on, and closes it
+        for pipe in pipes:
+            try:
+                os.close(os.open(pipe, os.O_WRONLY | os.O_NONBLOCK))
+            except OSError:  # no reader on this one
+                pass
+        listing.join(timeout=1)
+    assert not hung, "cache waited on a named pipe"
+    listed = capsys.readouterr().out.splitlines()
+    assert listed[1].startswith(f"kept decisions ({_exported.FOLDER}/): 1 files") and "hopper" in listed[2]
+    assert listed[3:] == ["XLA's compilations: 0 entries, 0.0 kB", "other files, which --clear leaves: 3"]
+    _cache(folder, "--clear")
+    assert all(pipe.exists() for pipe in pipes) and not (kept / f"{'a' * 64}.jaxexport").exists()
+
+
+def test_cache_lists_and_clears_the_file_of_a_run_stopped_while_writing_its_decision(tmp_path, monkeypatch,
+                                                                                    capsys):
+    """A run killed between writing its decision's temporary file and renaming it (here: the rename interrupted,
+    the clean-up skipped, as a kill skips it) leaves that file; ``cache`` lists it and ``--clear`` removes it."""
+    from firhc_jax.apps import _exported
+
+    folder = tmp_path / "cache"
+    kept = folder / _exported.FOLDER
+    kept.mkdir(parents=True)
+
+    def killed(*args):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(_exported.os, "replace", killed)
+        m.setattr(_exported.os, "unlink", lambda path: None)
+        with pytest.raises(KeyboardInterrupt):
+            _exported._write(kept / f"{'a' * 64}.jaxexport", _exported.FORMAT + bytes(3000))
+    left, = kept.iterdir()
+    _cache(folder)
+    listed = capsys.readouterr().out.splitlines()
+    assert listed[1:] == [f"kept decisions ({_exported.FOLDER}/): 0 files, 0.0 kB",
+                          "unfinished kept decisions (a run stopped while writing them): 1 files, 3.0 kB",
+                          "XLA's compilations: 0 entries, 0.0 kB"]
+    _cache(folder, "--clear")
+    assert "and 1 unfinished" in capsys.readouterr().out and not left.exists()
+
+
+def test_a_tilde_in_the_cache_folder_names_one_folder_for_the_runs_and_for_cache(tmp_path, monkeypatch, capsys):
+    """``JAX_COMPILATION_CACHE_DIR="~/jc"`` (quoted, or from an env file: the shell left the ``~``): the runs' cache
+    setup hands JAX the home folder's ``jc``, where ``cache`` lists and clears; no folder named ``~`` appears."""
+    import jax
+    from jax.experimental.compilation_cache import compilation_cache
+
+    home, work = tmp_path / "home", tmp_path / "work"
+    home.mkdir()
+    work.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.chdir(work)
+    before = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", "~/jc")  # as JAX_COMPILATION_CACHE_DIR sets it
+    try:
+        cli._use_compilation_cache()  # what a run does before its work
+        used = jax.config.jax_compilation_cache_dir
+        assert cli.main(["cache"]) == 0
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
+        compilation_cache.reset_cache()
+    assert used == str(home / "jc")
+    assert capsys.readouterr().out.splitlines()[0] == f"folder: {home / 'jc'}"
+    assert not (work / "~").exists()
 
 
 def test_cache_takes_no_no_cache_and_keeps_no_compilation(monkeypatch, capsys):

@@ -141,6 +141,16 @@ def test_a_damaged_file_is_traced_and_written_again(tmp_path):
     _traced_again(tmp_path, path, args, "is not a kept decision")
 
 
+def test_a_deeply_nested_header_is_traced_and_written_again(tmp_path):
+    """A header of 100,000 nested JSON lists (Python's parser gives up with a ``RecursionError``): refused as
+    damaged, as any header that cannot be read, and replaced."""
+    path, args = _kept(tmp_path, _controller([]))
+    path.write_bytes(_exported.FORMAT + b"[" * 100_000 + b"\n" + bytes(10))
+    with pytest.raises(_exported.Refused, match="has a damaged header"):
+        _exported.read_header(path.read_bytes())
+    _traced_again(tmp_path, path, args, "has a damaged header")
+
+
 def test_a_flipped_byte_in_the_program_is_traced_and_written_again(tmp_path):
     """A byte of the program's StableHLO changed (jax.export still reads it; compiling it would fail)."""
     path, args = _kept(tmp_path, _controller([]))

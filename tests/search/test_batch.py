@@ -324,6 +324,30 @@ def test_one_lane_keeps_any_budget_exactly_as_fj_sdfs():
 
 
 
+def test_a_progress_bar_never_changes_a_batchs_results(capsys):
+    """54 rows with tight terminal sets on a pool of 2 lanes under a budget of 30 nodes: with a bar
+    (``progress=True``) every field of every row is that of the call without one, for the solvers whose rows
+    share a pool (the bar then shows the time elapsed) and for those that solve each row on its own (it counts
+    the rows, in chunks). Chunks of rows would regroup a pool's rows, and where a budget cuts a shared row its
+    incumbent depends on the rows beside it: row 28 here is infeasible in one call and found a sequence in its
+    chunk."""
+    shape = pp.SHAPES[0]
+    rng = np.random.default_rng(2)
+    rows = [pp.draw_params(rng, shape, "tight") for _ in range(54)]
+    params = {k: jnp.asarray(np.stack([r[k] for r in rows])) for k in rows[0]}
+    X0 = rng.uniform(-1, 1, (54, shape[0]))
+    for solver, options in (("pool", {"lanes": 2}), ("sdfs", {"lanes": 2}), ("sdfs-vmap", {})):
+        plain = solve_batch(pp.problem(shape), X0, params=params, solver=solver, max_nodes=30, progress=False,
+                            **options)
+        assert capsys.readouterr().err == ""
+        shown = solve_batch(pp.problem(shape), X0, params=params, solver=solver, max_nodes=30, progress=True,
+                            **options)
+        for field in fj.SearchResult._fields:
+            np.testing.assert_array_equal(getattr(shown, field), getattr(plain, field), err_msg=f"{solver} {field}")
+        err = capsys.readouterr().err
+        assert ("54/54" in err) == (solver == "sdfs-vmap") and "solve_batch" in err, err
+
+
 # ---------------------------------------------------------------- every core of a CPU
 def dispatches(monkeypatch) -> list:
     """Record the execution stream of every dispatch of a compiled batch (``solve_batch`` calls the compiled

@@ -429,7 +429,7 @@ def test_a_holding_controller_says_so_at_the_first_held_step():
     show = warnings.showwarning
 
     def at_warning(message, *args, **kwargs):
-        bar.append(progress._active[-1]._bar.n if progress._active and progress._active[-1]._bar else None)
+        bar.append(progress.current()._bar.n if progress.current() and progress.current()._bar else None)
         return show(message, *args, **kwargs)
 
     with warnings.catch_warnings(record=True) as log:

@@ -33,6 +33,12 @@ def default_cache_path() -> Path:
     return Path(base) / "firhc_jax"
 
 
+def cache_path(path: str | os.PathLike | None = None) -> Path:
+    """The folder that ``path`` names, absolute, with ``~`` expanded (JAX itself would write into a folder named
+    ``~``); ``default_cache_path()`` when ``path`` is None."""
+    return (default_cache_path() if path is None else Path(os.fspath(path)).expanduser()).resolve()
+
+
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     """Turn on JAX's persistent compilation cache in ``path`` (default: ``default_cache_path()``) and return it.
 
@@ -46,7 +52,7 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     call it at most once, before the work whose compilation should be kept.
     The folder holds executable code: share it only with users you trust.
     """
-    folder = default_cache_path() if path is None else Path(os.fspath(path)).expanduser()
+    folder = cache_path(path)
     try:
         folder.mkdir(parents=True, exist_ok=True)
         probe = folder / f".firhc_jax_write_test_{os.getpid()}"
@@ -55,7 +61,6 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     except OSError as e:
         raise OSError(f"enable_compilation_cache: cannot use {str(folder)!r} as a cache folder: "
                       f"{e.strerror or e}") from None
-    folder = folder.resolve()
     if jax.config.jax_compilation_cache_dir != str(folder):
         _jax_cache.reset_cache()  # a cache JAX already opened elsewhere is closed, so the new folder is used
         jax.config.update("jax_compilation_cache_dir", str(folder))

@@ -1,7 +1,8 @@
 """Progress bars for long runs (closed loops, batches, profiles), drawn by tqdm.
 
 ``with Progress(total, "label", progress) as bar: bar.update(k)`` from Python
-loops; ``tick_python(step)`` reports to the innermost active bar. A run
+loops; ``tick_python(step)`` reports to the innermost active bar of the
+calling thread (calls in other threads have bars of their own). A run
 reports at most ``TICKS`` times: every ``interval(total)`` steps and at its
 last step (``due``). A compiled closed loop never calls back from inside its
 scan (a host callback in the loop's program costs more than cheap steps,
@@ -17,8 +18,10 @@ costs a few microseconds. A compiled loop, which can report only by running
 in chunks, asks ``chunked``: from the seconds a unit of work took in the
 last call of the same compiled program (``record``), chunks only when this
 call is expected to run over ``AFTER_S``; a first call runs as one program.
-A batch of rows chunks only with ``progress=True`` (``solve_batch``); its
-automatic bar shows the time elapsed and the time expected (``expected_s``).
+A batch of rows chunks only with ``progress=True``, and only where its rows
+are solved apart (``solve_batch``: chunks would regroup a work pool's rows,
+and so change their results); otherwise its bar shows the time elapsed and
+the time expected (``expected_s``).
 
 The bar reads "compiling" until the first step is done and its clock starts
 then, so rates and ETAs exclude compilation. tqdm picks the notebook or
@@ -34,11 +37,26 @@ from typing import Hashable, Optional
 
 from tqdm.auto import tqdm
 
-_active: list = []
+_local = threading.local()  # .bars: each thread's active bars, innermost last
 TICKS = 25  # most updates a run of any length sends to its bar (each costs a compiled loop a dispatch)
 AFTER_S = 2.0  # an automatic bar appears once its call has run this long
 _RATES_KEPT = 64  # compiled programs whose seconds per unit are remembered (least recently used dropped)
 _rates: "collections.OrderedDict[Hashable, float]" = collections.OrderedDict()
+
+
+def _active() -> list:
+    """The bars of this thread's calls, innermost last: a call's steps move its own bar, whatever other threads
+    run."""
+    bars = getattr(_local, "bars", None)
+    if bars is None:
+        bars = _local.bars = []
+    return bars
+
+
+def current() -> Optional["Progress"]:
+    """The innermost bar of this thread's calls, or None."""
+    bars = _active()
+    return bars[-1] if bars else None
 
 
 def interval(total: int) -> int:
@@ -80,13 +98,15 @@ def record(key: Hashable, units: int, seconds: float) -> None:
 class Progress:
     """A tqdm bar of ``total`` steps labelled ``label``: drawn at once (``enabled`` True), never (False), or
     once the call has run ``AFTER_S`` seconds (None). ``counted=False``: a call that cannot report its steps
-    (one compiled program); its automatic bar shows the time elapsed, and the seconds the call should take
-    where ``expected`` says (the last call of the same program: ``expected_s``)."""
+    (one compiled program); its bar shows the time elapsed, and the seconds the call should take where
+    ``expected`` says (the last call of the same program: ``expected_s``), and ``uncounted``: why, or what
+    would count them."""
 
     def __init__(self, total: int, label: str = "", enabled: Optional[bool] = True, stream=None,
-                 counted: bool = True, expected: Optional[float] = None):
+                 counted: bool = True, expected: Optional[float] = None,
+                 uncounted: str = "progress=True counts its steps"):
         self.total, self.label, self.enabled, self.counted = max(int(total), 1), label, enabled, counted
-        self.expected = expected
+        self.expected, self.uncounted = expected, uncounted
         self.stream = stream or sys.stderr
         self._bar, self._started, self._since, self._done = None, False, 0.0, 0
         self._waiting = " (compiling)"  # said until the first step is done
@@ -114,8 +134,8 @@ class Progress:
             elif self._bar is None:
                 run = ("compiling, then one compiled run" if self.expected is None else
                        f"one compiled run of about {_duration(self.expected)}, as the last one")
-                self._bar = tqdm(total=None, desc=f"{self.label} ({run}: not counted; progress=True counts its "
-                                 "steps)", file=self.stream, dynamic_ncols=True, bar_format="{desc}: {elapsed}",
+                self._bar = tqdm(total=None, desc=f"{self.label} ({run}: not counted; {self.uncounted})",
+                                 file=self.stream, dynamic_ncols=True, bar_format="{desc}: {elapsed}",
                                  delay=1e-9)  # drawn below, with the call's time
                 self._bar.start_t -= time.monotonic() - self._since
                 self._bar.refresh()
@@ -144,18 +164,19 @@ class Progress:
             self._bar.refresh()
 
     def __enter__(self):
-        _active.append(self)
+        _active().append(self)
+        self._since = time.monotonic()  # when the call started: a bar that cannot count shows the time since
         if self.enabled:
             self.show()
         elif self.enabled is None:
-            self._since = time.monotonic()
             _WATCHER.watch(self)
         return self
 
     def __exit__(self, *exc):
-        _active.remove(self)
-        if self.enabled is None:  # the enclosing automatic bar, if any, is watched again
-            _WATCHER.watch(next((b for b in reversed(_active) if b.enabled is None), None))
+        bars = _active()
+        bars.remove(self)
+        if self.enabled is None:  # the enclosing automatic bar of this thread, if any, is watched again
+            _WATCHER.watch(next((b for b in reversed(bars) if b.enabled is None), None))
         if self._bar is not None and exc[0] is None and self.counted:
             self.update(self.total)
         with self._lock:
@@ -175,21 +196,26 @@ def _duration(seconds: float) -> str:
 
 class _Watcher:
     """One daemon thread that draws an automatic bar whose call has run ``AFTER_S`` seconds, and redraws its
-    elapsed time. It looks every ``POLL_S`` seconds while calls come, so that a call only sets ``bar`` (no
-    thread is woken: a short call costs a microsecond more), and sleeps until the next call after
-    ``IDLE_S`` seconds without one (so that it never wakes inside a user's real-time loop)."""
+    elapsed time: the innermost automatic bar of each thread's calls. It looks every ``POLL_S`` seconds while
+    calls come, so that a call only sets its thread's entry of ``bars`` (no thread is woken: a short call
+    costs a microsecond more), and sleeps until the next call after ``IDLE_S`` seconds without one (so that
+    it never wakes inside a user's real-time loop)."""
 
     POLL_S, IDLE_S = 0.25, 5.0
 
     def __init__(self):
         self._cond = threading.Condition()
-        self.bar: Optional[Progress] = None  # the call being watched
+        self.bars: dict[int, Progress] = {}  # the call being watched in each thread, by thread
         self._asleep, self._thread = True, None
         self._last = 0.0  # when a call was last watched
 
     def watch(self, bar: Optional[Progress]) -> None:
-        """Watch ``bar`` (None: the call is over)."""
-        self.bar, self._last = bar, time.monotonic()
+        """Watch ``bar`` for the calling thread (None: its calls are over)."""
+        if bar is None:
+            self.bars.pop(threading.get_ident(), None)
+        else:
+            self.bars[threading.get_ident()] = bar
+        self._last = time.monotonic()
         if bar is not None and self._asleep:
             with self._cond:
                 self._asleep = False
@@ -203,23 +229,26 @@ class _Watcher:
             with self._cond:
                 self._cond.wait_for(lambda: not self._asleep)
             time.sleep(self.POLL_S)
-            bar, now = self.bar, time.monotonic()
-            if bar is None:
+            bars, now = tuple(self.bars.values()), time.monotonic()
+            if not bars:
                 if now - self._last > self.IDLE_S:
                     with self._cond:
-                        self._asleep = self.bar is None
+                        self._asleep = not self.bars
                 continue
-            if now - bar._since >= AFTER_S:
-                if bar._bar is None:
-                    bar.show()
-                else:
-                    bar.tick()
+            for bar in bars:
+                if now - bar._since >= AFTER_S:
+                    if bar._bar is None:
+                        bar.show()
+                    else:
+                        bar.tick()
 
 
 _WATCHER = _Watcher()
 
 
 def tick_python(step) -> None:
-    """From a Python loop: report that step ``step`` (0-based) is done (call it when ``due``)."""
-    if _active:
-        _active[-1].update(int(step) + 1)
+    """From a Python loop: report that step ``step`` (0-based) is done (call it when ``due``), to the innermost
+    bar of this thread."""
+    bar = current()
+    if bar is not None:
+        bar.update(int(step) + 1)

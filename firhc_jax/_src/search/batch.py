@@ -182,14 +182,17 @@ def solve_batch(problem: Problem, X0: ArrayLike, *, solver: str = "sdfs", params
         execution. Costs, sequences and flags do not depend on it; the
         pool's node counts do (which rows share a pool), and so do the
         incumbents of pool rows cut by ``max_nodes`` where slots share them.
-      progress: a bar counting the rows solved, with an estimate, on stderr
-        or in the notebook: ``None`` (default) once the call has taken 2 s,
-        ``True`` at once, ``False`` never. The rows are then solved in up to
-        25 chunks, one compiled call each (costs and sequences as in one
-        call; node counts as ``cores`` says): with ``True``, and by default
-        when the last call of the same compiled batch says this one takes
-        2 s or more; otherwise in one call, whose bar shows the time elapsed.
-        Un-jitted, single-process calls only (``None`` is ``False`` there).
+      progress: a bar on stderr or in the notebook: ``None`` (default)
+        once the call has taken 2 s, ``True`` at once, ``False`` never. It
+        never changes a result. The batch runs as one compiled call, and the
+        bar shows the time elapsed and the time the last call of the same
+        program took; with ``True`` and a solver that solves each row on its
+        own (``"sdfs-vmap"``, ``"exhaustive"``), the bar counts the rows
+        instead, solved in up to 25 chunks of one compiled call each. The
+        rows of a work pool (``"sdfs"``, ``"pool"``) are never split for a
+        bar: which rows share the pool decides their node counts and, under
+        ``max_nodes``, their incumbents. Un-jitted, single-process calls
+        only (``None`` is ``False`` there).
 
     Returns a ``SearchResult`` with leading axis B on every field. Un-jitted, a
     negative stage cost in any row raises ``ValueError`` (as ``fj.sdfs``).
@@ -241,20 +244,24 @@ def solve_batch(problem: Problem, X0: ArrayLike, *, solver: str = "sdfs", params
     key = ("solve_batch", problem.key, solver, tuple(sorted(options.items())), max_nodes is not None, n, X.dtype.str,
            parts, max_memory, mesh)
     return raise_on_errors(_in_chunks(solve, X, params, progress, key,
-                                      min_rows=parts * solvers.lanes_for(options.get("lanes"), B)))
+                                      min_rows=parts * solvers.lanes_for(options.get("lanes"), B),
+                                      apart=not table.shares_rows))
 
 
-def _in_chunks(solve, X, params, progress, key, min_rows: int) -> SearchResult:
-    """``solve(X, params)`` under a bar (``progress``: True, False, None: automatic): in one call (False, and
-    None, whose bar shows the time elapsed and the time the last call of the program says it takes), or (True)
-    in up to ``TICKS`` calls of equal rows (at least ``min_rows``; the last padded by repeating the last row),
-    each counted as it ends. A batch is not split by default: each chunk waits for its slowest row (the work
-    pool lends the lanes that end early no rows of the next chunk), and a chunk's shape compiles a program of
-    its own (benchmarks/progress_bench.py)."""
+def _in_chunks(solve, X, params, progress, key, min_rows: int, apart: bool) -> SearchResult:
+    """``solve(X, params)`` under a bar (``progress``: True, False, None: automatic): in one call (False, None,
+    and True where the rows are not solved ``apart``: the bar shows the time elapsed and the time the last call
+    of the program says it takes), or (True, rows solved apart) in up to ``TICKS`` calls of equal rows (at
+    least ``min_rows``; the last padded by repeating the last row), each counted as it ends. A pool's rows are
+    never split: split, they would share it with other rows, and a row's node count, and its incumbent where a
+    budget cuts it, depend on the rows beside it (a bar must not change a result). A batch is not split by
+    default either: each chunk waits for its slowest row, and a chunk's shape compiles a program of its own
+    (benchmarks/progress_bench.py)."""
     B = X.shape[0]
-    chunks = bool(progress)
+    chunks = bool(progress) and apart
     with Progress(B, "solve_batch", enabled=progress, counted=chunks,
-                  expected=None if chunks else expected_s(key, B)):
+                  expected=None if chunks else expected_s(key, B),
+                  uncounted="progress=True counts its steps" if apart else "its rows share one work pool"):
         if not chunks:
             out = solve(X, params)
             started = time.perf_counter()  # compiled (the first call), now running

@@ -61,6 +61,8 @@ class Solver(NamedTuple):
     prunes: bool  # False: visits every node of the tree
     warm_starts: bool  # takes a warm start
     doc: str  # one line for tables and --help
+    shares_rows: bool = False  # a batch's rows share one pool: its node counts (and, cut by a budget, its
+    # incumbents) depend on which rows are solved together
 
 
 def _vmapped(search: Callable) -> Callable:
@@ -141,11 +143,13 @@ _SDFS_OPTIONS = {"pop_width": 1, "max_nodes": None, "max_memory": DEFAULT_MAX_ME
 SOLVERS: dict[str, Solver] = {
     "sdfs": Solver(search=sdfs_search, batch=_pool_batch, options={**_SDFS_OPTIONS, "lanes": None},
                    memory=_stack_memory, batch_memory=_pool_memory, budgets=True, prunes=True, warm_starts=True,
-                   doc="sorted depth-first search (the paper's Table 1); a batch shares a work pool"),
+                   doc="sorted depth-first search (the paper's Table 1); a batch shares a work pool",
+                   shares_rows=True),
     "pool": Solver(search=_pool_one, batch=_pool_decisions, options={**_SDFS_OPTIONS, "lanes": None},
                    memory=_one_pool_memory, batch_memory=_pool_memory, budgets=True, prunes=True,
                    warm_starts=True,
-                   doc=f"sDFS on a work pool: one decision on `lanes` slots (default {DECISION_LANES}) by stealing"),
+                   doc=f"sDFS on a work pool: one decision on `lanes` slots (default {DECISION_LANES}) by stealing",
+                   shares_rows=True),
     "sdfs-vmap": Solver(search=sdfs_search, batch=_vmapped(sdfs_search), options=_SDFS_OPTIONS,
                         memory=_stack_memory, batch_memory=_rows_of(_stack_memory), budgets=True, prunes=True,
                         warm_starts=True,
