@@ -56,7 +56,7 @@ def cases(calls: int):
                              horizon=N)
         argsets = [(rng.uniform(-0.6, 0.6, 2),) for _ in range(calls)]
         fj.sdfs(problem, *argsets[0])
-        entry = ("sdfs", problem, 1, False, fj.sdfs.__kwdefaults__["max_memory"])
+        entry = ("sdfs", problem, int, 1, False, int, fj.sdfs.__kwdefaults__["max_memory"])
         program = lean.recall(entry, (argsets[0][0], None, None))
         out[f"`fj.sdfs`, pendulum (2 states, 3 inputs), N = {N}"] = (
             lambda x, p=problem: fj.sdfs(p, x), lambda x, r=program: r(x, None, None, budget), (argsets[0][0],),
