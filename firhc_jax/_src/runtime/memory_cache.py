@@ -58,6 +58,14 @@ def peek(key: Hashable) -> Any:
     return value
 
 
+def put(key: Hashable, value: Any) -> None:
+    """Keep ``value`` under ``key`` (a record of something built already: no miss is counted)."""
+    _entries[key] = value
+    _entries.move_to_end(key)
+    while len(_entries) > _max_size:
+        _entries.popitem(last=False)
+
+
 def compiled(fn: Callable, problem, **static) -> Callable:
     """``jax.jit`` of ``fn(problem, *args, **static)`` for this problem and
     these static options, from the cache."""
