@@ -352,7 +352,7 @@ class FIRHC:
                                   state.u, x0, params, default, drop=1)
         if compiled:
             self._note_plant(plant, default, fresh)
-        return self._run(state, x0, steps, plant, plant_key, params, progress, None if compiled else self._decide(),
+        return self._run(state, x0, steps, plant, plant_key, params, progress, None if compiled else self.step,
                          dt)
 
     def _run(self, state, x0, steps: int, plant, plant_key, params, progress: Optional[bool], decision, dt
