@@ -44,7 +44,7 @@ def make_states(plant: str, horizon: int, batch: int, path: Path) -> None:
     sys.path.insert(0, str(HERE))
     from batch_bench import closed_loop_states
 
-    from firhc_jax._src.runtime.distributed import save_states
+    from firhc_jax._src.tools.distributed import save_states
 
     _, states = closed_loop_states(plant, horizon)
     save_states(path, states[np.random.default_rng(1).integers(0, len(states), batch)])
@@ -52,7 +52,7 @@ def make_states(plant: str, horizon: int, batch: int, path: Path) -> None:
 
 def run_layout(plant: str, horizon: int, states: Path, out: Path, processes: int, devices: int, repeats: int,
                timeout: float):
-    from firhc_jax._src.runtime.distributed import launch_local, load_result
+    from firhc_jax._src.tools.distributed import launch_local, load_result
 
     env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}", JAX_PLATFORMS="cpu",
                PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))

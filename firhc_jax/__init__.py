@@ -25,11 +25,11 @@ from ._src.problem.transforms import InputMemory, with_input_memory
 from ._src.runtime.collector import collector_paused
 from ._src.runtime.disk_cache import enable_compilation_cache
 from ._src.runtime.memory_cache import cache_info, clear_cache, set_cache_size
-from ._src.runtime.throughput import profile
 from ._src.search.batch import solve_batch
 from ._src.search.nodes import rollout_cost
 from ._src.search.one_state import exhaustive, sdfs
 from ._src.search.result import SearchResult
+from ._src.tools.profile import profile
 
 __all__ = ["Problem", "quadratic_cost", "discretize", "linear_dynamics", "product_controls", "tracking_cost",
            "input_change_cost", "horizon_windows", "LinearTracking", "sdfs", "exhaustive", "SearchResult", "FIRHC",

@@ -3,7 +3,8 @@
 launcher of P processes (``launch_local``) and ``exit_on_failure``. ``fj.solve_batch`` and
 ``FIRHC.simulate_batch`` need none of them: after ``jax.distributed.initialize`` they use every device of the
 job."""
-from ._src.runtime.distributed import (
+from ._src.runtime.sharding import usable_cores
+from ._src.tools.distributed import (
     DEFAULT_TIMEOUT,
     ENV_COORDINATOR,
     ENV_NUM_PROCESSES,
@@ -20,7 +21,6 @@ from ._src.runtime.distributed import (
     save_result,
     save_states,
 )
-from ._src.runtime.sharding import usable_cores
 
 __all__ = ["initialize", "job_settings", "load_states", "load_params", "save_states", "save_result", "load_result",
            "launch_local", "exit_on_failure", "free_port", "usable_cores", "STATES_KEY", "DEFAULT_TIMEOUT",

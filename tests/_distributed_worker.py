@@ -1,4 +1,4 @@
-"""Worker of tests/runtime/test_distributed.py: solve a fixed set of batches with
+"""Worker of tests/tools/test_distributed.py: solve a fixed set of batches with
 fj.solve_batch and save every result field to an .npz.
 
     python tests/_distributed_worker.py OUT.npz [COORDINATOR NUM_PROCESSES PROCESS_ID]

@@ -33,7 +33,7 @@ OLD_PATHS = {
     "nodes": (("firhc_jax._src.search.nodes",), "firhc_jax.rollout_cost"),
     "pool": (("firhc_jax._src.search.pool",), "firhc_jax.solve_batch, firhc_jax.solvers"),
     "problem": (("firhc_jax._src.problem.problem", "firhc_jax._src.checks"), "firhc_jax.Problem"),
-    "profile": (("firhc_jax._src.runtime.throughput",), "firhc_jax.profile"),
+    "profile": (("firhc_jax._src.tools.profile",), "firhc_jax.profile"),
     "progress": (("firhc_jax._src.runtime.progress",), "the progress= arguments"),
     "result": (("firhc_jax._src.search.result",), "firhc_jax.SearchResult"),
     "sdfs": (("firhc_jax._src.search.sdfs", "firhc_jax._src.search.one_state"),

@@ -572,7 +572,7 @@ def test_cache_takes_no_no_cache_and_keeps_no_compilation(monkeypatch, capsys):
 def test_the_profile_chart_says_what_its_red_bar_means(tmp_path, monkeypatch):
     from matplotlib.colors import to_rgba
 
-    from firhc_jax._src.runtime.throughput import Profile
+    from firhc_jax._src.tools.profile import Profile
 
     rows = [{"setting": f"sdfs pop_width={k}", "solver": "sdfs", "solves_per_second": 100.0 * k, "states": 3,
              "seconds": 0.03 / k, "seconds_min": 0.03 / k, "seconds_max": 0.03 / k, "nodes": 300,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import firhc_jax as fj
-from firhc_jax._src.runtime import throughput
+from firhc_jax._src.tools import profile as throughput
 from firhc_jax.apps import profile as profile_app
 from firhc_jax.apps.profile import load_case
 from firhc_jax.cli import main

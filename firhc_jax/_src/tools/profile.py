@@ -27,11 +27,11 @@ from ..annotations import ArrayLike, PyTree
 from ..checks import positive_int
 from ..problem.callables import search_inputs
 from ..problem.problem import Problem, call
+from ..runtime.memory_cache import cached
+from ..runtime.progress import Progress
 from ..search import solvers
 from ..search.batch import solve_batch
 from ..search.sdfs import INT32_MAX
-from .memory_cache import cached
-from .progress import Progress
 
 POP_WIDTHS = (1, 2, 4, 8)
 LANES = (16, 64, 256)
