@@ -11,7 +11,6 @@ from ._src.control.controller import FIRHC, InfeasibleError
 from ._src.control.decision import ControllerState, StepInfo
 from ._src.linear.tracking import LinearTracking
 from ._src.old_paths import install as _install_old_paths
-from ._src.problem.diagnostics import check_lower_bound, check_problem
 from ._src.problem.formulation import (
     discretize,
     horizon_windows,
@@ -29,6 +28,7 @@ from ._src.search.batch import solve_batch
 from ._src.search.nodes import rollout_cost
 from ._src.search.one_state import exhaustive, sdfs
 from ._src.search.result import SearchResult
+from ._src.tools.diagnostics import check_lower_bound, check_problem
 from ._src.tools.profile import profile
 
 __all__ = ["Problem", "quadratic_cost", "discretize", "linear_dynamics", "product_controls", "tracking_cost",

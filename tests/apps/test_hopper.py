@@ -226,7 +226,7 @@ def test_bound_is_admissible_and_keeps_the_closed_loop(sdfs_loop):
     warm-started from two candidates, drives the same closed loop with fewer nodes. The contact bound's
     premise holds: with valve b closed (side a idle) one period moves e = E - E_d by at most PASSIVE_DRIFT;
     where side a could charge, the bound claims nothing (0)."""
-    from firhc_jax._src.problem.diagnostics import check_lower_bound
+    from firhc_jax._src.tools.diagnostics import check_lower_bound
 
     plain, _ = sdfs_loop
     warm, _, _ = app.simulate(0.6, 4, "sdfs", P, progress=False, bound=True, warm=True)

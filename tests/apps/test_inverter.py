@@ -162,7 +162,7 @@ def test_cli_rejects_run_shorter_than_two_samples(tmp_path, capsys):
 def test_bound_is_admissible_and_keeps_the_closed_loop():
     """The reachable-hexagon bound passes the exhaustive check on closed-loop states away from the reference,
     10x it is caught, and the bounded closed loop is the unbounded one."""
-    from firhc_jax._src.problem.diagnostics import check_lower_bound
+    from firhc_jax._src.tools.diagnostics import check_lower_bound
 
     plain = app.closed_loop(2, steps=40, lambda_u=1.0, timed=False)
     bounded = app.closed_loop(2, steps=40, lambda_u=1.0, bound=True, timed=False)

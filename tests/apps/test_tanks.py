@@ -221,7 +221,7 @@ def test_cli_rejects_run_shorter_than_a_sample(tmp_path, capsys):
 def test_bound_is_admissible_and_keeps_the_closed_loop(sdfs_n3):
     """The level-rate bound passes the exhaustive check, 10x it is caught, and the bounded closed loop (with and
     without a terminal box) is the unbounded one."""
-    from firhc_jax._src.problem.diagnostics import check_lower_bound
+    from firhc_jax._src.tools.diagnostics import check_lower_bound
 
     for tol in (None, 0.01):
         # Without a box the unbounded loop is the shared one (problems[3] is make_problem(3) with P's defaults).

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from reference import brute_force, same_cost
 
 import firhc_jax as fj
-from firhc_jax._src.problem.diagnostics import check_problem
+from firhc_jax._src.tools.diagnostics import check_problem
 
 
 def _shift(x, u):

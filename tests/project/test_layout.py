@@ -77,3 +77,19 @@ def test_old_paths_keep_their_names():
 def test_private_modules_live_under_src():
     top = sorted(p.name for p in PACKAGE.glob("*.py"))
     assert top == sorted(["__init__.py", "__main__.py", "cli.py"] + [f"{n}.py" for n in NAMESPACES]), top
+
+
+# The private areas in dependency order: a module imports from its own area and those before it, never after.
+ORDER = ("runtime", "problem", "search", "control", "linear", "tools")
+
+
+@pytest.mark.parametrize("area", ORDER)
+def test_no_private_area_imports_one_above_it(area):
+    above = set(ORDER[ORDER.index(area) + 1:])
+    wrong = []
+    for path in sorted((PACKAGE / "_src" / area).glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level == 2 and node.module:
+                if node.module.split(".")[0] in above:
+                    wrong.append(f"{path.name}: from ..{node.module}")
+    assert not wrong, wrong

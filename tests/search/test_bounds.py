@@ -22,7 +22,7 @@ from param_problems import (
 )
 
 import firhc_jax as fj
-from firhc_jax._src.problem.diagnostics import check_lower_bound
+from firhc_jax._src.tools.diagnostics import check_lower_bound
 
 SETTINGS = settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

@@ -17,10 +17,10 @@ import numpy as np
 
 from ..annotations import ArrayLike, PyTree
 from ..checks import as_batch, check_params, positive_int
+from ..problem.callables import check_state
+from ..problem.problem import Problem, call
 from ..runtime.memory_cache import cached
 from ..search.one_state import exhaustive
-from .callables import check_state
-from .problem import Problem, call
 
 
 class Violation(NamedTuple):
