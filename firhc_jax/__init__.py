@@ -12,6 +12,7 @@ from ._src.control.decision import ControllerState, StepInfo
 from ._src.linear.tracking import LinearTracking
 from ._src.old_paths import install as _install_old_paths
 from ._src.problem.formulation import (
+    band_penalty,
     discretize,
     horizon_windows,
     input_change_cost,
@@ -32,7 +33,8 @@ from ._src.tools.diagnostics import check_lower_bound, check_problem
 from ._src.tools.profile import profile
 
 __all__ = ["Problem", "quadratic_cost", "discretize", "linear_dynamics", "product_controls", "tracking_cost",
-           "input_change_cost", "horizon_windows", "LinearTracking", "sdfs", "exhaustive", "SearchResult", "FIRHC",
+           "input_change_cost", "band_penalty", "horizon_windows", "LinearTracking", "sdfs", "exhaustive",
+           "SearchResult", "FIRHC",
            "ControllerState", "StepInfo", "ClosedLoop", "InfeasibleError", "InputMemory", "with_input_memory",
            "solve_batch", "clear_cache", "set_cache_size", "cache_info", "enable_compilation_cache", "check_problem",
            "check_lower_bound", "diagnostics", "profile", "rollout_cost", "collector_paused"]

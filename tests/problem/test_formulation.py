@@ -360,3 +360,54 @@ def test_forbidden_transitions_are_never_taken(seed, u_prev):
     z0 = LEG.observe(jnp.asarray(x0), jnp.array([u_prev]), p)
     for r in (fj.sdfs(LEG.problem, z0, params=p), fj.exhaustive(LEG.problem, z0, params=p)):
         assert reference.same_cost(r.cost, best) and np.isfinite(cost(np.asarray(r.sequence)))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.floats(-5, 5), min_size=3, max_size=3), st.floats(-2, 1), st.floats(0, 3), st.floats(0, 4))
+def test_band_penalty_is_the_weighted_l1_distance_outside_the_band(x, lower, width, weight):
+    """Against the definition, element by element, with numbers and with the bounds read from params."""
+    x = np.asarray(x)
+    upper = lower + width
+    want = weight * sum(max(lower - v, 0.0) + max(v - upper, 0.0) for v in x[1:])
+    fixed = fj.band_penalty(lower, upper, weight, index=slice(1, None))
+    read = fj.band_penalty("lo", "hi", "w", index=slice(1, None))
+    p = {"lo": np.float64(lower), "hi": np.float64(upper), "w": np.float64(weight)}
+    np.testing.assert_allclose(float(fixed(jnp.asarray(x))), want, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(float(read(jnp.asarray(x), p)), want, rtol=1e-12, atol=1e-12)
+    assert float(fj.band_penalty(upper=upper)(jnp.asarray(x))) == pytest.approx(sum(max(v - upper, 0) for v in x))
+
+
+def test_a_band_penalty_keeps_a_problem_exact_and_feasible_where_a_hard_band_is_not():
+    """A heater that cannot hold the band late in the horizon: the hard constraint leaves no sequence, the soft
+    one the brute-force optimum of the penalised cost."""
+    dyn = lambda x, u: 0.8 * x + u  # noqa: E731
+    controls = np.array([[0.0], [1.0], [2.0]])
+    band = fj.band_penalty(4.0, 6.0, 10.0)
+    soft = fj.Problem(dyn, controls, lambda x, u: 0.1 * u[0] + band(x), 4)
+    hard = fj.Problem(dyn, controls, lambda x, u: 0.1 * u[0], 4, constraint=lambda x, u: (x[0] >= 9.0))
+    x0 = np.array([0.0])
+    assert not bool(fj.sdfs(hard, x0).feasible)
+    best = min(sum(0.1 * u + float(band(np.array([x]))) for x, u in zip(_states(s), s, strict=True))
+               for s in itertools.product([0.0, 1.0, 2.0], repeat=4))
+    r = fj.sdfs(soft, x0)
+    assert bool(r.feasible)
+    np.testing.assert_allclose(float(r.cost), best, rtol=1e-12)
+
+
+def _states(inputs):
+    x, out = 0.0, []
+    for u in inputs:
+        x = 0.8 * x + u
+        out.append(x)
+    return out
+
+
+def test_band_penalty_refuses_what_it_cannot_mean():
+    with pytest.raises(ValueError, match="lower or an upper"):
+        fj.band_penalty()
+    with pytest.raises(ValueError, match="weight must be >= 0"):
+        fj.band_penalty(0.0, 1.0, -1.0)
+    with pytest.raises(ValueError, match="lower must not exceed upper"):
+        fj.band_penalty(2.0, 1.0)
+    with pytest.raises(TypeError, match="solve with params"):
+        fj.band_penalty("lo")(jnp.zeros(2))

@@ -197,6 +197,47 @@ def input_change_cost(lambda_u: float | str, norm: str = "squared") -> Callable:
     return switching_cost
 
 
+def band_penalty(lower: ArrayLike | str | None = None, upper: ArrayLike | str | None = None,
+                 weight: ArrayLike | str = 1.0, *, index=None) -> Callable:
+    """A soft constraint: ``penalty(x[, p])``, the L1 distance of ``x[index]`` outside the band
+    ``[lower, upper]``, times ``weight`` (0 inside the band). Add it to a stage cost, where a hard
+    ``constraint`` would leave no sequence (a comfort band, a tank level, a state of charge):
+    ``stage_cost=lambda x, u: energy(u) + band(x)``.
+
+    ``lower``, ``upper`` (either may be None: no bound on that side) and ``weight`` (>= 0) are numbers or
+    arrays broadcast against ``x[index]``, or the name of a parameter (``p[name]``) so that they can change
+    between solves and along the horizon. ``index``: what of the state the band applies to (an int, a slice
+    or an index array; default the whole state). Non-negative, as sDFS needs."""
+    if lower is None and upper is None:
+        raise ValueError("band_penalty needs a lower or an upper bound (or both)")
+    fixed = {}
+    for name, value in (("lower", lower), ("upper", upper), ("weight", weight)):
+        if value is not None and not isinstance(value, str):
+            fixed[name] = real_array(f"band_penalty {name} (a number, an array or a parameter name)", value)
+    if "weight" in fixed and np.any(fixed["weight"] < 0):
+        raise ValueError(f"band_penalty weight must be >= 0, got {weight!r}")
+    if "lower" in fixed and "upper" in fixed and np.any(fixed["lower"] > fixed["upper"]):
+        raise ValueError(f"band_penalty lower must not exceed upper, got lower={lower!r}, upper={upper!r}")
+
+    def read(name, value, rest, dtype):
+        if isinstance(value, str):
+            if not rest:
+                raise TypeError(f"band_penalty reads {name} from p[{value!r}]: solve with params")
+            return jnp.asarray(rest[-1][value], dtype)
+        return jnp.asarray(fixed[name], dtype)
+
+    def penalty(x, *rest):
+        v = x if index is None else x[index]
+        out = jnp.zeros_like(v)
+        if lower is not None:
+            out = out + jnp.maximum(read("lower", lower, rest, v.dtype) - v, 0)
+        if upper is not None:
+            out = out + jnp.maximum(v - read("upper", upper, rest, v.dtype), 0)
+        return jnp.sum(read("weight", weight, rest, v.dtype) * out)
+
+    return penalty
+
+
 def horizon_windows(signal: ArrayLike, steps: int, horizon: int, start: int = 1, *, axis: int = 0) -> np.ndarray:
     """``[steps, N, ...]``: for the decision at step t, ``signal[t+start .. t+start+N-1]``.
 
