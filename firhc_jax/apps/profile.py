@@ -54,6 +54,9 @@ def register(subparsers) -> None:
     p.add_argument("--max-exhaustive-nodes", type=number(int, 1, MAX_EXHAUSTIVE_NODES), default=10_000_000,
                    help=f"fj.exhaustive runs on evenly spaced states visiting at most this many nodes in all "
                         f"(default 10000000, at most {MAX_EXHAUSTIVE_NODES})")
+    p.add_argument("--controller", action="store_true",
+                   help="name the fastest of the settings that run one decision per call (fj.sdfs, fj.exhaustive): "
+                        "what a FIRHC deciding once per sampling period runs; solve_batch is still timed")
     p.add_argument("--float32", action="store_true", help="float32 (default float64)")
     p.add_argument("--debug", action="store_true",
                    help="let an error in MODULE through with its traceback (default: one line)")
@@ -136,6 +139,8 @@ def verdict(profile) -> str:
     default = next((r for r in rows if r["default"] and r["solver"] == best["solver"]),
                    next(r for r in rows if r["default"]))
     rate = f"{_number(best['solves_per_second'])} solves/s"
+    if profile.for_controller:
+        rate += ", of the settings of one decision per call, as a controller decides"
     if profile.repeats == 1:
         return (f"fastest: {best['setting']} ({rate} in one run; with one run per setting the noise is not "
                 "measured: --repeats 3 or more tells whether it wins clearly)")
@@ -227,7 +232,8 @@ def run(args) -> int:
 
     try:
         result = profile(problem, states, params, pop_widths=args.pop_widths, lanes=args.lanes,
-                         repeats=args.repeats, max_exhaustive_nodes=args.max_exhaustive_nodes, progress=True)
+                         repeats=args.repeats, max_exhaustive_nodes=args.max_exhaustive_nodes, progress=True,
+                         for_controller=args.controller)
     except (TypeError, ValueError) as e:  # states or params the search refuses: its message, no traceback
         raise SystemExit(f"profile: {e}") from None
     where = f"{machine()}, {'float32' if args.float32 else 'float64'}"

@@ -65,6 +65,7 @@ def test_profile_rows_have_the_documented_keys_the_defaults_and_one_fastest(user
                                             "solve_batch default lanes", "solve_batch lanes=4"]
     assert [r["solver"] for r in rows] == ["sdfs", "sdfs", "exhaustive", "solve_batch", "solve_batch"]
     assert [r["default"] for r in rows] == [True, False, False, True, False]  # what a call without options gets
+    assert [r["per_decision"] for r in rows] == [True, True, True, False, False]  # a controller's kind of call
     assert rows[3]["lanes"] is None and rows[4]["lanes"] == 4
     for r in rows:  # the first profile of this problem: every setting compiles, apart from the timed calls
         assert 0 < r["seconds_min"] <= r["seconds"] <= r["seconds_max"] < r["compile_s"] and r["states"] == 6
@@ -94,7 +95,7 @@ def _timed(setting: str, states: int, low: float, high: float, default: bool = F
     """A row of ``fj.profile`` with the keys its marks and its report read."""
     return {"setting": setting, "solver": "solve_batch", "states": states, "seconds_min": low, "seconds_max": high,
             "solves_per_second": states / ((low + high) / 2), "nodes_per_second": 1e6, "default": default,
-            "fastest": False, "within_noise": False}
+            "per_decision": setting.startswith("sdfs"), "fastest": False, "within_noise": False}
 
 
 def test_a_difference_inside_the_noise_is_no_clear_winner():
@@ -102,19 +103,37 @@ def test_a_difference_inside_the_noise_is_no_clear_winner():
     every other's fastest wins clearly. Ranges are compared per state (exhaustive times a subset)."""
     same = [_timed("default", 100, 1.0, 2.0, True), _timed("lanes=64", 100, 0.6, 1.1),
             _timed("exhaustive", 10, 1.0, 1.2)]
-    throughput._mark(same)
+    throughput._mark(same, False)
     assert [r["fastest"] for r in same] == [False, True, False]
     assert [r["within_noise"] for r in same] == [True, True, False]  # 1.0 / 100 <= 1.1 / 100; 1.0 / 10 is not
     assert not throughput.Profile(same, [], 3, 1.0, 2.0).clear_winner
     assert profile_app.verdict(throughput.Profile(same, [], 3, 1.0, 2.0)).startswith(
         "no clear winner: lanes=64 (118 solves/s median) is within the noise of default (their runs' ranges overlap")
     apart = [_timed("default", 100, 1.2, 2.0, True), _timed("lanes=64", 100, 0.6, 1.1)]
-    throughput._mark(apart)
+    throughput._mark(apart, False)
     assert [r["within_noise"] for r in apart] == [False, True]
     assert throughput.Profile(apart, [], 3, 1.0, 2.0).clear_winner
     assert profile_app.verdict(throughput.Profile(apart, [], 3, 1.0, 2.0)).startswith(
         "fastest: lanes=64 (118 solves/s, 1e+06 nodes/s, 1.88x default, the default; its slowest of 3 runs beats")
     assert not throughput.Profile(apart, [], 1, 1.0, 2.0).clear_winner  # one run each: no noise measured
+
+
+def test_for_a_controller_the_fastest_is_among_the_rows_of_one_decision_per_call():
+    """A batch of every state at once can beat one decision per call per state, but a controller decides once
+    per sampling period: asked for a controller, profile names the fastest row it can use."""
+    rows = [_timed("sdfs pop_width=1", 100, 1.0, 1.2, True), _timed("sdfs pop_width=4", 100, 0.5, 0.6),
+            _timed("solve_batch default lanes", 100, 0.1, 0.12, True)]
+    throughput._mark(rows, True)
+    assert [r["fastest"] for r in rows] == [False, True, False]
+    assert [r["within_noise"] for r in rows] == [False, True, False]
+    result = throughput.Profile(rows, [], 3, 1.0, 2.0, for_controller=True)
+    assert result.clear_winner
+    assert profile_app.verdict(result).startswith(
+        "fastest: sdfs pop_width=4 (182 solves/s, of the settings of one decision per call, as a controller decides")
+    for r in rows:
+        r["fastest"] = r["within_noise"] = False
+    throughput._mark(rows, False)  # every row: the batch
+    assert [r["fastest"] for r in rows] == [False, False, True]
 
 
 def test_node_costs_time_each_callable_as_a_search_evaluates_it():

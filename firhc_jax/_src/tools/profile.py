@@ -45,19 +45,20 @@ class Profile(list):
     Attributes: ``node_costs`` (one dict per callable of the problem, in the order a node evaluates them:
     ``callable``, ``ns`` (median ns per child), ``ns_min``, ``ns_max``, ``children`` (the children of one
     timed call), ``compile_s``), ``repeats`` (timed runs of every setting), ``compile_seconds`` (the first
-    calls' extra time, summed over the searches and callables) and ``seconds`` (the whole profile's time).
+    calls' extra time, summed over the searches and callables), ``seconds`` (the whole profile's time) and
+    ``for_controller`` (the fastest was chosen among the rows of one decision per call).
     """
 
     def __init__(self, rows: list[dict], node_costs: list[dict], repeats: int, compile_seconds: float,
-                 seconds: float):
+                 seconds: float, for_controller: bool = False):
         super().__init__(rows)
         self.node_costs, self.repeats = node_costs, repeats
-        self.compile_seconds, self.seconds = compile_seconds, seconds
+        self.compile_seconds, self.seconds, self.for_controller = compile_seconds, seconds, for_controller
 
     @property
     def clear_winner(self) -> bool:
-        """Whether the fastest setting's slowest run beat every other setting's fastest run (never with one run
-        per setting, which measures no noise)."""
+        """Whether the fastest setting's slowest run beat every other setting's fastest run (of those it was
+        chosen among; never with one run per setting, which measures no noise)."""
         return self.repeats > 1 and sum(r["within_noise"] for r in self) == 1
 
 
@@ -164,21 +165,23 @@ def _row(solver: str, setting: str, times: list, first: float, results, solves: 
             "seconds_min": min(times), "seconds_max": max(times), "compile_s": max(first - seconds, 0.0),
             "nodes": nodes, "iterations": iterations, "nodes_per_second": nodes / seconds,
             "solves_per_second": solves / seconds, "us_per_iteration": 1e6 * seconds / max(iterations, 1),
-            "default": default, "fastest": False, "within_noise": False}
+            "default": default, "per_decision": solver != "solve_batch", "fastest": False, "within_noise": False}
 
 
-def _mark(rows: list[dict]) -> None:
-    """Mark the fastest row (most solves per second) and every row within the noise of it: whose fastest
-    run per state is no slower than the fastest row's slowest run per state."""
-    best = max(rows, key=lambda r: r["solves_per_second"])
+def _mark(rows: list[dict], for_controller: bool) -> None:
+    """Mark the fastest row (most solves per second; ``for_controller``: of the rows of one decision per call)
+    and every row within the noise of it: whose fastest run per state is no slower than the fastest row's
+    slowest run per state."""
+    among = [r for r in rows if r["per_decision"] or not for_controller]
+    best = max(among, key=lambda r: r["solves_per_second"])
     best["fastest"] = True
-    for r in rows:
+    for r in among:
         r["within_noise"] = r["seconds_min"] / r["states"] <= best["seconds_max"] / best["states"]
 
 
 def profile(problem: Problem, states: ArrayLike, params: PyTree = None, *, pop_widths: Sequence[int] = POP_WIDTHS,
             lanes: Sequence[int] = LANES, repeats: int = 3, max_exhaustive_nodes: int = MAX_EXHAUSTIVE_NODES,
-            progress: bool | None = None) -> Profile:
+            progress: bool | None = None, for_controller: bool = False) -> Profile:
     """Time every search setting on ``states``, interleaved and repeated; mark the default and the fastest.
 
     Args:
@@ -198,6 +201,12 @@ def profile(problem: Problem, states: ArrayLike, params: PyTree = None, *, pop_w
         the notebook, naming the setting being compiled and timed: ``None``
         (default) once the call has taken 2 s, ``True`` at once, ``False``
         never.
+      for_controller: the fastest is chosen among the rows that run one
+        decision per call (``per_decision``: ``fj.sdfs`` at each pop width
+        and ``fj.exhaustive``), what a ``FIRHC`` deciding once per sampling
+        period runs (its ``pop_width`` and ``solver``); ``solve_batch``'s
+        rows, which share every core among all the states at once, are
+        still timed. Default: among every row.
 
     Returns a ``Profile``: a list with one dict per setting, in the order
     above: ``solver`` (``"sdfs"``, ``"exhaustive"`` or ``"solve_batch"``),
@@ -211,9 +220,12 @@ def profile(problem: Problem, states: ArrayLike, params: PyTree = None, *, pop_w
     ``nodes_per_second``, ``solves_per_second``, ``us_per_iteration``
     (``seconds`` over ``iterations``, whose meaning is each solver's, see
     ``SearchResult``), ``default`` (the setting a call without options
-    gets), ``fastest`` (True on exactly one row, the most solves per second)
+    gets), ``per_decision`` (the row times one decision per call, as a
+    controller makes them), ``fastest`` (True on exactly one row, the most
+    solves per second; of the ``per_decision`` rows with ``for_controller``)
     and ``within_noise`` (its fastest run per state is no slower than the
-    fastest row's slowest: no clear difference). Its ``node_costs`` split a
+    fastest row's slowest: no clear difference; only the rows the fastest
+    was chosen among). Its ``node_costs`` split a
     node's time into the problem's callables; ``clear_winner``,
     ``compile_seconds`` and ``seconds`` (the whole profile) say what the
     rows rest on (``Profile``).
@@ -251,7 +263,7 @@ def profile(problem: Problem, states: ArrayLike, params: PyTree = None, *, pop_w
         bar.describe("profile")
     rows = [_row(solver, setting, times[j], firsts[j], results[j], solves, default, **options)
             for j, (solver, setting, solves, default, options) in enumerate(settings)]
-    _mark(rows)
+    _mark(rows, for_controller)
     node_costs = []
     for j, job in enumerate(node_jobs, start=len(jobs)):
         median = statistics.median(times[j])
@@ -259,4 +271,4 @@ def profile(problem: Problem, states: ArrayLike, params: PyTree = None, *, pop_w
                            "ns_min": 1e9 * min(times[j]) / children, "ns_max": 1e9 * max(times[j]) / children,
                            "children": children, "compile_s": max(firsts[j] - median, 0.0)})
     compile_seconds = sum(r["compile_s"] for r in rows) + sum(c["compile_s"] for c in node_costs)
-    return Profile(rows, node_costs, repeats, compile_seconds, time.perf_counter() - start)
+    return Profile(rows, node_costs, repeats, compile_seconds, time.perf_counter() - start, for_controller)
