@@ -411,3 +411,55 @@ def test_band_penalty_refuses_what_it_cannot_mean():
         fj.band_penalty(2.0, 1.0)
     with pytest.raises(TypeError, match="solve with params"):
         fj.band_penalty("lo")(jnp.zeros(2))
+
+
+def _ramp_problem(N, previous_state=True):
+    """x' = 0.9 x + u with a ramp limit |x' - x| <= 1.2 and a cost of the change, both of the state before."""
+    def constraint(x, x_next, u):
+        return jnp.abs(x_next[0] - x[0]) <= 1.2
+
+    def stage_cost(x, x_next, u):
+        return x_next[0] ** 2 + 0.5 * (x_next[0] - x[0]) ** 2
+
+    return fj.Problem(lambda x, u: 0.9 * x + u, np.array([[-1.0], [0.0], [1.0], [2.0]]), stage_cost, N,
+                      constraint=constraint, previous_state=previous_state)
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.floats(-3, 3), st.integers(1, 4))
+def test_stage_cost_and_constraint_of_the_state_before_the_step_are_the_brute_force_optimum(x0, N):
+    problem = _ramp_problem(N)
+    best = np.inf
+    for seq in itertools.product(range(4), repeat=N):
+        x, cost = x0, 0.0
+        for i in seq:
+            x_next = 0.9 * x + problem.controls[i, 0]
+            if abs(x_next - x) > 1.2:
+                cost = np.inf
+                break
+            cost += x_next ** 2 + 0.5 * (x_next - x) ** 2
+            x = x_next
+        best = min(best, cost)
+    r = fj.sdfs(problem, np.array([x0]))
+    if np.isinf(best):
+        assert not bool(r.feasible)
+    else:
+        np.testing.assert_allclose(float(r.cost), best, rtol=1e-12)
+        np.testing.assert_allclose(float(fj.rollout_cost(problem, np.array([x0]), r.sequence)[0]), best, rtol=1e-12)
+    np.testing.assert_allclose(float(fj.exhaustive(problem, np.array([x0])).cost), best, rtol=1e-12)
+
+
+def test_the_state_before_the_step_reaches_the_closed_loop_and_input_memory():
+    """The realised cost of a closed loop prices each step from the state before it; with_input_memory passes
+    the state before the step through; a problem that does not ask for it is refused with its signature."""
+    problem = _ramp_problem(3)
+    run = fj.FIRHC(problem).simulate(np.array([2.5]), 6)
+    xs = np.asarray(run.states)[:, 0]
+    want = sum(xs[t + 1] ** 2 + 0.5 * (xs[t + 1] - xs[t]) ** 2 for t in range(6))
+    np.testing.assert_allclose(run.realised_cost(problem), want, rtol=1e-12)
+    assert np.all(np.abs(np.diff(xs)) <= 1.2 + 1e-12)
+    mem = fj.with_input_memory(problem, fj.input_change_cost(0.1))
+    r = fj.sdfs(mem.problem, mem.observe(np.array([2.5]), np.array([0.0])))
+    assert bool(r.feasible) and float(r.cost) >= float(fj.sdfs(problem, np.array([2.5])).cost)
+    with pytest.raises(TypeError, match=r"stage_cost\(x_next, u\)"):
+        fj.sdfs(_ramp_problem(2, previous_state=False), np.array([1.0]))

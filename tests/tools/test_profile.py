@@ -207,7 +207,7 @@ def test_profile_figure_labels_its_log_axes_and_writes_each_value(tmp_path):
 
     rows = [dict(_timed(name, 50, low, 1.2 * low), solver="sdfs", nodes_per_second=rate, default=name.endswith("1"))
             for name, low, rate in (("sdfs pop_width=1", 0.010, 4e5), ("sdfs pop_width=2", 0.013, 3e5))]
-    throughput._mark(rows)
+    throughput._mark(rows, False)
     costs = [{"callable": c, "ns": ns, "ns_min": ns, "ns_max": 1.1 * ns, "children": 16384, "compile_s": 0.1}
              for c, ns in (("dynamics", 575.0), ("lower_bound", 661.0), ("terminal", 80.0))]
     fig = profile_app.figure(throughput.Profile(rows, costs, 3, 12.0, 30.0), "two settings")

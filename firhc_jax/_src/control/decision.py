@@ -162,7 +162,7 @@ def applied(opts, state: ControllerState, x, xm, p, result: SearchResult, nodes,
     u = jnp.where(held, state.u if opts.u_safe is None else opts.u_safe, result.first_input)
     u_plant = call(opts.actuate, p, x, u) if opts.actuate else u
     u_model = jnp.asarray(opts.problem.controls)[jnp.maximum(result.sequence[0], 0)]
-    stage = opts.problem.cost_of_step(opts.problem.next_state(xm, u_model, 0, p), u_model, 0, p)
+    stage = opts.problem.cost_of_step(xm, opts.problem.next_state(xm, u_model, 0, p), u_model, 0, p)
     info = StepInfo(result=result, used_fallback=used, complete=result.complete, nodes=nodes,
                     fallback_nodes=jnp.where(used, result.nodes, 0), feasible=result.feasible & ~used,
                     held=held, stage_cost=jnp.where(held, jnp.nan, stage))

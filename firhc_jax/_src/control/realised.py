@@ -32,8 +32,9 @@ def realised_cost(run, problem: Problem, params=None, terminal_cost: bool = Fals
     check_state(problem, states.reshape(-1, states.shape[-1])[0],
                 jax.tree_util.tree_map(lambda a: a[(0,) * len(lead)], params))
     per_step = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[len(lead):]), params)
-    stage = jax.vmap(lambda x, u, p: problem.cost_of_step(x, u, 0, p))(
-        states[..., 1:, :].reshape(-1, states.shape[-1]), inputs.reshape(-1, inputs.shape[-1]), per_step)
+    stage = jax.vmap(lambda x, x_next, u, p: problem.cost_of_step(x, x_next, u, 0, p))(
+        states[..., :-1, :].reshape(-1, states.shape[-1]), states[..., 1:, :].reshape(-1, states.shape[-1]),
+        inputs.reshape(-1, inputs.shape[-1]), per_step)
     total = np.asarray(stage, np.float64).reshape(lead).sum(axis=-1)
     if terminal_cost:  # of the last state, with the last step's parameters
         loops = (slice(None),) * (len(lead) - 1)

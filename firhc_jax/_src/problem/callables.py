@@ -18,9 +18,10 @@ def callable_forms(problem: Problem, with_params: bool) -> str:
     """How this problem calls its callables, for error messages."""
     k = ", k" if problem.step_index else ""
     p = ", p" if with_params else ""
-    forms = [f"dynamics(x, u{k}{p})", f"stage_cost(x_next, u{k}{p})"]
+    x = "x, " if problem.previous_state else ""
+    forms = [f"dynamics(x, u{k}{p})", f"stage_cost({x}x_next, u{k}{p})"]
     if problem.constraint is not None:
-        forms.append(f"constraint(x_next, u{k}{p})")
+        forms.append(f"constraint({x}x_next, u{k}{p})")
     forms += [f"terminal(x{p})", f"terminal_cost(x{p})", f"lower_bound(x, steps_left{p})"]
     return ", ".join(forms)
 
@@ -103,15 +104,19 @@ def _check_callables(problem: Problem, x: jax.ShapeDtypeStruct, pspec, with_para
         raise TypeError(
             f"dynamics(x, u{ks}{p}) changed the state dtype from {x.dtype} to {out.dtype}; "
             "cast x0 (or the constants/controls inside dynamics) so that the dtypes agree")
-    c = _call_shape(problem, problem.stage_cost, "stage_cost", f"(x_next, u{ks}{p})", with_params, pspec, x, u, *k)
-    _real_scalar(c, f"stage_cost(x_next, u{ks}{p})")
+    xs = (x,) if problem.previous_state else ()  # the state before the step
+    before = "x, " if problem.previous_state else ""
+    c = _call_shape(problem, problem.stage_cost, "stage_cost", f"({before}x_next, u{ks}{p})", with_params, pspec,
+                    *xs, x, u, *k)
+    _real_scalar(c, f"stage_cost({before}x_next, u{ks}{p})")
     if problem.terminal_cost is not None:
         g = _call_shape(problem, problem.terminal_cost, "terminal_cost", f"(x{p})", with_params, pspec, x)
         _real_scalar(g, f"terminal_cost(x{p})")
     if problem.constraint is not None:
-        h = _call_shape(problem, problem.constraint, "constraint", f"(x_next, u{ks}{p})", with_params, pspec, x, u,
+        h = _call_shape(problem, problem.constraint, "constraint", f"({before}x_next, u{ks}{p})", with_params, pspec,
+                        *xs, x, u,
                         *k)
-        _bool_scalar(h, f"constraint(x_next, u{ks}{p})")
+        _bool_scalar(h, f"constraint({before}x_next, u{ks}{p})")
     if problem.terminal is not None:
         t = _call_shape(problem, problem.terminal, "terminal", f"(x{p})", with_params, pspec, x)
         _bool_scalar(t, f"terminal(x{p})")
@@ -141,4 +146,4 @@ def cost_dtype(problem: Problem, x0, params=None, batched_params: bool = False):
     u = jax.ShapeDtypeStruct(problem.controls.shape[1:], problem.controls.dtype)
     _, pspec = params_spec(params, drop_leading=batched_params)
     x = jax.ShapeDtypeStruct(x0.shape[-1:], x0.dtype)
-    return jax.eval_shape(lambda p, a, b: problem.cost_of_step(a, b, 0, p), pspec, x, u).dtype
+    return jax.eval_shape(lambda p, a, b: problem.cost_of_step(a, a, b, 0, p), pspec, x, u).dtype

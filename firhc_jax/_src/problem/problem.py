@@ -27,6 +27,11 @@ three per-step callables take ``k`` after their usual arguments:
 * ``constraint(x_next, u[, k][, p]) -> bool`` scalar: optional hard constraint
   on every step (current limits, forbidden transitions). A child where it is
   False is discarded: never expanded, never a solution, never counted as cheap.
+
+With ``previous_state=True`` ``stage_cost`` and ``constraint`` also take the
+state before the step, first: ``stage_cost(x, x_next, u[, k][, p])``,
+``constraint(x, x_next, u[, k][, p])`` (a minimum up or down time, a ramp
+limit, a cost of changing state, without carrying a flag in the state).
 * ``terminal(x[, p]) -> bool`` scalar, tested on ``x(k+N)``: the terminal
   constraint (eq. 3), in practice a tolerance set. ``None``: unconstrained.
 * ``terminal_cost(x[, p]) -> scalar >= 0``: optional cost of the last predicted
@@ -79,6 +84,8 @@ class Problem:
       terminal_cost: optional ``terminal_cost(x_N[, p]) -> scalar >= 0``.
       constraint: optional ``constraint(x_next, u[, k][, p]) -> bool``.
       step_index: pass ``k`` to ``dynamics``, ``stage_cost`` and ``constraint``.
+      previous_state: pass the state before the step to ``stage_cost`` and
+        ``constraint``, as their first argument (module docstring).
       first_input_of: optional ``first_input_of(x0, sequence[, p]) -> [m]``,
         the input to apply for an optimal sequence (module docstring).
 
@@ -100,6 +107,7 @@ class Problem:
     constraint: Optional[Callable] = None
     step_index: bool = False
     first_input_of: Optional[Callable] = None
+    previous_state: bool = False
 
     def __post_init__(self):
         for name in ("dynamics", "stage_cost"):
@@ -109,9 +117,10 @@ class Problem:
             value = getattr(self, name)
             if value is not None and not callable(value):
                 raise TypeError(f"Problem.{name} must be callable or None, got {type(value).__name__}")
-        if not isinstance(self.step_index, (bool, np.bool_)):
-            raise TypeError(f"Problem.step_index must be True or False, got {self.step_index!r}")
-        object.__setattr__(self, "step_index", bool(self.step_index))
+        for name in ("step_index", "previous_state"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise TypeError(f"Problem.{name} must be True or False, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, bool(getattr(self, name)))
         horizon = positive_int("horizon", self.horizon)
         if horizon > _MAX_HORIZON:
             raise ValueError(f"horizon {horizon} is larger than {_MAX_HORIZON:,}: the search's node paths and "
@@ -119,7 +128,7 @@ class Problem:
         object.__setattr__(self, "horizon", horizon)
         object.__setattr__(self, "controls", _check_controls(self.controls))
         object.__setattr__(self, "_key", tuple(getattr(self, f) for f in _CALLABLE_FIELDS)
-                           + (self.horizon, self.step_index, _ControlsKey(self.controls)))
+                           + (self.horizon, self.step_index, self.previous_state, _ControlsKey(self.controls)))
 
     # -- sizes -------------------------------------------------------------
     @property
@@ -170,11 +179,11 @@ class Problem:
     @classmethod
     def tree_unflatten(cls, aux, leaves):
         obj = object.__new__(cls)  # already validated
-        *fns, horizon, step_index, controls = aux
+        *fns, horizon, step_index, previous_state, controls = aux
         for name, value in zip(_CALLABLE_FIELDS, fns, strict=True):
             object.__setattr__(obj, name, value)
-        for name, value in (("horizon", horizon), ("step_index", step_index), ("controls", controls.array),
-                            ("_key", aux)):
+        for name, value in (("horizon", horizon), ("step_index", step_index), ("previous_state", previous_state),
+                            ("controls", controls.array), ("_key", aux)):
             object.__setattr__(obj, name, value)
         return obj
 
@@ -183,15 +192,15 @@ class Problem:
         """``dynamics(x, u[, k][, p])``."""
         return call(self.dynamics, params, x, u, *self._k(k))
 
-    def cost_of_step(self, x_next, u, k, params=None):
-        """``stage_cost(x_next, u[, k][, p])``."""
-        return call(self.stage_cost, params, x_next, u, *self._k(k))
+    def cost_of_step(self, x, x_next, u, k, params=None):
+        """``stage_cost([x, ]x_next, u[, k][, p])`` of the step from ``x``."""
+        return call(self.stage_cost, params, *self._x(x), x_next, u, *self._k(k))
 
-    def allowed(self, x_next, u, k, params=None):
-        """``constraint(x_next, u[, k][, p])``, True without a constraint."""
+    def allowed(self, x, x_next, u, k, params=None):
+        """``constraint([x, ]x_next, u[, k][, p])`` of the step from ``x``, True without a constraint."""
         if self.constraint is None:
             return jnp.ones((), bool)
-        return call(self.constraint, params, x_next, u, *self._k(k))
+        return call(self.constraint, params, *self._x(x), x_next, u, *self._k(k))
 
     def first_input(self, x0, sequence, params=None):
         """The input to apply for the optimal ``sequence`` ``[N]`` from ``x0``
@@ -212,6 +221,9 @@ class Problem:
 
     def _k(self, k):
         return (jnp.asarray(k, jnp.int32),) if self.step_index else ()
+
+    def _x(self, x):
+        return (x,) if self.previous_state else ()
 
 
 _CALLABLE_FIELDS = ("dynamics", "stage_cost", "terminal", "lower_bound", "terminal_cost", "constraint",

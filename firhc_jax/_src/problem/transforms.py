@@ -56,15 +56,19 @@ def with_input_memory(problem: Problem, switching_cost: Callable, transition: Ca
             parts.append(jnp.reshape(transition(uz, u_prev, *p), (1,)).astype(z.dtype))
         return jnp.concatenate(parts)
 
-    def stage_cost(z_next, u, *p):
-        x_next, _, s = split(z_next)
-        return problem.stage_cost(x_next, u, *p) + s
+    steps = 2 + problem.previous_state  # ([z,] z_next, u): the states of the step, as the problem takes them
+
+    def stage_cost(*args):
+        *zs, u = args[:steps]
+        return problem.stage_cost(*(split(z)[0] for z in zs), u, *args[steps:]) + split(zs[-1])[2]
 
     terminal = lower_bound = terminal_cost = constraint = None
     if problem.constraint is not None or transition is not None:
-        def constraint(z_next, u, *p):
-            ok = jnp.ones((), bool) if problem.constraint is None else problem.constraint(split(z_next)[0], u, *p)
-            return ok if transition is None else ok & (z_next[-1] > 0)
+        def constraint(*args):
+            *zs, u = args[:steps]
+            ok = jnp.ones((), bool) if problem.constraint is None else \
+                problem.constraint(*(split(z)[0] for z in zs), u, *args[steps:])
+            return ok if transition is None else ok & (zs[-1][-1] > 0)
     if problem.terminal is not None:
         def terminal(z, *p):
             return problem.terminal(split(z)[0], *p)
@@ -80,4 +84,5 @@ def with_input_memory(problem: Problem, switching_cost: Callable, transition: Ca
                                 jnp.ones((extra - 1,), x.dtype)])
 
     return InputMemory(Problem(dynamics, problem.controls, stage_cost, problem.horizon, terminal, lower_bound,
-                               terminal_cost, constraint, problem.step_index), observe)
+                               terminal_cost, constraint, problem.step_index,
+                               previous_state=problem.previous_state), observe)

@@ -37,7 +37,7 @@ class Children(NamedTuple):
 def one_child(problem: Problem, x, u, k, p):
     """``(x_next, stage cost, constraint met)`` of input ``u`` at step ``k``."""
     x_next = problem.next_state(x, u, k, p)
-    return x_next, problem.cost_of_step(x_next, u, k, p), problem.allowed(x_next, u, k, p)
+    return x_next, problem.cost_of_step(x, x_next, u, k, p), problem.allowed(x, x_next, u, k, p)
 
 
 def _terminal_cost(problem: Problem, xs, at_leaf, p_axis, params):

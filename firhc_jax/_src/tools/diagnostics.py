@@ -52,8 +52,8 @@ def check_problem(problem: Problem, states: ArrayLike, params: PyTree = None,
     def lowest(x, params):
         def one(u, k):
             x_next = problem.next_state(x, u, k, params)
-            c = problem.cost_of_step(x_next, u, k, params)
-            return jnp.where(problem.allowed(x_next, u, k, params) & ~jnp.isnan(c), c, jnp.inf)
+            c = problem.cost_of_step(x, x_next, u, k, params)
+            return jnp.where(problem.allowed(x, x_next, u, k, params) & ~jnp.isnan(c), c, jnp.inf)
         c = jnp.min(jax.vmap(lambda k: jax.vmap(lambda u: one(u, k))(controls))(ks))
         g = call(problem.terminal_cost, params, x) if problem.terminal_cost is not None else jnp.zeros_like(c)
         return c, g

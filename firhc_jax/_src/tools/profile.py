@@ -124,11 +124,15 @@ def _node_parts(problem: Problem) -> dict:
         inner = jax.vmap(f, in_axes=(0 if per_input else None, 0, None))
         return jax.vmap(lambda x, p: inner(x, jnp.asarray(problem.controls), p))
 
+    def steps(f):  # f(x, x_child, u, p) over [W] states, each with its [M] children and inputs
+        inner = jax.vmap(f, in_axes=(None, 0, 0, None))
+        return jax.vmap(lambda x, xs, p: inner(x, xs, jnp.asarray(problem.controls), p))
+
     steps_left = jnp.int32(problem.horizon - 1)
     parts = {"dynamics": lambda x, xs, p: children(lambda x, u, p: problem.next_state(x, u, 0, p), False)(x, p),
-             "stage_cost": lambda x, xs, p: children(lambda x, u, p: problem.cost_of_step(x, u, 0, p), True)(xs, p)}
+             "stage_cost": lambda x, xs, p: steps(lambda x, xc, u, p: problem.cost_of_step(x, xc, u, 0, p))(x, xs, p)}
     if problem.constraint is not None:
-        parts["constraint"] = lambda x, xs, p: children(lambda x, u, p: problem.allowed(x, u, 0, p), True)(xs, p)
+        parts["constraint"] = lambda x, xs, p: steps(lambda x, xc, u, p: problem.allowed(x, xc, u, 0, p))(x, xs, p)
     for name, fn, more in (("lower_bound", problem.lower_bound, (steps_left,)), ("terminal", problem.terminal, ()),
                            ("terminal_cost", problem.terminal_cost, ())):
         if fn is not None:
