@@ -1,8 +1,9 @@
 """What every example shares: ``--quick`` (a smaller run, for tests and CI), ``--out`` (where figures go),
-float64 arithmetic."""
+float64 arithmetic, and ``say`` (what the example is doing, on stderr, as it starts each long stage)."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import jax
@@ -17,3 +18,8 @@ def arguments(description: str) -> argparse.Namespace:
     args.out.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_enable_x64", True)
     return args
+
+
+def say(text: str) -> None:
+    """One line on stderr, at once: what the example is doing now."""
+    print(text, file=sys.stderr, flush=True)

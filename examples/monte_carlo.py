@@ -5,7 +5,7 @@ one compiled run over every CPU core. Loop b makes the decisions ``simulate`` wo
     python examples/monte_carlo.py [--quick] [--out DIR]
 """
 import numpy as np
-from _common import arguments
+from _common import arguments, say
 
 import firhc_jax as fj
 from firhc_jax.models import spacecraft
@@ -18,6 +18,7 @@ X0, inertia = spacecraft.random_loops(B, rng)  # [B, 6] attitudes and rates, [B,
 fuel = rng.uniform(1.0, 5.0, B)  # deg^2 per firing thruster pair and sample, one price per loop
 params = spacecraft.step_params(inertia, fuel, T)  # leaves [B, T, ...]: loop b, step k
 ctrl = fj.FIRHC(spacecraft.make_problem(N))
+say(f"Monte Carlo: {B} spacecraft loops of {T} steps, N = {N}; compiling and running them in one batch")
 runs = ctrl.simulate_batch(X0, T, plant=spacecraft.make_plant(), params=params, dt=spacecraft.PARAMS.ts,
                            progress=not args.quick)
 start, final = spacecraft.pointing_error(X0), spacecraft.pointing_error(np.asarray(runs.states[:, -1]))

@@ -6,7 +6,7 @@ capacitor voltage, a switch on or off) whose output follows a ramp; any traceabl
 """
 import jax.numpy as jnp
 import numpy as np
-from _common import arguments
+from _common import arguments, say
 
 import firhc_jax as fj
 
@@ -29,9 +29,11 @@ N, T = (4, 60) if args.quick else (6, 400)
 problem = fj.Problem(buck, jnp.array([0.0, 1.0]), cost, N, step_index=True)
 ramp = np.linspace(0.0, 12.0, T + N + 1)
 params = {"v_ref": fj.horizon_windows(ramp, T, N)}  # [T, N]
+say(f"buck converter: N = {N}, compiling and running a closed loop of {T} steps")
 run = fj.FIRHC(problem).simulate(np.zeros(2), T, params=params, dt=TS)
 print(f"closed loop: final output {float(run.states[-1, 1]):.2f} V against {ramp[T]:.2f} V")
 
+say(f"profiling every search setting on the loop's {T} states (compiles each setting)")
 rows = fj.profile(problem, run.states[:-1], params, pop_widths=(1, 2) if args.quick else (1, 2, 4),
                   lanes=(8,) if args.quick else (8, 64), repeats=1 if args.quick else 3)
 for row in rows:

@@ -9,7 +9,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import arguments
+from _common import arguments, say
 
 import firhc_jax as fj
 
@@ -42,7 +42,9 @@ problem = fj.Problem(pendulum, jnp.array([-1.0, 0.0, 1.0]),
 ctrl = fj.FIRHC(problem, fallback="unconstrained", warm_start=True)
 hardware = Hardware(jnp.array([0.6, 0.0]))
 state = ctrl.init(hardware.read(), u0=jnp.zeros(1))
+say("real-time loop: compiling one decision before the loop starts")
 jax.block_until_ready(ctrl.step(state, hardware.read()))  # compile before the loop starts
+say(f"running {STEPS} decisions, one per period")
 
 times, held = [], 0
 for _ in range(STEPS):

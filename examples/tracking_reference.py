@@ -6,7 +6,7 @@ reference of the same shape (``fj.horizon_windows`` cuts the windows every decis
 """
 import jax.numpy as jnp
 import numpy as np
-from _common import arguments
+from _common import arguments, say
 
 import firhc_jax as fj
 
@@ -29,6 +29,7 @@ problem = fj.Problem(pendulum, jnp.array([-1.0, 0.0, 1.0]), track, N, step_index
 t = np.arange(T + N)
 signal = np.stack([0.3 * np.sin(0.05 * t), 0.3 * np.cos(0.05 * t)], 1)  # angle (rad), rate (rad/s), 50 ms steps
 params = {"ref": fj.horizon_windows(signal, T, N), "w": np.full(T, 0.1)}  # [T, N, 2]: signal[t+1 .. t+N]
+say(f"tracking a sine: N = {N}, compiling and running a closed loop of {T} steps")
 run = fj.FIRHC(problem).simulate(np.zeros(2), T, params=params, dt=0.05)
 error = np.asarray(run.states[1:, 0]) - signal[1:T + 1, 0]
 print(f"rms angle error {np.sqrt(np.mean(error**2)):.4f} rad over {T} steps, most nodes a decision "

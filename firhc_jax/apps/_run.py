@@ -46,6 +46,10 @@ class App(abc.ABC):
         """Refuse options that do not fit together with ``parser.error``, before any work (default: none)."""
         return
 
+    def default_out(self, args) -> str:
+        """The output folder when ``--out`` is not given (default ``out/<name>``; a variant may have its own)."""
+        return f"out/{self.name}"
+
     @abc.abstractmethod
     def simulate(self, args):
         """Run the closed loop (float64 is on, ``args.out`` exists); return the run."""
@@ -71,18 +75,33 @@ class App(abc.ABC):
         parser = subparsers.add_parser(self.name, help=self.help, description=self.description,
                                        formatter_class=self.formatter_class)
         self.add_arguments(parser)
-        default = f"out/{self.name}"
-        parser.add_argument("--out", type=output_dir, default=default, metavar="DIR",
-                            help=f"output folder (default {default})")
+        parser.add_argument("--out", type=output_dir, default=None, metavar="DIR",
+                            help=f"output folder (default {self.out_help})")
         parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-        parser.set_defaults(func=self.run, check=functools.partial(self.check, parser))
+        parser.set_defaults(func=self.run, check=functools.partial(self._check, parser))
         return parser
+
+    @property
+    def out_help(self) -> str:
+        """``--out``'s default, as its help names it."""
+        return f"out/{self.name}"
+
+    def _check(self, parser: argparse.ArgumentParser, args) -> None:
+        """``--out`` of the variant that runs, when not given (checked as a given one is), then ``check``."""
+        if args.out is None:
+            default = self.variant(args).default_out(args)
+            try:
+                args.out = output_dir(default)
+            except argparse.ArgumentTypeError as e:
+                parser.error(f"argument --out: {e}")
+        self.check(parser, args)
 
     def run(self, args) -> int:
         """Simulate, write ``summary.json``, ``closed_loop.npz`` and the figures, report; the exit status."""
         app = self.variant(args)
         jax.config.update("jax_enable_x64", True)
-        out = Path(args.out)
+        out = Path(args.out if args.out is not None else app.default_out(args))
+        args.out = out
         out.mkdir(parents=True, exist_ok=True)
         run = app.simulate(args)
         summary = app.summarize(args, run)

@@ -3,7 +3,7 @@
 Runs the FIRHC closed loop (8 switch states, a sinusoidal reference passed as
 per-step parameters, a switching penalty on the previous input) for whole
 fundamental cycles from steady state, timing every decision, and writes into
-``--out``:
+``--out`` (default ``out/inverter``; ``out/inverter-3level`` with ``--levels 3``):
 
 * ``summary.json``: tracking error, fundamental amplitude, THD, switching
   frequency, nodes and solve times (keys listed in ``summarize``);
@@ -139,6 +139,8 @@ class Inverter(App):
                             "three-level inverter (27 states) on fj.LinearTracking (docs/applications/inverter.md)")
         p.add_argument("--model", choices=model.DISCRETISATIONS, default="exact",
                        help="prediction model: exact zero-order hold (default) or forward Euler; the plant is exact")
+
+    out_help = "out/inverter; out/inverter-3level with --levels 3"
 
     def variant(self, args) -> App:
         return inverter_three_level.APP if args.levels == 3 else self

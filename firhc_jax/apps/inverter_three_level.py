@@ -6,7 +6,7 @@ current reference along the horizon, lambda_u per unit leg step and no leg
 jumping from -1 to +1 in one sample (max_step = 1). The FIRHC closed loop
 (warm-started with the shifted previous sequence, the decoder's initial
 radius) runs for whole fundamental cycles from steady state, every decision
-timed, and writes into ``--out``:
+timed, and writes into ``--out`` (default ``out/inverter-3level``):
 
 * ``summary.json``: THD, switching frequency per leg, nodes and solve times
   (keys listed in ``summarize``);
@@ -92,6 +92,10 @@ class ThreeLevel(App):
     """``inverter --levels 3``: uses ``horizon``, ``cycles``, ``lambda_u``, ``out`` and ``no_progress``."""
 
     name = "inverter"
+
+    def default_out(self, args) -> str:
+        """Its own folder: a three-level run never overwrites a two-level one."""
+        return "out/inverter-3level"
 
     def check(self, parser, args) -> None:
         """The two-level options ``--solver``, ``--bound`` and ``--model`` do not apply and are refused."""

@@ -196,6 +196,7 @@ def test_the_run_skeleton_writes_the_summary_the_closed_loop_and_the_figures(tmp
     app = _Pendulum()
     app.register(parser.add_subparsers())
     args = parser.parse_args(["pendulum_test"])
+    args.check(args)  # the default folder is the variant's, set when the options are checked
     assert str(args.out) == "out/pendulum_test" and args.no_progress is False
     args = parser.parse_args(["pendulum_test", "--out", str(tmp_path / "run"), "--no-progress"])
     args.check(args)
@@ -218,10 +219,14 @@ def test_every_closed_loop_command_is_an_app_with_out_and_no_progress():
         module = __import__(f"firhc_jax.apps.{command}", fromlist=["APP"])
         assert isinstance(module.APP, _run.App) and module.register == module.APP.register
         args = parser.parse_args([command])
+        args.check(args)
         assert str(args.out) == f"out/{command}" and args.no_progress is False and args.func == module.APP.run
     from firhc_jax.apps import inverter as inverter_app
     from firhc_jax.apps import inverter_three_level
 
     three = parser.parse_args(["inverter", "--levels", "3"])
     assert inverter_app.APP.variant(three) is inverter_three_level.APP
+    three.check(three)  # its own folder: a three-level run does not overwrite a two-level one
+    assert str(three.out) == "out/inverter-3level"
+    assert str(parser.parse_args(["inverter", "--levels", "3", "--out", "out/x"]).out) == "out/x"
     assert inverter_app.APP.variant(parser.parse_args(["inverter"])) is inverter_app.APP

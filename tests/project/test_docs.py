@@ -60,7 +60,7 @@ def test_every_page_is_in_the_navigation():
     nav = (ROOT / "mkdocs.yml").read_text()
     for page in DOCS.rglob("*.md"):
         rel = page.relative_to(DOCS).as_posix()
-        assert rel in nav or rel == "dev/benchmark-history.md", rel
+        assert rel in nav, rel
 
 
 def test_the_solver_page_lists_the_solver_table():
@@ -117,10 +117,12 @@ def guide(tour):
 
 
 @pytest.mark.slow
-def test_the_readme_example_runs_and_agrees():
+def test_the_readme_example_runs_and_agrees(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the example saves its figure in the working folder
     ns = _run_page(ROOT / "README.md", {})[-1]
     assert float(ns["best"].cost) == float(ns["ref"].cost)
-    assert int(ns["ref"].nodes) == ns["problem"].tree_size() > int(ns["best"].nodes)
+    assert int(ns["ref"].nodes) == ns["problem"].tree_size() > 10 * int(ns["best"].nodes)  # pruning shows
+    assert (tmp_path / "pendulum.png").is_file()
     assert ns["run"].states.shape == (81, 2) and not bool(ns["run"].held.any())
 
 

@@ -170,8 +170,8 @@ class FIRHC:
         solvers; ``method``, ``chunk_nodes``, ``pop_width``, ``max_memory``
         for exhaustive. Unknown options are refused here. ``max_nodes`` is
         the budget of a whole decision: the fallback search gets what the
-        first one left. Budgets beyond 2**31 - 1 (what the int32 node
-        counter counts) count as 2**31 - 1, as in ``fj.sdfs``.
+        first one left. Budgets beyond ``2**31 - 1`` (what the int32 node
+        counter counts) count as ``2**31 - 1``, as in ``fj.sdfs``.
     """
 
     def __init__(self, problem: Problem, solver: str = "sdfs", *, fallback: str | Problem | None = None,

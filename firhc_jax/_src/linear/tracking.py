@@ -188,6 +188,13 @@ class SharedParams(NamedTuple):
 class LinearTracking:
     """Exact finite-input tracking MPC for a linear plant (module docstring).
 
+    The model must be linear, x+ = A x + B u + d. A bilinear one (a
+    flying-capacitor converter: the switch state times the state) is out of
+    scope: solve it as a plain ``fj.Problem`` with that model as its
+    ``dynamics`` (and a ``lower_bound`` if you have one), or linearise it per
+    operating point (docs/guide/long-horizons.md, "Models that are not
+    linear").
+
     Args:
       A: ``[n, n]``, B: ``[n, m]``: the discrete-time model x+ = A x + B u + d.
       controls: ``[M, m]`` finite input set (``[M]`` when m = 1).
