@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from _results import published
+from step_bench import three_level_calls
 
 
 def percentiles(ts) -> tuple[float, float]:
@@ -40,7 +41,7 @@ def cases(calls: int):
     """``{name: (public call, compiled program, trivial program of its arguments, unpack, argument sets)}``."""
     import firhc_jax as fj
     from firhc_jax._src.runtime import lean
-    from firhc_jax.models import inverter, three_level
+    from firhc_jax.models import inverter
 
     rng = np.random.default_rng(0)
     out = {}
@@ -82,14 +83,7 @@ def cases(calls: int):
                 lambda x, p, c=ctrl: c(x, p), lambda x, p, r=program: r(x, p, u0), (xs[0], rows[0], u0),
                 list(zip(xs, rows, strict=True)))
 
-    lt = three_level.make_problem(5)
-    A, B = three_level.model()
-    lrefs = inverter.horizon_references(three_level.PARAMS, calls, 5)
-    x, u, largs = inverter.reference(three_level.PARAMS, 0.0), np.zeros(3), []
-    for k in range(calls):  # the states of the closed loop
-        largs.append((x, u, lrefs[k]))
-        u = np.asarray(lt.controls[int(lt.solve(x, u, lrefs[k]).sequence[0])])
-        x = A @ x + B @ u
+    lt, largs = three_level_calls(calls)
     program = lean.recall(("lt.solve", lt, True), largs[0] + (None, None))
     device = lt._on_device(np.float64) + (lt._controls, lt._class_of)
     out["`lt.solve`, three-level inverter, N = 5"] = (

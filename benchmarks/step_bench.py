@@ -114,6 +114,20 @@ def step_times(N: int, T: int, rounds: int) -> dict:
     return times
 
 
+def three_level_calls(calls: int):
+    """``(lt, [(x, u_prev, y_ref)] * calls)``: the three-level inverter at N = 5 and the arguments of its
+    ``lt.solve`` along a closed loop."""
+    lt = three_level.make_problem(5)
+    A, B = three_level.model()
+    lrefs = inverter.horizon_references(three_level.PARAMS, calls, 5)
+    x, u, largs = inverter.reference(three_level.PARAMS, 0.0), np.zeros(3), []
+    for k in range(calls):  # the states of the closed loop
+        largs.append((x, u, lrefs[k]))
+        u = np.asarray(lt.controls[int(lt.solve(x, u, lrefs[k]).sequence[0])])
+        x = A @ x + B @ u
+    return lt, largs
+
+
 def section_oneshot(calls: int, rounds: int):
     print(f"\n## One-shot calls, eager against `jax.jit` of the same call ({rounds} x {calls} calls, new values "
           "each)\n")
@@ -127,14 +141,7 @@ def section_oneshot(calls: int, rounds: int):
     states = [np.asarray(mem.observe(rng.normal(size=2) * 5, inverter.SWITCH_STATES[rng.integers(8)]))
               for _ in range(calls)]
     rows = [{"ref": refs[k], "lambda_u": np.float64(1.0)} for k in range(calls)]
-    lt = three_level.make_problem(5)
-    A, B = three_level.model()
-    lrefs = inverter.horizon_references(three_level.PARAMS, calls, 5)
-    x, u, largs = inverter.reference(three_level.PARAMS, 0.0), np.zeros(3), []
-    for k in range(calls):  # the states of the closed loop
-        largs.append((x, u, lrefs[k]))
-        u = np.asarray(lt.controls[int(lt.solve(x, u, lrefs[k]).sequence[0])])
-        x = A @ x + B @ u
+    lt, largs = three_level_calls(calls)
     cases = {
         "`fj.sdfs(problem, x, params=p)`, inverter N = 3": (lambda x, p: fj.sdfs(P, x, params=p),
                                                            list(zip(states, rows, strict=True))),
