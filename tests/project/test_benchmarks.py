@@ -1,6 +1,7 @@
-"""The benchmarks that compare LinearTracking with the plain search of every input run end to end on a small
-size (a subprocess from the repository's root, as the performance page's commands run them) and print their
-tables: a change of LinearTracking's params or of the plain peer cannot leave them broken unnoticed."""
+"""Benchmarks that read the library's internals run end to end on a small size (a subprocess from the
+repository's root, as the performance page's commands run them) and print their tables: those comparing
+LinearTracking with the plain search of every input, and the split of one eager decision (which finds each
+call's compiled program where the lean path keeps it). A change inside cannot leave them broken unnoticed."""
 import os
 import subprocess
 import sys
@@ -17,6 +18,7 @@ RUNS = {  # script and a small size: what its table must show
                          "--plain-until", "2", "--thermal-states", "2", "--thermal-horizon", "4",
                          "--thermal-max-nodes", "200000"],
                         ["plain sDFS", "LinearTracking"]),
+    "call_bench.py": (["--calls", "20", "--rounds", "1"], ["## pinned to one core", "`lt.solve`", "compiled scan"]),
 }
 
 
