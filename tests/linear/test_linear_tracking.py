@@ -402,7 +402,7 @@ def test_the_bound_is_the_unconstrained_cost_to_go(case):
         parent = lt.observe(rng.normal(size=case.x.shape), case.controls[rng.integers(len(case.controls))])
         u = case.controls[rng.integers(len(case.controls))]
         z = child(parent, u, np.int32(k - 1), params)
-        if not bool(lt.problem.allowed(z, u, k - 1, params)):  # max_step: no child, its bound unused
+        if not bool(lt.problem.allowed(parent, z, u, k - 1, params)):  # max_step: no child, its bound unused
             continue
         node = Node.unpack(np.asarray(z), lt.class_size, lt.m)
         true = unconstrained_cost_to_go(case, k, np.asarray(node.x), members_of(lt, node)[0])
@@ -416,7 +416,7 @@ def test_the_bound_is_the_unconstrained_cost_to_go(case):
         parent = lt.observe(rng.normal(size=case.x.shape).astype(f32), case.controls[rng.integers(len(case.controls))])
         u = case.controls[rng.integers(len(case.controls))].astype(f32)
         z = child(parent, u, np.int32(k - 1), params)
-        if not bool(lt.problem.allowed(z, u, k - 1, params)):
+        if not bool(lt.problem.allowed(parent, z, u, k - 1, params)):
             continue
         node = Node.unpack(np.asarray(z, float), lt.class_size, lt.m)
         true = unconstrained_cost_to_go(case, k, np.asarray(node.x), members_of(lt, node)[0])
@@ -568,9 +568,9 @@ def test_an_input_outside_the_controls_has_no_child():
     p = lt.params(np.zeros((2, 2)))
     z = lt.observe(np.zeros(2), np.zeros(3))
     stray = np.array([0.5, 0.0, 0.0])
-    assert not bool(lt.problem.allowed(lt.problem.next_state(z, stray, 0, p), stray, 0, p))
+    assert not bool(lt.problem.allowed(z, lt.problem.next_state(z, stray, 0, p), stray, 0, p))
     rep = lt.problem.controls[0]
-    assert bool(lt.problem.allowed(lt.problem.next_state(z, rep, 0, p), rep, 0, p))
+    assert bool(lt.problem.allowed(z, lt.problem.next_state(z, rep, 0, p), rep, 0, p))
 
 
 @pytest.mark.parametrize("norm, max_step", [("abs", 1.0), ("squared", None)])
@@ -621,7 +621,7 @@ def test_every_control_reaches_the_node_of_its_class(which):
         assert {tuple(v) for v in members_of(lt, node)} == {tuple(v) for v in members}, i
         np.testing.assert_allclose(node.x, A @ x + B @ u, rtol=1e-12, atol=1e-12)
     for stray in (controls[0] + 0.05, controls.max(axis=0) + 1.0, controls.min(axis=0) - 1.0):
-        assert not bool(lt.problem.allowed(child(stray), stray, 0, p)), stray
+        assert not bool(lt.problem.allowed(z, child(stray), stray, 0, p)), stray
 
 
 def test_the_search_state_is_a_packed_node():
