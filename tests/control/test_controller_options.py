@@ -148,3 +148,28 @@ def test_a_plant_defined_anew_for_each_call_is_named_when_the_loop_compiles_agai
     assert seen[0] == [] and len(seen[1]) == 1, seen  # the first lambda of this line follows another code
     assert "\n" not in seen[1][0] and "new plant object with the code of the last one (<lambda> at " in seen[1][0]
     assert "define it once and pass that same object" in seen[1][0]
+
+
+def test_a_sweep_of_budgets_compiles_each_closed_loop_and_step_once():
+    """max_nodes travels with the state (ControllerState.budget), an argument of the compiled decision: a
+    controller of another budget compiles nothing again, and each decision stays within its own budget."""
+    from compiles import compile_count
+
+    p = fj.Problem(dyn, CONTROLS, COST, 5, terminal=lambda x: jnp.abs(x[0]) < 0.3)
+    x = np.array([1.0, -0.5])
+    first = fj.FIRHC(p, fallback="unconstrained", max_nodes=40)
+    np.asarray(first.simulate(x, 4, progress=False).decision_nodes)  # the eager sum of the nodes lowers once
+    _, _, info = first.step(first.init(x), x)
+    int(info.decision_nodes), int(first(x)[1].decision_nodes)
+    before = compile_count()
+    for budget in (40, 90, 300):
+        ctrl = fj.FIRHC(p, fallback="unconstrained", max_nodes=budget)
+        run = ctrl.simulate(x, 4, progress=False)
+        assert (np.asarray(run.decision_nodes) <= budget).all(), (budget, np.asarray(run.decision_nodes))
+        u, state, info = ctrl.step(ctrl.init(x), x)
+        assert int(state.budget) == budget and int(info.decision_nodes) <= budget
+        assert int(ctrl(x)[1].decision_nodes) <= budget
+    assert compile_count() == before
+    # A state made by hand, without a budget, decides within the controller's own.
+    _, state, info = ctrl.step(fj.ControllerState(u=np.zeros(1), plan=np.full(5, -1, np.int32)), x)
+    assert int(state.budget) == 300 and int(info.decision_nodes) <= 300

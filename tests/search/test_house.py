@@ -36,8 +36,10 @@ def test_every_option_changes_the_key():
     for name in base.solver_options:  # and every solver option
         changed = dict(base.solver_options, **{name: 5 if base.solver_options[name] != 5 else 6})
         assert dataclasses.replace(base, solver_options=changed).key != base.key, name
-    # Equal options give equal keys (defaults filled in: pop_width=1 is the default).
+    # Equal options give equal keys (defaults filled in: pop_width=1 is the default); a budget's value travels
+    # with the state, so only whether there is one is in the key.
     assert fj.FIRHC(P, pop_width=1).options.key == fj.FIRHC(P).options.key
+    assert fj.FIRHC(P, max_nodes=50).options.key == fj.FIRHC(P, max_nodes=700).options.key != base.key
 
 
 def test_every_solver_in_the_table_is_a_controller_solver_with_its_own_options():

@@ -60,7 +60,7 @@ from ..runtime.memory_cache import cached
 from ..runtime.packed import compile_packed
 from ..search.result import SearchResult, raise_on_errors
 from .closed_loop import ClosedLoop
-from .decision import ControllerState, StepInfo, decide, decide_rows
+from .decision import ControllerState, StepInfo, budget_of, decide, decide_rows
 from .decision_checks import (
     check_closed_loop,
     controller_options,
@@ -112,7 +112,14 @@ class Options:
 
     @functools.cached_property
     def key(self) -> tuple:
-        return tuple((f.name, _hashable(getattr(self, f.name))) for f in dataclasses.fields(self))
+        """Every field, ``max_nodes`` only as whether there is a budget: its value travels with the state
+        (``ControllerState.budget``), so controllers of other budgets share their compiled functions."""
+        def field(name):
+            value = getattr(self, name)
+            if name == "solver_options":
+                value = {**value, "max_nodes": value.get("max_nodes") is not None}
+            return name, _hashable(value)
+        return tuple(field(f.name) for f in dataclasses.fields(self))
 
     @functools.cached_property
     def relaxed(self) -> Optional[Problem]:
@@ -201,7 +208,8 @@ class FIRHC:
         """
         as_state(x0)
         u0 = as_inputs("u0", u0, *self._input_form)
-        return ControllerState(u=u0, plan=np.full((self.problem.horizon,), -1, np.int32))
+        return ControllerState(u=u0, plan=np.full((self.problem.horizon,), -1, np.int32),
+                               budget=budget_of(self.options))
 
     def step(self, state: ControllerState, x: ArrayLike,
              params: PyTree = None) -> tuple[jax.Array, ControllerState, StepInfo]:
@@ -228,6 +236,8 @@ class FIRHC:
         if type(state) is not ControllerState:
             raise TypeError(f"state must be the ControllerState from ctrl.init or ctrl.step, got "
                             f"{type(state).__name__}")
+        if state.budget is None:  # made by hand: this controller's budget
+            state = state._replace(budget=budget_of(self.options))
         run = lean.recall(("step", self), (state, x, params))
         if run is None:
             raw = (state, x, params)
@@ -273,12 +283,12 @@ class FIRHC:
             if any(map(is_tracer, jax.tree_util.tree_leaves((x, params)))):
                 u, _, info = self.step(state, x, params)
                 return u, info
-            run = self._eager("call", one_shot, (x, params, state.u))
+            run = self._eager("call", one_shot, (x, params, state.u, state.budget))
             lean.remember(("call", self), (x, params, u_prev), run)
             u_prev = state.u
         else:
             u_prev = np.zeros(*self._input_form) if u_prev is None else np.asarray(u_prev, self._input_form[1])
-        u, info, alarm = run(x, params, u_prev)
+        u, info, alarm = run(x, params, u_prev, budget_of(self.options))
         if alarm:  # the checks of the first call on these values, then the search's error flags, then no input
             self.init(x, u_prev)
             check_params(params)
@@ -305,7 +315,7 @@ class FIRHC:
         prev = as_sequence(previous_sequence, self.problem.horizon, self.problem.num_controls,
                            "previous_sequence") if self.warm_start or self.options.budgeted else None
         fn = cached(("solve", self.options.key), lambda: jax.jit(functools.partial(solve_checked, self.options)))
-        result, used = fn(x, params, prev)
+        result, used = fn(x, params, prev, budget_of(self.options))
         return raise_on_errors(result), used
 
     # -- closed loops ------------------------------------------------------------
@@ -404,7 +414,8 @@ class FIRHC:
         B = X0.shape[0]
         params = check_params(params, leading=(B, steps), axis="[B (loops), steps]")
         u0 = as_inputs("u0", u0, *self._input_form, (B,))
-        state = ControllerState(u=u0, plan=np.full((B, self.problem.horizon), -1, np.int32))
+        state = ControllerState(u=u0, plan=np.full((B, self.problem.horizon), -1, np.int32),
+                                budget=np.full((B,), budget_of(self.options), np.int32))
         times = sample_times(dt, steps)
         plant, plant_key, default = self._plant(plant)
         self._note_plant(plant, default, check_closed_loop(self.options, plant_key, plant, state.u[0], X0[0], params,

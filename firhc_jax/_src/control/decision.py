@@ -8,10 +8,11 @@ each other's searches). Both read the controller's frozen ``Options``.
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..problem.problem import call
 from ..search import solvers
@@ -24,6 +25,9 @@ class ControllerState(NamedTuple):
 
     u: jax.Array  # [m] the searched input applied last, before actuate: observe's u_prev, the input held
     plan: jax.Array  # [N] int32 the last decision's sequence (all -1: none), the warm start's seed
+    budget: Optional[jax.Array] = None  # [] int32 the decision's node budget (INT32_MAX: none): an argument of the
+    #                                     compiled decision, so that a new max_nodes never compiles again;
+    #                                     None: the controller's own (FIRHC.step fills it in)
 
 
 class StepInfo(NamedTuple):
@@ -44,10 +48,10 @@ class StepInfo(NamedTuple):
         return self.nodes + self.fallback_nodes
 
 
-def max_nodes_of(opts) -> jax.Array:
-    """[] int32 the decision's node budget (``INT32_MAX``: none)."""
+def budget_of(opts) -> np.ndarray:
+    """[] int32 the node budget of ``opts``'s decisions (``INT32_MAX``: none), as a state carries it."""
     max_nodes = opts.solver_options.get("max_nodes")
-    return jnp.asarray(INT32_MAX if max_nodes is None else max_nodes, jnp.int32)
+    return np.int32(INT32_MAX if max_nodes is None else max_nodes)
 
 
 def warm_start(opts, problem, x, params, previous):
@@ -99,10 +103,11 @@ def _left(opts, max_nodes, spent):
     return jnp.maximum(max_nodes - spent, 0) if opts.budgeted else max_nodes
 
 
-def solve(opts, x, params, previous):
-    """The searches of one decision at model state ``x``: ``(deciding result, nodes of the constrained
-    search, used_fallback)``; the fallback searches only when needed, within what the first search left."""
-    max_nodes = max_nodes_of(opts)
+def solve(opts, x, params, previous, max_nodes):
+    """The searches of one decision at model state ``x`` within ``max_nodes`` (``[]`` int32): ``(deciding
+    result, nodes of the constrained search, used_fallback)``; the fallback searches only when needed, within
+    what the first search left."""
+    max_nodes = jnp.asarray(max_nodes, jnp.int32)
     result = _search(opts, opts.problem, x, params, previous, max_nodes, reserve(opts, max_nodes))
     if opts.relaxed is None:
         return result, result.nodes, jnp.zeros((), bool)
@@ -115,13 +120,14 @@ def solve(opts, x, params, previous):
     return chosen, result.nodes, used
 
 
-def solve_rows(opts, X, params, previous):
-    """``solve`` for the rows of ``X`` ``[B, n]`` (``params`` leaves ``[B, ...]``, ``previous`` ``[B, N]`` or None),
+def solve_rows(opts, X, params, previous, max_nodes):
+    """``solve`` for the rows of ``X`` ``[B, n]`` (``params`` leaves ``[B, ...]``, ``previous`` ``[B, N]`` or None,
+    ``max_nodes`` ``[B]``),
     each row's searches by the solver's ``batch``. With a node budget no row's nodes are shared with another
     row's (``steal=False``), so every row is searched as ``solve`` searches it, node for node."""
     B = X.shape[0]
     batch = solvers.get(opts.solver).batch
-    max_nodes = jnp.broadcast_to(max_nodes_of(opts), (B,))
+    max_nodes = jnp.broadcast_to(jnp.asarray(max_nodes, jnp.int32), (B,))
 
     def search(problem, X, params, previous, max_nodes, n_valid, held_back=None):
         seeds = None if previous is None else jax.vmap(
@@ -166,18 +172,18 @@ def applied(opts, state: ControllerState, x, xm, p, result: SearchResult, nodes,
     info = StepInfo(result=result, used_fallback=used, complete=result.complete, nodes=nodes,
                     fallback_nodes=jnp.where(used, result.nodes, 0), feasible=result.feasible & ~used,
                     held=held, stage_cost=jnp.where(held, jnp.nan, stage))
-    return u_plant, ControllerState(u=u, plan=jnp.where(held, -1, result.sequence)), info
+    return u_plant, ControllerState(u=u, plan=jnp.where(held, -1, result.sequence), budget=state.budget), info
 
 
 def decide(opts, state: ControllerState, x, p):
     """One decision at plant state ``x``: ``(u_plant, next state, StepInfo)``."""
     xm = observed(opts, state, x, p)
-    return applied(opts, state, x, xm, p, *solve(opts, xm, p, previous_plan(opts, state)))
+    return applied(opts, state, x, xm, p, *solve(opts, xm, p, previous_plan(opts, state), state.budget))
 
 
 def decide_rows(opts, state: ControllerState, X, P):
     """``decide`` for ``B`` loops at once (every argument with leading axis B)."""
     Xm = jax.vmap(lambda s, x, p: observed(opts, s, x, p))(state, X, P)
-    result, nodes, used = solve_rows(opts, Xm, P, previous_plan(opts, state))
+    result, nodes, used = solve_rows(opts, Xm, P, previous_plan(opts, state), state.budget)
     return jax.vmap(lambda s, x, xm, p, r, n, f: applied(opts, s, x, xm, p, r, n, f))(
         state, X, Xm, P, result, nodes, used)

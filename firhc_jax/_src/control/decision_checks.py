@@ -60,13 +60,18 @@ def check_search(opts, x, pspec) -> None:
     solvers.check_memory(opts.solver, opts.solver_options, opts.problem, x.shape[0], max(x.dtype.itemsize, 4))
 
 
-def check_decision(opts, u, plan, x, pspec):
+_BUDGET = jax.ShapeDtypeStruct((), jnp.int32)  # a state's budget, as init makes it
+
+
+def check_decision(opts, u, plan, x, pspec, budget=_BUDGET):
     """A decision's argument shapes, ``observe``, the problems on the model state, the solver's memory and
     ``actuate``; returns the plant input's shape and dtype."""
     N, m = opts.problem.horizon, opts.problem.input_dim
-    if u.shape != (m,) or plan.shape != (N,) or not jnp.issubdtype(plan.dtype, jnp.integer):
+    if u.shape != (m,) or plan.shape != (N,) or not jnp.issubdtype(plan.dtype, jnp.integer) \
+            or budget.shape != () or not jnp.issubdtype(budget.dtype, jnp.integer):
         raise ValueError(f"state does not belong to this controller: u {u.shape}, plan {plan.shape} "
-                         f"{plan.dtype}, expected u ({m},) and plan ({N},) int32; make it with ctrl.init")
+                         f"{plan.dtype}, budget {budget.shape} {budget.dtype}, expected u ({m},), plan ({N},) "
+                         "int32 and budget () int32; make it with ctrl.init")
     if len(x.shape) != 1 or not jnp.issubdtype(x.dtype, jnp.floating):
         raise TypeError(f"x must be a 1-D real floating state [n], got shape {x.shape} dtype {x.dtype}")
     if pspec is not None:
@@ -154,23 +159,23 @@ def decide_checked(opts, state, x, p):
     """``decide`` after the abstract checks (run while jit traces: once per argument signature)."""
     pkey, pspec = params_spec(p)
     spec = lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype)  # noqa: E731
-    cached(("step check", opts.key, spec(state.u), spec(state.plan), spec(x), pkey),
-           lambda: check_decision(opts, spec(state.u), spec(state.plan), spec(x), pspec))
+    cached(("step check", opts.key, spec(state.u), spec(state.plan), spec(state.budget), spec(x), pkey),
+           lambda: check_decision(opts, spec(state.u), spec(state.plan), spec(x), pspec, spec(state.budget)))
     return decide(opts, state, x, p)
 
 
-def one_shot(opts, x, p, u_prev):
+def one_shot(opts, x, p, u_prev, budget):
     """``FIRHC.__call__``'s decision after the checks: ``(u, info, alarm)``; ``alarm``: a value fails the
     checks (a non-finite state or parameter), the search raised an error flag, or no input was found."""
     plan = jnp.full((opts.problem.horizon,), -1, jnp.int32)
-    u, _, info = decide_checked(opts, ControllerState(u=u_prev, plan=plan), x, p)
+    u, _, info = decide_checked(opts, ControllerState(u=u_prev, plan=plan, budget=budget), x, p)
     return u, info, non_finite(x, p, u_prev) | alarms(info.result) | info.held
 
 
-def solve_checked(opts, x, params, previous):
+def solve_checked(opts, x, params, previous, max_nodes):
     """``solve`` after the checks of its searches (once per argument signature)."""
     pkey, pspec = params_spec(params)
     cached(("solve check", opts.key, x.shape, jnp.dtype(x.dtype), pkey),
            lambda: check_search(opts, jax.ShapeDtypeStruct(x.shape, x.dtype), pspec))
-    result, _, used = solve(opts, x, params, previous)
+    result, _, used = solve(opts, x, params, previous, max_nodes)
     return result, used
