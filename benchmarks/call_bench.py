@@ -79,9 +79,10 @@ def cases(calls: int):
         if N == 3:
             ctrl(xs[0], rows[0])
             program = lean.recall(("call", ctrl), (xs[0], rows[0], None))
+            budget = state.budget  # the controller's (none: INT32_MAX), an argument of its decision
             out[f"`ctrl(x, p)`, inverter (8 inputs), N = {N}"] = (
-                lambda x, p, c=ctrl: c(x, p), lambda x, p, r=program: r(x, p, u0), (xs[0], rows[0], u0),
-                list(zip(xs, rows, strict=True)))
+                lambda x, p, c=ctrl: c(x, p), lambda x, p, r=program, b=budget: r(x, p, u0, b),
+                (xs[0], rows[0], u0, budget), list(zip(xs, rows, strict=True)))
 
     lt, largs = three_level_calls(calls)
     program = lean.recall(("lt.solve", lt, True), largs[0] + (None, None))
