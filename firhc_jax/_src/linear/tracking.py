@@ -424,10 +424,7 @@ def _solve_eager(problem, model, maps, classes, controls, class_of, x, u_prev, y
     (a non-finite vector, a warm-start index out of range) or the search raised an error flag."""
     u_prev, y_ref = u_prev.astype(x.dtype), y_ref.astype(x.dtype)
     d = None if d is None else d.astype(x.dtype)
-    alarm = lean.non_finite(x, u_prev, y_ref, d)
-    if warm_start is not None:
-        M = class_of.shape[0]
-        alarm = alarm | ~(jnp.all((warm_start >= 0) & (warm_start < M)) | jnp.all(warm_start == -1))
+    alarm = lean.non_finite(x, u_prev, y_ref, d) | lean.bad_sequence(warm_start, class_of.shape[0])
     result = _solve(problem, model, maps, classes, controls, class_of, x, u_prev, y_ref, d, warm_start,
                     budget if budgeted else None, observe=observe)
     return result, alarm | alarms(result)

@@ -75,6 +75,15 @@ def non_finite(*trees) -> jax.Array:
     return bad
 
 
+def bad_sequence(sequence, num_controls: int) -> jax.Array:
+    """[] bool (traced): ``sequence`` (None: none) is neither indices in ``[0, num_controls)`` nor all -1, the
+    values ``checks.as_sequence`` refuses."""
+    if sequence is None:
+        return jnp.zeros((), bool)
+    inside = jnp.all((sequence >= 0) & (sequence < num_controls))
+    return ~(inside | jnp.all(sequence == -1))
+
+
 def first_call(entry: Hashable, args, build: Callable[[], Any]) -> Any:
     """The program of a checked call: built once per signature of ``args`` and remembered for the next."""
     program = build()

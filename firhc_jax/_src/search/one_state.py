@@ -4,7 +4,6 @@ search per problem, options and argument shapes."""
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..annotations import ArrayLike, PyTree
@@ -89,10 +88,7 @@ def _eager_search(problem: Problem, pop_width: int, budgeted: bool):
     """The search of an eager ``fj.sdfs`` call, and one alarm: its values would fail the checks (``lean``), or
     it raised an error flag (``raise_on_errors``)."""
     def run(x0, params, warm_start, max_nodes):
-        bad = lean.non_finite(x0, params)
-        if warm_start is not None:
-            M = problem.num_controls
-            bad = bad | ~(jnp.all((warm_start >= 0) & (warm_start < M)) | jnp.all(warm_start == -1))
+        bad = lean.non_finite(x0, params) | lean.bad_sequence(warm_start, problem.num_controls)
         result = sdfs_search(problem, x0, params, warm_start, max_nodes, pop_width=pop_width, budgeted=budgeted)
         return result, bad | alarms(result)
     return run
