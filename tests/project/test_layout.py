@@ -80,7 +80,7 @@ def test_private_modules_live_under_src():
 
 
 # The private areas in dependency order: a module imports from its own area and those before it, never after.
-ORDER = ("runtime", "problem", "search", "control", "linear", "tools")
+ORDER = ("runtime", "jaxpr", "problem", "search", "control", "linear", "export", "tools")
 
 
 @pytest.mark.parametrize("area", ORDER)
