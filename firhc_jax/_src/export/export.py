@@ -1,0 +1,486 @@
+"""``fj.export_c``: a problem's search, or a controller's decision, as plain C99 with no Python and no XLA.
+
+The callables are translated from their jaxprs (``c_code``); the search is the template ``search.c``, the
+library's sDFS at ``pop_width=1`` rule for rule. Everything is traced with 64-bit types: the generated code
+takes and returns ``double`` states, parameters and inputs. Memory is sized at export: ``NAME_solve`` and
+``NAME_step`` keep their work arrays on the C stack (``NAME_WORK_BYTES``), allocate nothing and need only
+libm.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from ..checks import check_params
+from ..control.controller import FIRHC
+from ..control.decision import budget_of
+from ..problem.callables import check_state
+from ..problem.problem import Problem, call, input_dtype
+from ..search.nodes import one_child
+from ..search.sdfs import INT32_MAX, node_budget
+from .c_code import PRELUDE, c_type, literal, translate
+
+TYPES, SEARCH = (Path(__file__).parent / "search.c").read_text().split("/* @functions: the generated callables go above this line */")
+MAX_STATE_SEARCH = 256  # state sizes tried when the state size is inferred from the callables
+
+# Return codes of NAME_solve and NAME_step (documented in the header and docs/guide/deploy.md).
+CODES = {"FOUND": 1, "FALLBACK": 2, "NONE": 0, "BAD_STATE": -1, "BAD_PARAMS": -2, "NEGATIVE_COST": -3}
+
+
+@dataclasses.dataclass
+class Exported:
+    """What ``export_c`` wrote: the paths, the sizes, and the bytes the generated functions need."""
+
+    header: Path
+    source: Path
+    name: str
+    state_size: int  # n, the model's state
+    plant_state_size: int  # the state NAME_step takes (observe's input)
+    input_size: int  # m, an input of the control set
+    plant_input_size: int  # the input NAME_step writes (actuate's output)
+    horizon: int
+    num_controls: int
+    num_params: int  # doubles in the flat params vector
+    work_bytes: int  # NAME_WORK_BYTES: the search's stack arrays
+    state_bytes: int  # sizeof(NAME_state), 0 for a problem
+
+
+def export_c(problem_or_controller, directory, *, name: str = "firhc", params=None, x0=None,
+             max_nodes: Optional[int] = None) -> Exported:
+    """Write ``name.h`` and ``name.c``: C99 for the exact search of a ``Problem`` or the decision of a
+    ``FIRHC``, equal to ``fj.sdfs`` (and ``ctrl.step``) at ``pop_width=1``.
+
+    Args:
+      problem_or_controller: an ``fj.Problem`` (generates ``NAME_solve``) or an ``fj.FIRHC`` with the
+        ``"sdfs"`` solver (also ``NAME_init`` and ``NAME_step``).
+      directory: where the two files go (created if missing).
+      name: the C prefix of every public symbol, a C identifier.
+      params: an example of the problem's parameter pytree (shapes and dtypes are compiled in; the C code
+        takes its values flattened as ``jax.flatten_util.ravel_pytree`` flattens them); None without.
+      x0: an example state ``[n]`` (of the plant, for a controller with ``observe``); default: the size is
+        found from the callables, and a ``ValueError`` asks for ``x0`` where several sizes fit.
+      max_nodes: a node budget for ``NAME_solve`` (a ``Problem`` only; a controller's is its own).
+
+    Returns an ``Exported`` with the paths and the memory the generated functions need. Refused with a
+    ``ValueError`` naming the cause: a primitive the C translation does not cover (named, with the callable
+    it is in), a solver or option the template does not implement, a callable ``warm_start``.
+    """
+    if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
+        raise ValueError(f"name must be a C identifier (letters, digits, _), got {name!r}")
+    controller = problem_or_controller if isinstance(problem_or_controller, FIRHC) else None
+    problem = controller.problem if controller else problem_or_controller
+    if not isinstance(problem, Problem):
+        raise TypeError(f"export_c takes a firhc_jax.Problem or FIRHC, got {type(problem_or_controller).__name__}")
+    if controller is not None:
+        _check_controller(controller)
+        if max_nodes is not None:
+            raise TypeError("max_nodes is the controller's own (FIRHC(..., max_nodes=)); give it for a Problem only")
+    with jax.enable_x64(True):
+        return _write(problem, controller, Path(directory).expanduser(), name, params, x0, max_nodes)
+
+
+def _check_controller(ctrl: FIRHC) -> None:
+    opts = ctrl.options
+    if opts.solver != "sdfs":
+        raise ValueError(f"the C export implements the 'sdfs' solver only, this controller uses {opts.solver!r}")
+    if opts.solver_options.get("pop_width", 1) != 1:
+        raise ValueError("the C export implements pop_width=1 (the paper's search); this controller has "
+                         f"pop_width={opts.solver_options['pop_width']}")
+    if callable(opts.warm_start):
+        raise ValueError("a callable warm_start is Python; the C export takes warm_start=True or False")
+
+
+class _Unit:
+    """The translation unit being written: tables, functions, and the params' layout."""
+
+    def __init__(self, problem: Problem, params, n: int):
+        self.tables: dict = {}
+        self.functions: list[str] = []
+        self.n, self.m = n, problem.input_dim
+        leaves, self.treedef = jax.tree_util.tree_flatten(params)
+        self.leaves = [jnp.asarray(leaf) for leaf in leaves]
+        self.specs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in self.leaves]
+        self.has_params = params is not None
+
+    def p(self, leaves):
+        return jax.tree_util.tree_unflatten(self.treedef, leaves) if self.has_params else None
+
+    @property
+    def p_names(self) -> list[str]:
+        return [f"p{i}" for i in range(len(self.specs))]
+
+    def p_args(self, prefix: str = "p->") -> str:
+        return "".join(f", {prefix}{n}" for n in self.p_names)
+
+    def add(self, fn_name, fn, specs, names, out_types, where):
+        self.functions.append(translate(fn_name, fn, list(specs) + self.specs, list(names) + self.p_names,
+                                        out_types, self.tables, where))
+
+
+def _x(n):
+    return jax.ShapeDtypeStruct((n,), jnp.float64)
+
+
+def _variant(unit: _Unit, problem: Problem, tag: str, controls: str, drop=()) -> str:
+    """The C functions of one problem (the main one or a fallback) and its ``fj_problem``; returns its name."""
+    n, m, N = unit.n, problem.input_dim, problem.horizon
+    u_spec = jax.ShapeDtypeStruct((m,), problem.controls.dtype)
+    k_spec = jax.ShapeDtypeStruct((), jnp.int32)
+    forms = f"of the problem{'' if tag == 'main' else ' ' + tag}"
+
+    def child(x, u, k, *leaves):
+        x_next, stage, allowed = one_child(problem, x, u, k, unit.p(leaves))
+        return x_next, stage, allowed
+
+    unit.add(f"fj_{tag}_child_raw", child, [_x(n), u_spec, k_spec], ["x", "u", "k"],
+             ["double", "double", "unsigned char"], f"dynamics, stage_cost or constraint {forms}")
+    unit.functions.append(
+        f"static void fj_{tag}_child(const double *x, int input, int32_t k, const fj_params *p, double *x_next, "
+        f"double *stage, unsigned char *allowed) {{\n"
+        f"    fj_{tag}_child_raw(x, &{controls}[input * {m}], &k{unit.p_args()}, x_next, stage, allowed);\n}}\n"
+        f"static void fj_{tag}_children(const double *x, int32_t k, const fj_params *p, double *xs, "
+        f"double *stage, unsigned char *allowed) {{\n"
+        f"    for (int i = 0; i < {problem.num_controls}; i++) fj_{tag}_child(x, i, k, p, xs + i * {n}, stage + i, "
+        f"allowed + i);\n}}\n")
+    fields = {"terminal": "NULL", "terminal_cost": "NULL", "lower_bound": "NULL"}
+    scalar = {"terminal": "unsigned char", "terminal_cost": "double", "lower_bound": "double"}
+    for field in fields:
+        fn = getattr(problem, field)
+        if fn is None or field in drop:
+            continue
+        if field == "lower_bound":
+            unit.add(f"fj_{tag}_{field}_raw", lambda x, s, *leaves, fn=fn: call(fn, unit.p(leaves), x, s),
+                     [_x(n), k_spec], ["x", "s"], [scalar[field]], f"{field} {forms}")
+            unit.functions.append(
+                f"static double fj_{tag}_{field}(const double *x, int32_t s, const fj_params *p) {{\n"
+                f"    double r; fj_{tag}_{field}_raw(x, &s{unit.p_args()}, &r); return r;\n}}\n")
+        else:
+            unit.add(f"fj_{tag}_{field}_raw", lambda x, *leaves, fn=fn: call(fn, unit.p(leaves), x),
+                     [_x(n)], ["x"], [scalar[field]], f"{field} {forms}")
+            unit.functions.append(
+                f"static {scalar[field]} fj_{tag}_{field}(const double *x, const fj_params *p) {{\n"
+                f"    {scalar[field]} r; fj_{tag}_{field}_raw(x{unit.p_args()}, &r); return r;\n}}\n")
+        fields[field] = f"fj_{tag}_{field}"
+    # The input to apply for a sequence: first_input_of, or the sequence's first row of the control set.
+    if problem.first_input_of is not None:
+        def first(x0, seq, *leaves):
+            return problem.first_input(x0, seq, unit.p(leaves))
+        unit.add(f"fj_{tag}_first_input_raw", first, [_x(n), jax.ShapeDtypeStruct((N,), jnp.int32)],
+                 ["x0", "seq"], ["double"], f"first_input_of {forms}")
+        body = f"fj_{tag}_first_input_raw(x0, seq{unit.p_args()}, u);"
+    else:
+        body = f"for (int j = 0; j < {m}; j++) u[j] = (double){controls}[seq[0] * {m} + j];"
+    unit.functions.append(f"static void fj_{tag}_first_input(const double *x0, const int32_t *seq, "
+                          f"const fj_params *p, double *u) {{\n    {body}\n}}\n")
+    constrained = int(problem.constraint is not None)
+    unit.functions.append(
+        f"static const fj_problem fj_{tag} = {{fj_{tag}_children, fj_{tag}_child, {fields['terminal']}, "
+        f"{fields['terminal_cost']}, {fields['lower_bound']}, {constrained}}};\n")
+    return f"fj_{tag}"
+
+
+def _controls_table(unit: _Unit, problem: Problem, tag: str) -> str:
+    c = problem.controls
+    items = ", ".join(literal(v, c.dtype) for v in c.reshape(-1))
+    unit.functions.append(f"static const {c_type(c.dtype)} fj_{tag}_controls[{c.size}] = {{{items}}};\n")
+    return f"fj_{tag}_controls"
+
+
+def state_size(problem: Problem, params, x0, observe=None) -> tuple[int, int]:
+    """``(n, n_plant)``: the model's state size and the plant's (what ``observe`` takes): ``x0``'s, or the
+    sizes at which the callables trace and keep the state's shape."""
+    u = jnp.zeros((problem.input_dim,), input_dtype(problem))
+
+    def model_fits(n):
+        try:
+            x = jax.ShapeDtypeStruct((n,), jnp.float64)
+            out = jax.eval_shape(lambda x: problem.next_state(x, problem.controls[0], 0, params), x)
+            jax.eval_shape(lambda x: problem.cost_of_step(x, x, problem.controls[0], 0, params), x)
+            for fn in (problem.terminal, problem.terminal_cost):
+                if fn is not None:
+                    jax.eval_shape(lambda x, fn=fn: call(fn, params, x), x)
+            return out.shape == (n,)
+        except Exception:  # noqa: BLE001 - a size the callables reject
+            return False
+
+    def observed(n_plant):
+        try:
+            return jax.eval_shape(lambda x: call(observe, params, x, u), _x(n_plant)).shape
+        except Exception:  # noqa: BLE001
+            return None
+
+    if x0 is not None:
+        x0 = np.asarray(x0, np.float64)
+        if x0.ndim != 1:
+            raise ValueError(f"x0 must be a state [n], got shape {x0.shape}")
+        if observe is None:
+            return x0.shape[0], x0.shape[0]
+        shape = observed(x0.shape[0])
+        if shape is None or len(shape) != 1:
+            raise ValueError(f"observe does not map a plant state of shape {x0.shape} to a state [n]")
+        return shape[0], x0.shape[0]
+    if observe is None:
+        fits = [n for n in range(1, MAX_STATE_SEARCH + 1) if model_fits(n)]
+    else:
+        fits = [n for n in range(1, MAX_STATE_SEARCH + 1)
+                if (s := observed(n)) is not None and len(s) == 1 and model_fits(s[0])]
+    if len(fits) != 1:
+        found = "no size" if not fits else f"several sizes ({', '.join(map(str, fits[:5]))}, ...)"
+        raise ValueError(f"the state size could not be found from the callables ({found} of 1..{MAX_STATE_SEARCH} "
+                         "fit): pass an example state, export_c(..., x0=...)")
+    if observe is None:
+        return fits[0], fits[0]
+    return observed(fits[0])[0], fits[0]
+
+
+def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, params, x0, max_nodes) -> Exported:
+    params = check_params(params)
+    opts = ctrl.options if ctrl else None
+    observe = opts.observe if opts else None
+    n, n_plant = state_size(problem, params, x0, observe)
+    check_state(problem, jnp.zeros((n,), jnp.float64), params)
+    unit = _Unit(problem, params, n)
+    N, M, m = problem.horizon, problem.num_controls, problem.input_dim
+    flat, _ = ravel_pytree(params) if params is not None else (np.zeros(0), None)
+    num_params = int(np.size(flat))
+
+    variants = {"main": _variant(unit, problem, "main", _controls_table(unit, problem, "main"))}
+    relaxed = opts.relaxed if opts else None
+    if relaxed is not None:
+        if relaxed.horizon != N or relaxed.num_controls != M or relaxed.input_dim != m:
+            raise ValueError("the fallback problem must have the same horizon and control set size")
+        same = relaxed.replace(terminal=problem.terminal, lower_bound=problem.lower_bound).key == problem.key
+        if same and relaxed.terminal is None and relaxed.lower_bound is None:
+            unit.functions.append(f"static const fj_problem fj_fallback = {{fj_main_children, fj_main_child, NULL, "
+                                  f"{'fj_main_terminal_cost' if problem.terminal_cost else 'NULL'}, NULL, "
+                                  f"{int(problem.constraint is not None)}}};\n"
+                                  "#define fj_fallback_first_input fj_main_first_input\n")
+            variants["fallback"] = "fj_fallback"
+        else:
+            variants["fallback"] = _variant(unit, relaxed, "fallback", _controls_table(unit, relaxed, "fallback"))
+    plant_m = m
+    if ctrl is not None:
+        _controller_functions(unit, opts, n_plant)
+        unit.has_fallback = "fallback" in variants
+        if opts.actuate:
+            plant_m = int(np.prod(jax.eval_shape(lambda x, u: call(opts.actuate, params, x, u), _x(n_plant),
+                                                 jax.ShapeDtypeStruct((m,), jnp.float64)).shape))
+
+    budget = node_budget(max_nodes) if ctrl is None else budget_of(opts)
+    header, source = _assemble(unit, problem, ctrl, name, n, n_plant, plant_m, num_params, int(budget))
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / f"{name}.h").write_text(header)
+    (directory / f"{name}.c").write_text(source)
+    work = 8 * ((N + 1) * M * (n + 2) + (N + 1) + M * (n + 2)) + 4 * (N + 1) * N + 2 * M
+    state_bytes = 0 if ctrl is None else 8 * (m + 4) + 4 * N
+    return Exported(header=directory / f"{name}.h", source=directory / f"{name}.c", name=name, state_size=n,
+                    plant_state_size=n_plant, input_size=m, plant_input_size=plant_m, horizon=N, num_controls=M,
+                    num_params=num_params, work_bytes=work, state_bytes=state_bytes)
+
+
+def _controller_functions(unit: _Unit, opts, n_plant: int) -> None:
+    m = unit.m
+    u_spec = jax.ShapeDtypeStruct((m,), jnp.float64)
+    if opts.observe:
+        unit.add("fj_observe", lambda x, u, *leaves: call(opts.observe, unit.p(leaves), x, u),
+                 [_x(n_plant), u_spec], ["x", "u"], ["double"], "observe")
+    if opts.actuate:
+        unit.add("fj_actuate", lambda x, u, *leaves: call(opts.actuate, unit.p(leaves), x, u),
+                 [_x(n_plant), u_spec], ["x", "u"], ["double"], "actuate")
+
+
+def _params_struct(unit: _Unit) -> str:
+    if not unit.specs:
+        return "typedef struct { char unused; } fj_params;\n"
+    fields = "".join(f"    {c_type(s.dtype)} p{i}[{max(1, math.prod(s.shape))}];\n" for i, s in enumerate(unit.specs))
+    return "typedef struct {\n" + fields + "} fj_params;\n"
+
+
+def _unpack(unit: _Unit) -> str:
+    """C statements that fill ``fj_params pr`` from ``params`` and return -2 on a non-finite value."""
+    lines, offset = ["    fj_params pr;"], 0
+    for i, s in enumerate(unit.specs):
+        size = math.prod(s.shape)
+        lines.append(f"    for (int j = 0; j < {size}; j++) {{ if (!isfinite(params[{offset} + j])) return "
+                     f"{CODES['BAD_PARAMS']}; pr.p{i}[j] = ({c_type(s.dtype)})params[{offset} + j]; }}")
+        offset += size
+    return "\n".join(lines)
+
+
+def _assemble(unit: _Unit, problem: Problem, ctrl, name: str, n: int, n_plant: int, plant_m: int,
+              num_params: int, budget: int) -> tuple[str, str]:
+    N, M, m = problem.horizon, problem.num_controls, problem.input_dim
+    up = name.upper()
+    api = [f"int {name}_solve(const double *x0, const double *params, int *sequence, double *cost, "
+           "long long *nodes);"]
+    state = ""
+    if ctrl is not None:
+        state = (f"typedef struct {{\n    double u[{m}];          /* the searched input applied last */\n"
+                 f"    int plan[{N}];          /* the last decision's sequence, -1: none */\n"
+                 "    long long budget;     /* node budget of a decision (2^31 - 1: none) */\n"
+                 "    long long nodes;      /* last decision: nodes of the terminal-constrained search */\n"
+                 "    long long fallback_nodes;  /* last decision: nodes of the fallback search */\n"
+                 "    int complete;         /* last decision: every search ran to the end */\n"
+                 f"}} {name}_state;\n\n")
+        api += [f"void {name}_init({name}_state *s, const double *x0, const double *u0);",
+                f"int {name}_step({name}_state *s, const double *x, const double *params, double *u);"]
+    header = f"""/* Generated by firhc_jax.export_c: the exact finite-input search{' and controller' if ctrl else ''} \
+{name}. C99, libm only, no allocation.
+
+   Sizes: state n = {name.upper()}_NX, inputs M = {up}_M of dimension {up}_NU, horizon N = {up}_N, parameters
+   {up}_NP doubles (flattened as jax.flatten_util.ravel_pytree flattens the example params; pass NULL when 0).
+
+   {name}_solve(x0, params, sequence, cost, nodes): the optimal input indices [N] (rows of the control set), their
+   cost and the nodes computed, as fj.sdfs returns them. Returns
+     1  a sequence meets the terminal set and the constraints (cost finite);
+     0  none does (cost +inf, sequence all -1), or a node budget stopped the search before it found one;
+    -1  x0 is not finite;  -2  a parameter is not finite;
+    -3  a negative stage or terminal cost was computed: pruning is not exact (fj.sdfs raises ValueError).
+*/
+#ifndef {up}_H
+#define {up}_H
+#define {up}_NX {n}
+#define {up}_PLANT_NX {n_plant}
+#define {up}_M {M}
+#define {up}_NU {m}
+#define {up}_PLANT_NU {plant_m}
+#define {up}_N {N}
+#define {up}_NP {num_params}
+#define {up}_MAX_NODES {budget}LL
+#ifdef __cplusplus
+extern "C" {{
+#endif
+{state}{chr(10).join(api)}
+#ifdef __cplusplus
+}}
+#endif
+#endif
+"""
+    tables = "\n".join(definition for _, definition in unit.tables.values())
+    source = [f"/* Generated by firhc_jax.export_c. */\n#include <stdint.h>\n#include <stddef.h>\n#include <tgmath.h>\n"
+              f'#include "{name}.h"\n\n#define FJ_N {N}\n#define FJ_M {M}\n#define FJ_NX {n}\n#define FJ_NU {m}\n',
+              PRELUDE, _params_struct(unit), TYPES, tables, *unit.functions, SEARCH,
+              _solve(unit, name, budget)]
+    if ctrl is not None:
+        source.append(_step(unit, ctrl.options, name, n_plant, plant_m))
+    return header, "\n".join(source)
+
+
+def _solve(unit: _Unit, name: str, budget: int) -> str:
+    budgeted = int(budget != INT32_MAX)
+    return f"""
+int {name}_solve(const double *x0, const double *params, int *sequence, double *cost, long long *nodes) {{
+    if (!fj_all_finite(x0, FJ_NX)) return {CODES['BAD_STATE']};
+{_unpack(unit)}
+    fj_work w;
+    fj_incumbent out;
+    fj_search(&fj_main, &pr, x0, NULL, 0, {budget}LL, {budgeted}, 0, &out, &w);
+    for (int j = 0; j < FJ_N; j++) sequence[j] = out.path[j];
+    *cost = out.cost;
+    *nodes = out.nodes;
+    if (out.flags & FJ_NEGATIVE) return {CODES['NEGATIVE_COST']};
+    return isfinite(out.cost) ? {CODES['FOUND']} : {CODES['NONE']};
+}}
+"""
+
+
+def _step(unit: _Unit, opts, name: str, n_plant: int, plant_m: int) -> str:
+    budgeted = int(opts.budgeted)
+    has_fallback = unit.has_fallback
+    previous = bool(opts.warm_start) or opts.budgeted
+    m = unit.m
+    safe = ("for (int j = 0; j < FJ_NU; j++) s->u[j] = s->u[j];" if opts.u_safe is None else
+            "{ static const double safe[FJ_NU] = {" + ", ".join(literal(v, np.float64) for v in opts.u_safe)
+            + "}; for (int j = 0; j < FJ_NU; j++) s->u[j] = safe[j]; }")
+    observe = f"fj_observe(x, s->u{unit.p_args('pr.')}, xm);" if opts.observe else \
+        "for (int j = 0; j < FJ_NX; j++) xm[j] = x[j];"
+    actuate = f"fj_actuate(x, s->u{unit.p_args('pr.')}, u);" if opts.actuate else \
+        "for (int j = 0; j < FJ_NU; j++) u[j] = s->u[j];"
+    candidates = ""
+    if previous:
+        candidates = "    if (s->plan[0] >= 0) {\n"
+        if opts.budgeted:
+            candidates += ("        for (int j = 0; j < FJ_N - 1; j++) cand[count * FJ_N + j] = s->plan[j + 1];\n"
+                           "        cand[count * FJ_N + FJ_N - 1] = -1;\n        count++;\n")
+        elif opts.warm_start:
+            candidates += ("        for (int j = 0; j < FJ_N - 1; j++) cand[count * FJ_N + j] = s->plan[j + 1];\n"
+                           "        cand[count * FJ_N + FJ_N - 1] = s->plan[FJ_N - 1];\n        count++;\n")
+        candidates += "    }\n"
+    fallback = ""
+    if has_fallback:
+        fallback = f"""
+    if (!isfinite(res.cost)) {{
+        long long left = {budgeted} ? (s->budget - res.nodes > 0 ? s->budget - res.nodes : 0) : s->budget;
+        fj_incumbent second;
+        int done2 = fj_search(&fj_fallback, &pr, xm, cand, count, left, {budgeted}, 0, &second, &w);
+        second.flags |= res.flags;
+        complete = complete && done2;
+        s->fallback_nodes = second.nodes;
+        res = second;
+        used = 1;
+    }}"""
+    first = "fj_fallback_first_input" if has_fallback else "fj_main_first_input"
+    pick = (f"if (used) {first}(xm, res.path, &pr, found); else fj_main_first_input(xm, res.path, &pr, found);"
+            if has_fallback else f"{first}(xm, res.path, &pr, found);")
+    unpack = _unpack(unit).replace(f"return {CODES['BAD_PARAMS']};", "{ bad = " + str(CODES['BAD_PARAMS'])
+                                   + "; break; }")
+    return f"""
+void {name}_init({name}_state *s, const double *x0, const double *u0) {{
+    (void)x0;
+    for (int j = 0; j < FJ_NU; j++) s->u[j] = u0 ? u0[j] : 0.0;
+    for (int j = 0; j < FJ_N; j++) s->plan[j] = -1;
+    s->budget = {int(budget_of(opts))}LL;
+    s->nodes = 0;
+    s->fallback_nodes = 0;
+    s->complete = 1;
+}}
+
+int {name}_step({name}_state *s, const double *x, const double *params, double *u) {{
+    int bad = 0;
+{unpack}
+    if (!fj_all_finite(x, {n_plant})) bad = {CODES['BAD_STATE']};
+    if (bad) {{
+        {safe}
+        for (int j = 0; j < FJ_N; j++) s->plan[j] = -1;
+        s->nodes = 0;
+        s->fallback_nodes = 0;
+        for (int j = 0; j < FJ_NU; j++) u[j] = s->u[j];
+        return bad;
+    }}
+    double xm[FJ_NX];
+    {observe}
+    int32_t cand[2 * FJ_N];
+    int count = 0;
+{candidates}    long long reserve = {budgeted} && {int(opts.relaxed is not None)} ? s->budget / 2 : 0;
+    fj_work w;
+    fj_incumbent res;
+    int complete = fj_search(&fj_main, &pr, xm, cand, count, s->budget, {budgeted}, reserve, &res, &w);
+    int used = 0;
+    s->nodes = res.nodes;
+    s->fallback_nodes = 0;{fallback}
+    s->complete = complete;
+    double found[FJ_NU];
+    int held = !isfinite(res.cost);
+    if (!held) {{
+        {pick}
+        held = !fj_all_finite(found, FJ_NU);
+    }}
+    if (held) {{
+        {safe}
+        for (int j = 0; j < FJ_N; j++) s->plan[j] = -1;
+    }} else {{
+        for (int j = 0; j < FJ_NU; j++) s->u[j] = found[j];
+        for (int j = 0; j < FJ_N; j++) s->plan[j] = res.path[j];
+    }}
+    {actuate}
+    if (res.flags & FJ_NEGATIVE) return {CODES['NEGATIVE_COST']};
+    return held ? {CODES['NONE']} : used ? {CODES['FALLBACK']} : {CODES['FOUND']};
+}}
+"""
