@@ -484,3 +484,84 @@ int {name}_step({name}_state *s, const double *x, const double *params, double *
     return held ? {CODES['NONE']} : used ? {CODES['FALLBACK']} : {CODES['FOUND']};
 }}
 """
+
+
+class Compiled:
+    """A generated search or controller compiled into a shared library and called through ``ctypes``
+    (``Exported.compile``): for checks and timing from Python; a deployment compiles the two files itself."""
+
+    def __init__(self, exported: Exported, path: Path, params_example=None):
+        import ctypes
+
+        self.exported, self.path = exported, path
+        self.lib = ctypes.CDLL(str(path))
+        e, name = exported, exported.name
+        vp, dp = ctypes.c_void_p, ctypes.POINTER(ctypes.c_double)
+        self._solve = getattr(self.lib, f"{name}_solve")
+        self._solve.restype = ctypes.c_int
+        self._solve.argtypes = [vp, vp, vp, dp, ctypes.POINTER(ctypes.c_longlong)]
+        self._cost, self._nodes = ctypes.c_double(), ctypes.c_longlong()
+        self._sequence = np.zeros(e.horizon, np.intc)
+        if e.state_bytes:
+            fields = [("u", ctypes.c_double * e.input_size), ("plan", ctypes.c_int * e.horizon),
+                      ("budget", ctypes.c_longlong), ("nodes", ctypes.c_longlong),
+                      ("fallback_nodes", ctypes.c_longlong), ("complete", ctypes.c_int)]
+            self.State = type("State", (ctypes.Structure,), {"_fields_": fields})
+            self._init, self._step = getattr(self.lib, f"{name}_init"), getattr(self.lib, f"{name}_step")
+            self._init.argtypes, self._init.restype = [vp, vp, vp], None
+            self._step.argtypes, self._step.restype = [vp, vp, vp, vp], ctypes.c_int
+            self._u = np.zeros(e.plant_input_size)
+
+    @staticmethod
+    def flat_params(params) -> Optional[np.ndarray]:
+        """``params`` as the C code takes them: ``ravel_pytree``'s vector in float64 (None: no parameters)."""
+        if params is None:
+            return None
+        return np.ascontiguousarray(ravel_pytree(params)[0], np.float64)
+
+    def solve(self, x0, params=None) -> tuple[int, np.ndarray, float, int]:
+        """``NAME_solve``: ``(code, sequence [N], cost, nodes)``."""
+        import ctypes
+
+        x0 = np.ascontiguousarray(x0, np.float64)
+        p = self.flat_params(params)
+        code = self._solve(x0.ctypes.data, None if p is None else p.ctypes.data, self._sequence.ctypes.data,
+                           ctypes.byref(self._cost), ctypes.byref(self._nodes))
+        return code, self._sequence.copy(), self._cost.value, self._nodes.value
+
+    def init(self, x0, u0=None):
+        """``NAME_init``: a new controller state."""
+        import ctypes
+
+        state = self.State()
+        x0 = np.ascontiguousarray(x0, np.float64)
+        u0 = None if u0 is None else np.ascontiguousarray(u0, np.float64)
+        self._init(ctypes.addressof(state), x0.ctypes.data, None if u0 is None else u0.ctypes.data)
+        return state
+
+    def step(self, state, x, params=None) -> tuple[int, np.ndarray]:
+        """``NAME_step``: ``(code, u)``; ``state`` is updated in place."""
+        import ctypes
+
+        x = np.ascontiguousarray(x, np.float64)
+        p = self.flat_params(params)
+        code = self._step(ctypes.addressof(state), x.ctypes.data, None if p is None else p.ctypes.data,
+                          self._u.ctypes.data)
+        return code, self._u.copy()
+
+
+def compile_shared(exported: Exported, *, cc: str = "cc", flags=("-O2",)) -> Compiled:
+    """Compile ``exported`` into a shared library next to its source and load it (``Compiled``). A
+    ``RuntimeError`` carries the compiler's message."""
+    import hashlib
+    import subprocess
+
+    source = exported.source.read_bytes()
+    tag = hashlib.sha1(source + " ".join(flags).encode()).hexdigest()[:12]
+    path = exported.source.with_name(f"{exported.name}-{tag}.so")
+    if not path.exists():
+        cmd = [cc, "-std=c99", *flags, "-fPIC", "-shared", "-o", str(path), str(exported.source), "-lm"]
+        done = subprocess.run(cmd, capture_output=True, text=True)
+        if done.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed:\n{done.stderr[-4000:]}")
+    return Compiled(exported, path)
