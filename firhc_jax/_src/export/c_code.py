@@ -114,6 +114,13 @@ class CValue:
     def at_index(self, index: Sequence[str]) -> str:
         return self.at(flat(index, self.shape))
 
+    def broadcast(self, index: Sequence[str]) -> str:
+        """The element at an output's ``index`` of an elementwise operand: a scalar, or an array of the output's
+        rank whose size-1 dimensions broadcast."""
+        if self.size == 1:
+            return self.at()
+        return self.at_index([i if n != 1 else "0" for i, n in zip(index, self.shape, strict=True)])
+
 
 class Emitter:
     """The C domain: ``apply`` writes an equation's loops into ``lines`` and returns its outputs."""
@@ -195,7 +202,7 @@ class Emitter:
         if name in ("floor", "ceil") and kind in "iub":
             template = "{0}"
         return self.fill(self.new(aval.shape, aval.dtype),
-                         lambda ix: template.format(*(v.at_index(ix) if v.size > 1 else v.at() for v in invals)))
+                         lambda ix: template.format(*(v.broadcast(ix) for v in invals)))
 
     # Elementwise rules whose C depends on the dtype.
     def _abs(self, eqn, invals, outs):
@@ -244,11 +251,11 @@ class Emitter:
         out = self.new(outs[0].shape, outs[0].dtype)
 
         def element(ix):
-            base, acc, e = x.at_index(ix) if x.size > 1 else x.at(), None, abs(y)
+            base, acc, e = x.broadcast(ix), None, abs(y)
             if e == 0:
                 return "1"
-            self.emit(f"{c_type(x.dtype)} b{len(self.lines)} = {base};")
-            b = f"b{len(self.lines) - 1}"
+            b = f"b{next(self.names)}"
+            self.emit(f"{c_type(x.dtype)} {b} = {base};")
             while e > 0:  # binary exponentiation in the order jax lowers it
                 if e & 1:
                     acc = b if acc is None else f"({acc} * {b})"
@@ -264,8 +271,8 @@ class Emitter:
         out = self.new(outs[0].shape, outs[0].dtype)
 
         def element(ix):
-            vals = [c.at_index(ix) if c.size > 1 else c.at() for c in cases]
-            w = which.at_index(ix) if which.size > 1 else which.at()
+            vals = [c.broadcast(ix) for c in cases]
+            w = which.broadcast(ix)
             text = vals[-1]
             for i in range(len(vals) - 2, -1, -1):
                 text = f"({w} <= {i} ? {vals[i]} : {text})" if which.dtype != np.bool_ else f"({w} ? {text} : {vals[i]})"
@@ -274,9 +281,8 @@ class Emitter:
 
     def _clamp(self, eqn, invals, outs):
         lo, x, hi = invals
-        pick = lambda v, ix: v.at_index(ix) if v.size > 1 else v.at()  # noqa: E731
         return [self.fill(self.new(outs[0].shape, outs[0].dtype),
-                          lambda ix: f"FJ_MIN(FJ_MAX({pick(x, ix)}, {pick(lo, ix)}), {pick(hi, ix)})")]
+                          lambda ix: f"FJ_MIN(FJ_MAX({x.broadcast(ix)}, {lo.broadcast(ix)}), {hi.broadcast(ix)})")]
 
     def _convert_element_type(self, eqn, invals, outs):
         x, dtype = invals[0], np.dtype(outs[0].dtype)
@@ -361,6 +367,14 @@ class Emitter:
                 f"{out.at_index([f'({at} + {i})' if d == axis else i for d, i in enumerate(ix)])} = "
                 f"{x.at_index(ix)};"))
             at += x.shape[axis]
+        return [out]
+
+    def _stack(self, eqn, invals, outs):
+        axis = eqn.params["axis"]
+        out = self.new(outs[0].shape, outs[0].dtype)
+        for at, x in enumerate(invals):
+            self.loops(x.shape, lambda ix, at=at, x=x: self.emit(
+                f"{out.at_index(ix[:axis] + [str(at)] + ix[axis:])} = {x.at_index(ix)};"))
         return [out]
 
     def _split(self, eqn, invals, outs):
@@ -603,9 +617,6 @@ class Emitter:
             self.depth -= 1
         self.emit("}")
         return results
-
-    def _pjit(self, eqn, invals, outs):  # wrappers are inlined by interpret; kept for nested call styles
-        raise Unsupported(eqn.primitive.name)
 
 
 def translate(name: str, fn: Callable, args: Sequence[jax.ShapeDtypeStruct], arg_names: Sequence[str],
