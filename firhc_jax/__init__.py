@@ -9,6 +9,7 @@ from . import diagnostics, distributed, linear_tracking, solvers  # noqa: F401  
 from ._src.control.closed_loop import ClosedLoop
 from ._src.control.controller import FIRHC, InfeasibleError
 from ._src.control.decision import ControllerState, StepInfo
+from ._src.export.export import export_c
 from ._src.linear.tracking import LinearTracking
 from ._src.old_paths import install as _install_old_paths
 from ._src.problem.formulation import (
@@ -37,7 +38,7 @@ __all__ = ["Problem", "quadratic_cost", "discretize", "linear_dynamics", "produc
            "SearchResult", "FIRHC",
            "ControllerState", "StepInfo", "ClosedLoop", "InfeasibleError", "InputMemory", "with_input_memory",
            "solve_batch", "clear_cache", "set_cache_size", "cache_info", "enable_compilation_cache", "check_problem",
-           "check_lower_bound", "diagnostics", "profile", "rollout_cost", "collector_paused"]
+           "check_lower_bound", "diagnostics", "profile", "rollout_cost", "collector_paused", "export_c"]
 __version__ = "0.3.0"
 
 _install_old_paths(__name__)

@@ -125,10 +125,9 @@ class CValue:
 class Emitter:
     """The C domain: ``apply`` writes an equation's loops into ``lines`` and returns its outputs."""
 
-    def __init__(self, tables: dict, where: str):
+    def __init__(self, tables: dict):
         self.lines: list[str] = []
         self.tables = tables  # bytes key -> (name, C definition): the unit's static const arrays
-        self.where = where  # the callable being translated, for messages
         self.names = itertools.count()
         self.depth = 1
 
@@ -620,19 +619,35 @@ class Emitter:
 
 
 def translate(name: str, fn: Callable, args: Sequence[jax.ShapeDtypeStruct], arg_names: Sequence[str],
-              out_types: Sequence[str], tables: dict, where: str) -> str:
+              out_types: Sequence[str], tables: dict, where) -> str:
     """C function ``name(args..., outs...)`` computing ``fn(*args)``: each argument a ``const`` pointer of its
-    dtype, each output a pointer of the C type in ``out_types``, written element by element."""
+    dtype, each output a pointer of the C type in ``out_types``, written element by element. ``where`` names
+    ``fn`` in messages (or, called with a primitive's name, names the callable that uses it)."""
     closed = jax.make_jaxpr(fn)(*args)
-    emitter = Emitter(tables, where)
+    emitter = Emitter(tables)
     inputs = [CValue(tuple(a.shape), np.dtype(a.dtype), name=n) for a, n in zip(args, arg_names, strict=True)]
     try:
         results = interpret(closed, inputs, emitter)
     except Unsupported as e:
-        raise ValueError(f"{where} uses {e}; the C export cannot translate it. Rewrite that part with the "
-                         "supported primitives (docs/guide/deploy.md lists them)") from None
+        culprit = where(e.primitive) if callable(where) else where
+        raise ValueError(f"{culprit} uses {e}; the C export cannot translate it. Rewrite that part with the "
+                         "supported primitives (the deployment guide lists them)") from None
     params = [f"const {c_type(a.dtype)} *{n}" for a, n in zip(args, arg_names, strict=True)]
     params += [f"{t} *out{i}" for i, t in enumerate(out_types)]
     for i, (r, t) in enumerate(zip(results, out_types, strict=True)):
         emitter.loops((r.size,), lambda ix, r=r, i=i, t=t: emitter.emit(f"out{i}[{ix[0]}] = ({t})({r.at(ix[0])});"))
     return f"static void {name}({', '.join(params)}) {{\n" + "\n".join(emitter.lines) + "\n}\n"
+
+
+def primitives(closed) -> set[str]:
+    """Every primitive a jaxpr uses, in its sub-jaxprs too."""
+    found = set()
+    for eqn in closed.jaxpr.eqns:
+        found.add(eqn.primitive.name)
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (tuple, list)) else (value,):
+                if hasattr(sub, "jaxpr") and hasattr(sub, "consts"):
+                    found |= primitives(sub)
+                elif type(sub).__name__ == "Jaxpr":
+                    found |= primitives(jax.extend.core.ClosedJaxpr(sub, ()))
+    return found

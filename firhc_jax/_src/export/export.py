@@ -25,7 +25,7 @@ from ..problem.callables import check_state
 from ..problem.problem import Problem, call, input_dtype
 from ..search.nodes import one_child
 from ..search.sdfs import INT32_MAX, node_budget
-from .c_code import PRELUDE, c_type, literal, translate
+from .c_code import PRELUDE, c_type, literal, primitives, translate
 
 TYPES, SEARCH = (Path(__file__).parent / "search.c").read_text().split("/* @functions: the generated callables go above this line */")
 MAX_STATE_SEARCH = 256  # state sizes tried when the state size is inferred from the callables
@@ -50,6 +50,12 @@ class Exported:
     num_params: int  # doubles in the flat params vector
     work_bytes: int  # NAME_WORK_BYTES: the search's stack arrays
     state_bytes: int  # sizeof(NAME_state), 0 for a problem
+
+    def compile(self, *, cc: str = "cc", flags=("-O2",)) -> "Compiled":
+        """Compile the two files into a shared library beside them and load it through ``ctypes``: the
+        generated functions called from Python, for checks and timings. A ``RuntimeError`` carries the
+        compiler's message."""
+        return compile_shared(self, cc=cc, flags=flags)
 
 
 def export_c(problem_or_controller, directory, *, name: str = "firhc", params=None, x0=None,
@@ -139,8 +145,18 @@ def _variant(unit: _Unit, problem: Problem, tag: str, controls: str, drop=()) ->
         x_next, stage, allowed = one_child(problem, x, u, k, unit.p(leaves))
         return x_next, stage, allowed
 
+    def culprit(primitive: str) -> str:
+        parts = {"dynamics": lambda x, u, k, p: problem.next_state(x, u, k, p),
+                 "stage_cost": lambda x, u, k, p: problem.cost_of_step(x, problem.next_state(x, u, k, p), u, k, p),
+                 "constraint": lambda x, u, k, p: problem.allowed(x, problem.next_state(x, u, k, p), u, k, p)}
+        args = (_x(n), u_spec, k_spec, unit.p(unit.specs))
+        for field, fn in parts.items():
+            if primitive in primitives(jax.make_jaxpr(fn)(*args)):
+                return f"{field} {forms}"
+        return f"dynamics, stage_cost or constraint {forms}"
+
     unit.add(f"fj_{tag}_child_raw", child, [_x(n), u_spec, k_spec], ["x", "u", "k"],
-             ["double", "double", "unsigned char"], f"dynamics, stage_cost or constraint {forms}")
+             ["double", "double", "unsigned char"], culprit)
     unit.functions.append(
         f"static void fj_{tag}_child(const double *x, int input, int32_t k, const fj_params *p, double *x_next, "
         f"double *stage, unsigned char *allowed) {{\n"
@@ -551,8 +567,7 @@ class Compiled:
 
 
 def compile_shared(exported: Exported, *, cc: str = "cc", flags=("-O2",)) -> Compiled:
-    """Compile ``exported`` into a shared library next to its source and load it (``Compiled``). A
-    ``RuntimeError`` carries the compiler's message."""
+    """``Exported.compile``."""
     import hashlib
     import subprocess
 
