@@ -518,6 +518,11 @@ class Compiled:
         self._solve.argtypes = [vp, vp, vp, dp, ctypes.POINTER(ctypes.c_longlong)]
         self._cost, self._nodes = ctypes.c_double(), ctypes.c_longlong()
         self._sequence = np.zeros(e.horizon, np.intc)
+        self._outputs = (_address(self._sequence), ctypes.byref(self._cost), ctypes.byref(self._nodes))
+        # Inputs are copied into buffers of fixed address: cheaper than taking a new array's pointer a call.
+        self._x = np.zeros(max(e.state_size, e.plant_state_size))
+        self._p = np.zeros(e.num_params)
+        self._inputs = (_address(self._x), _address(self._p) if e.num_params else None)
         if e.state_bytes:
             fields = [("u", ctypes.c_double * e.input_size), ("plan", ctypes.c_int * e.horizon),
                       ("budget", ctypes.c_longlong), ("nodes", ctypes.c_longlong),
@@ -527,22 +532,23 @@ class Compiled:
             self._init.argtypes, self._init.restype = [vp, vp, vp], None
             self._step.argtypes, self._step.restype = [vp, vp, vp, vp], ctypes.c_int
             self._u = np.zeros(e.plant_input_size)
+            self._u_address = _address(self._u)
 
     @staticmethod
     def flat_params(params) -> Optional[np.ndarray]:
-        """``params`` as the C code takes them: ``ravel_pytree``'s vector in float64 (None: no parameters)."""
+        """``params`` as the C code takes them: ``ravel_pytree``'s order in one float64 vector (None: no
+        parameters). A float64 vector passes as it is."""
         if params is None:
             return None
-        return np.ascontiguousarray(ravel_pytree(params)[0], np.float64)
+        if isinstance(params, np.ndarray) and params.dtype == np.float64 and params.ndim == 1:
+            return params
+        leaves = jax.tree_util.tree_leaves(params)
+        return np.concatenate([np.ravel(np.asarray(leaf, np.float64)) for leaf in leaves]) if leaves else None
 
     def solve(self, x0, params=None) -> tuple[int, np.ndarray, float, int]:
         """``NAME_solve``: ``(code, sequence [N], cost, nodes)``."""
-        import ctypes
-
-        x0 = np.ascontiguousarray(x0, np.float64)
-        p = self.flat_params(params)
-        code = self._solve(x0.ctypes.data, None if p is None else p.ctypes.data, self._sequence.ctypes.data,
-                           ctypes.byref(self._cost), ctypes.byref(self._nodes))
+        self._load(x0, self.exported.state_size, params)
+        code = self._solve(*self._inputs, *self._outputs)
         return code, self._sequence.copy(), self._cost.value, self._nodes.value
 
     def init(self, x0, u0=None):
@@ -559,11 +565,27 @@ class Compiled:
         """``NAME_step``: ``(code, u)``; ``state`` is updated in place."""
         import ctypes
 
-        x = np.ascontiguousarray(x, np.float64)
-        p = self.flat_params(params)
-        code = self._step(ctypes.addressof(state), x.ctypes.data, None if p is None else p.ctypes.data,
-                          self._u.ctypes.data)
+        self._load(x, self.exported.plant_state_size, params)
+        code = self._step(ctypes.addressof(state), *self._inputs, self._u_address)
         return code, self._u.copy()
+
+    def _load(self, x, n: int, params) -> None:
+        x = np.asarray(x, np.float64)
+        if x.shape != (n,):
+            raise ValueError(f"the state must have shape ({n},), got {x.shape}")
+        self._x[:n] = x
+        if self.exported.num_params:
+            if params is None:
+                raise TypeError(f"this code takes {self.exported.num_params} parameters: pass params")
+            p = self.flat_params(params)
+            if p.shape != self._p.shape:
+                raise ValueError(f"params flatten to {p.size} numbers, the code takes {self._p.size}")
+            self._p[:] = p
+
+
+def _address(array: np.ndarray) -> int:
+    """The data pointer of a NumPy array (``array.ctypes.data`` builds an object on every call)."""
+    return array.__array_interface__["data"][0]
 
 
 def compile_shared(exported: Exported, *, cc: str = "cc", flags=("-O2",)) -> Compiled:
