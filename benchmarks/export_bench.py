@@ -160,7 +160,7 @@ def run(args):
 
     print("\nThe two-level inverter's exported controller (warm start), NAME_step per decision along a closed loop "
           "of 50 steps, against published FPGA decisions of a three-level drive. Memory: the work arrays on the C "
-          "stack (NAME_WORK_BYTES), the controller state, and the object's code and data (cc -O2, `size`).\n")
+          "stack (NAME_work_bytes()), the controller state, and the object's code and data (cc -O2, `size`).\n")
     print("| N | nodes per decision (mean) | C ctypes -O2 (us) | C ctypes -O3 native (us) | ctrl.step (us) | FPGA "
           "(us) | stack bytes | state bytes | code bytes | data bytes |")
     print("|---|---|---|---|---|---|---|---|---|---|")

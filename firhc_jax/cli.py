@@ -25,7 +25,8 @@ from pathlib import Path
 
 # Subcommand modules, in the order shown by --help.
 _APPS = ("firhc_jax.apps.example", "firhc_jax.apps.hopper", "firhc_jax.apps.tanks", "firhc_jax.apps.inverter",
-         "firhc_jax.apps.batch", "firhc_jax.apps.bench", "firhc_jax.apps.profile", "firhc_jax.apps.cache")
+         "firhc_jax.apps.batch", "firhc_jax.apps.bench", "firhc_jax.apps.profile", "firhc_jax.apps.export",
+         "firhc_jax.apps.cache")
 
 
 def build_parser() -> argparse.ArgumentParser:

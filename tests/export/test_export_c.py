@@ -155,7 +155,12 @@ def test_input_memory_controller_with_params(tmp_path):
     ctrl = fj.FIRHC(mem.problem, observe=mem.observe, warm_start=True)
     refs = inverter.horizon_references(inverter.InverterParams(), 5, 2)
     p0 = {"ref": jnp.asarray(refs[0]), "lambda_u": jnp.asarray(0.1)}
-    lib = fj.export_c(ctrl, tmp_path, name="inv", params=p0).compile()
+    exported = fj.export_c(ctrl, tmp_path, name="inv", params=p0)
+    lib = exported.compile()
+    import ctypes
+
+    lib.lib.inv_work_bytes.restype = ctypes.c_size_t
+    assert lib.lib.inv_work_bytes() == exported.work_bytes and ctypes.sizeof(lib.State) == exported.state_bytes
     plant = inverter.make_plant()
     x = np.array([1.0, -2.0])
     state, c_state = ctrl.init(x), lib.init(x)
@@ -165,6 +170,7 @@ def test_input_memory_controller_with_params(tmp_path):
         code, c_u = lib.step(c_state, x, p)
         assert code == 1
         np.testing.assert_array_equal(c_u, np.asarray(u))
+        assert c_state.nodes == int(info.nodes)
         x = np.asarray(plant(jnp.asarray(x), jnp.asarray(u)))
 
 

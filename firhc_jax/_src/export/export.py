@@ -3,7 +3,7 @@
 The callables are translated from their jaxprs (``c_code``); the search is the template ``search.c``, the
 library's sDFS at ``pop_width=1`` rule for rule. Everything is traced with 64-bit types: the generated code
 takes and returns ``double`` states, parameters and inputs. Memory is sized at export: ``NAME_solve`` and
-``NAME_step`` keep their work arrays on the C stack (``NAME_WORK_BYTES``), allocate nothing and need only
+``NAME_step`` keep their work arrays on the C stack (``NAME_work_bytes()``), allocate nothing and need only
 libm.
 """
 from __future__ import annotations
@@ -48,7 +48,7 @@ class Exported:
     horizon: int
     num_controls: int
     num_params: int  # doubles in the flat params vector
-    work_bytes: int  # NAME_WORK_BYTES: the search's stack arrays
+    work_bytes: int  # NAME_work_bytes(): the search's arrays on the C stack
     state_bytes: int  # sizeof(NAME_state), 0 for a problem
 
     def compile(self, *, cc: str = "cc", flags=("-O2",)) -> "Compiled":
@@ -114,6 +114,7 @@ class _Unit:
         self.leaves = [jnp.asarray(leaf) for leaf in leaves]
         self.specs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in self.leaves]
         self.has_params = params is not None
+        self.controller = False
 
     def p(self, leaves):
         return jax.tree_util.tree_unflatten(self.treedef, leaves) if self.has_params else None
@@ -284,6 +285,7 @@ def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, 
     plant_m = m
     if ctrl is not None:
         _controller_functions(unit, opts, n_plant)
+        unit.controller = True
         unit.has_fallback = "fallback" in variants
         if opts.actuate:
             plant_m = int(np.prod(jax.eval_shape(lambda x, u: call(opts.actuate, params, x, u), _x(n_plant),
@@ -294,11 +296,24 @@ def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, 
     directory.mkdir(parents=True, exist_ok=True)
     (directory / f"{name}.h").write_text(header)
     (directory / f"{name}.c").write_text(source)
-    work = 8 * ((N + 1) * M * (n + 2) + (N + 1) + M * (n + 2)) + 4 * (N + 1) * N + 2 * M
-    state_bytes = 0 if ctrl is None else 8 * (m + 4) + 4 * N
+    work = work_bytes(N, M, n, searches=2 if ctrl is not None else 1)
+    state_bytes = 0 if ctrl is None else _align(_align(8 * m + 4 * N, 8) + 3 * 8 + 4, 8)
     return Exported(header=directory / f"{name}.h", source=directory / f"{name}.c", name=name, state_size=n,
                     plant_state_size=n_plant, input_size=m, plant_input_size=plant_m, horizon=N, num_controls=M,
                     num_params=num_params, work_bytes=work, state_bytes=state_bytes)
+
+
+def _align(size: int, to: int) -> int:
+    return -(-size // to) * to
+
+
+def work_bytes(N: int, M: int, n: int, searches: int = 1) -> int:
+    """Bytes of the search's arrays on the C stack: ``fj_work`` and one ``fj_incumbent`` a search, laid out as
+    a C compiler lays out ``search.c``'s structures (``NAME_work_bytes()`` returns the same)."""
+    children = _align(_align(8 * (M * n + 2 * M) + M, 4) + 4 * M + M, 8)
+    work = _align(8 * ((N + 1) * M * n + 2 * (N + 1) * M + (N + 1)) + 4 * (N + 1) * N, 8) + children
+    incumbent = _align(_align(8 + 4 * N, 8) + 8 + 8 + 4, 8)
+    return work + searches * incumbent
 
 
 def _controller_functions(unit: _Unit, opts, n_plant: int) -> None:
@@ -335,7 +350,7 @@ def _assemble(unit: _Unit, problem: Problem, ctrl, name: str, n: int, n_plant: i
     N, M, m = problem.horizon, problem.num_controls, problem.input_dim
     up = name.upper()
     api = [f"int {name}_solve(const double *x0, const double *params, int *sequence, double *cost, "
-           "long long *nodes);"]
+           "long long *nodes);", f"size_t {name}_work_bytes(void);"]
     state = ""
     if ctrl is not None:
         state = (f"typedef struct {{\n    double u[{m}];          /* the searched input applied last */\n"
@@ -362,6 +377,7 @@ def _assemble(unit: _Unit, problem: Problem, ctrl, name: str, n: int, n_plant: i
 */
 #ifndef {up}_H
 #define {up}_H
+#include <stddef.h>
 #define {up}_NX {n}
 #define {up}_PLANT_NX {n_plant}
 #define {up}_M {M}
@@ -392,6 +408,8 @@ extern "C" {{
 def _solve(unit: _Unit, name: str, budget: int) -> str:
     budgeted = int(budget != INT32_MAX)
     return f"""
+size_t {name}_work_bytes(void) {{ return sizeof(fj_work) + {2 if unit.controller else 1} * sizeof(fj_incumbent); }}
+
 int {name}_solve(const double *x0, const double *params, int *sequence, double *cost, long long *nodes) {{
     if (!fj_all_finite(x0, FJ_NX)) return {CODES['BAD_STATE']};
 {_unpack(unit)}
