@@ -11,7 +11,7 @@ EXAMPLES = sorted(p.name for p in (ROOT / "examples").glob("*.py") if not p.name
 PRINTS = {  # what each example reports, checked in its output
     "quickstart.py": "sDFS: cost", "tracking_reference.py": "rms angle error", "realtime_loop.py": "decisions: median",
     "monte_carlo.py": "pointing error median", "long_horizon_inverter.py": "one decision: J =",
-    "profile_own_plant.py": "<- fastest",
+    "profile_own_plant.py": "<- fastest", "c_controller.py": "differ from ctrl.step",
 }
 pytestmark = pytest.mark.slow
 
