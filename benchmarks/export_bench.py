@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from _results import published
 
+FAST = ("-O3", "-march=native")
 LOOP = r"""
 #define _POSIX_C_SOURCE 199309L
 #include <time.h>
@@ -90,6 +91,38 @@ def footprint(exported, flags) -> tuple[int, int]:
     return int(text), int(data) + int(bss)
 
 
+def engine_row(fj, peer, jitted, folder, label, problem, children, P, x0, *, quick, reps) -> str:
+    """One row of the first table: the generated C, the Numba peer and the JAX search on one state."""
+    ref = jitted(problem, x0)
+    nodes = int(ref.nodes)
+    calls = 20 if quick else max(10, min(2000, 200_000 // nodes))
+    exported = fj.export_c(problem, folder / label.split(",")[0].replace(" ", "_"), name="plant", x0=x0)
+    times = {}
+    for tag, flags in (("O2", ("-O2",)), ("fast", FAST)):
+        lib = exported.compile(flags=flags)
+        code, seq, cost, c_nodes = lib.solve(x0)
+        if c_nodes != nodes or not np.isclose(cost, float(ref.cost), rtol=1e-9):
+            raise AssertionError(f"{label}: C found cost {cost}, {c_nodes} nodes; fj.sdfs {float(ref.cost)}, {nodes}")
+        times[tag] = median_call(lambda lib=lib: lib.solve(x0), calls, reps)
+    times["loop"] = c_loop(exported, FAST, x0, None, calls, reps)
+    M, N = problem.num_controls, problem.horizon
+    nodes_nb = peer.sdfs(children, P, x0, M, N)[2]
+    assert nodes_nb == nodes, (label, nodes_nb, nodes)
+    times["nb"] = median_call(lambda: peer.sdfs(children, P, x0, M, N), calls, reps)
+    X = np.tile(x0, (calls, 1))
+    peer.sdfs_batch(children, P, X, M, N)
+    loops = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        peer.sdfs_batch(children, P, X, M, N)
+        loops.append((time.perf_counter() - t0) / calls)
+    times["nb_loop"] = statistics.median(loops)
+    times["jit"] = median_call(lambda: jax.block_until_ready(jitted(problem, x0)), calls, reps)
+    us = {k: 1e6 * v for k, v in times.items()}
+    return (f"| {label} | {nodes:,} | {us['O2']:.2f} | {us['fast']:.2f} | {us['loop']:.2f} | {us['nb']:.2f} "
+            f"| {us['nb_loop']:.2f} | {us['jit']:.1f} | {us['O2'] / us['nb']:.2f} | {us['loop'] / us['nb_loop']:.2f} |")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="smoke run: N = 3, few calls")
@@ -112,7 +145,6 @@ def run(args):
     N = 3 if args.quick else 5
     reps = 2 if args.quick else args.repeats
     folder = Path(tempfile.mkdtemp())
-    fast = ("-O3", "-march=native")
     print(f"Generated C against the Numba peer, N = {N}, float64; times per decision (us), medians of {reps}.")
     print("ctypes: NAME_solve called from Python; C loop: the same in a loop in C; Numba py: numba_peer.sdfs called "
           "from Python; Numba loop: per solve in a compiled loop; jit: jax.jit(fj.sdfs).\n")
@@ -130,33 +162,8 @@ def run(args):
               np.asarray(benchmark_state(np.float64))),
              ("three tanks, hardest state", tank, peer.tank_children_simd, tank_p, hard)]
     jitted = jax.jit(fj.sdfs)
-    for label, problem, children, P, x0 in cases:
-        ref = jitted(problem, x0)
-        nodes = int(ref.nodes)
-        calls = max(10, min(2000, 200_000 // nodes)) if not args.quick else 20
-        exported = fj.export_c(problem, folder / label.split(",")[0].replace(" ", "_"), name="plant", x0=x0)
-        times = {}
-        for tag, flags in (("O2", ("-O2",)), ("fast", fast)):
-            lib = exported.compile(flags=flags)
-            code, seq, cost, c_nodes = lib.solve(x0)
-            if c_nodes != nodes or not np.isclose(cost, float(ref.cost), rtol=1e-9):
-                raise AssertionError(f"{label}: C found cost {cost}, {c_nodes} nodes; fj.sdfs {float(ref.cost)}, "
-                                     f"{nodes}")
-            times[tag] = median_call(lambda lib=lib: lib.solve(x0), calls, reps)
-        times["loop"] = c_loop(exported, fast, x0, None, calls, reps)
-        M, Np = problem.num_controls, problem.horizon
-        cost_nb, _, nodes_nb = peer.sdfs(children, P, x0, M, Np)
-        assert nodes_nb == nodes, (label, nodes_nb, nodes)
-        times["nb"] = median_call(lambda: peer.sdfs(children, P, x0, M, Np), calls, reps)
-        X = np.tile(x0, (calls, 1))
-        peer.sdfs_batch(children, P, X, M, Np)
-        times["nb_loop"] = statistics.median(
-            (lambda t0: (peer.sdfs_batch(children, P, X, M, Np), time.perf_counter() - t0)[1])(time.perf_counter())
-            for _ in range(reps)) / calls
-        times["jit"] = median_call(lambda: jax.block_until_ready(jitted(problem, x0)), calls, reps)
-        us = {k: 1e6 * v for k, v in times.items()}
-        print(f"| {label} | {nodes:,} | {us['O2']:.2f} | {us['fast']:.2f} | {us['loop']:.2f} | {us['nb']:.2f} "
-              f"| {us['nb_loop']:.2f} | {us['jit']:.1f} | {us['O2'] / us['nb']:.2f} | {us['loop'] / us['nb_loop']:.2f} |")
+    for case in cases:
+        print(engine_row(fj, peer, jitted, folder, *case, quick=args.quick, reps=reps))
 
     print("\nThe two-level inverter's exported controller (warm start), NAME_step per decision along a closed loop "
           "of 50 steps, against published FPGA decisions of a three-level drive. Memory: the work arrays on the C "
@@ -174,7 +181,7 @@ def run(args):
         exported = fj.export_c(ctrl, folder / f"inverter{horizon}", name="inv", params=params[0])
         text, data = footprint(exported, ("-O2",))
         row = {}
-        for tag, flags in (("O2", ("-O2",)), ("fast", fast)):
+        for tag, flags in (("O2", ("-O2",)), ("fast", FAST)):
             lib = exported.compile(flags=flags)
             flat = [lib.flat_params(p) for p in params]
             x, state, spent, nodes = np.array([1.0, -2.0]), lib.init(np.zeros(2)), [], []

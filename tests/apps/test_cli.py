@@ -12,6 +12,7 @@ from repository import ROOT
 import firhc_jax as fj
 from firhc_jax import cli
 from firhc_jax.apps import batch, bench, example, hopper, inverter, tanks
+from firhc_jax.apps import export as export_app
 from firhc_jax.apps import profile as profile_app
 
 # Each command line with the function that starts its work, replaced in the tests below by one that fails: an
@@ -23,6 +24,7 @@ COMMANDS = {
     "inverter": (["inverter"], inverter, "closed_loop"),
     "bench tables": (["bench", "tables", "--quick", "--plants", "tanks"], bench, "tanks_case"),
     "bench throughput": (["bench", "throughput", "--quick"], bench, "synthetic_case"),
+    "export": (["export", "tanks"], export_app, "controller"),
 }
 
 

@@ -86,8 +86,17 @@ def test_generated_search_equals_sdfs_on_random_problems(tmp_path_factory, seed,
 
 
 def model_cases():
-    from firhc_jax.models import grid_converter, hopper, inverter, pumping, spacecraft, synthetic, tanks, thermal
-    from firhc_jax.models import three_level
+    from firhc_jax.models import (
+        grid_converter,
+        hopper,
+        inverter,
+        pumping,
+        spacecraft,
+        synthetic,
+        tanks,
+        thermal,
+        three_level,
+    )
 
     P = hopper.HopperParams()
     contact = hopper.observe(jnp.asarray(hopper.initial_state(P)), jnp.zeros(1))
@@ -283,3 +292,12 @@ def test_the_translation_computes_what_jax_computes(i, k):
         expected = jax.tree_util.tree_leaves(jax.jit(_many)(*args))
     for got, want in zip(c_function(_many, *args), expected, strict=True):
         np.testing.assert_allclose(got, np.asarray(want), rtol=1e-13, atol=1e-15)
+
+
+def test_the_command_line_exports_an_application_and_compares_it(tmp_path, capsys):
+    from firhc_jax import cli
+
+    cli.main(["export", "inverter", "--horizon", "2", "--out", str(tmp_path), "--name", "inv", "--compare", "6"])
+    out = capsys.readouterr().out
+    assert (tmp_path / "inv.h").exists() and (tmp_path / "inv.c").exists()
+    assert "checked 6 closed-loop decisions against ctrl.step: all equal" in out, out

@@ -274,7 +274,8 @@ class Emitter:
             w = which.broadcast(ix)
             text = vals[-1]
             for i in range(len(vals) - 2, -1, -1):
-                text = f"({w} <= {i} ? {vals[i]} : {text})" if which.dtype != np.bool_ else f"({w} ? {text} : {vals[i]})"
+                boolean = which.dtype == np.bool_
+                text = f"({w} ? {text} : {vals[i]})" if boolean else f"({w} <= {i} ? {vals[i]} : {text})"
             return text
         return [self.fill(out, element)]
 

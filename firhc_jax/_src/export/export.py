@@ -27,7 +27,8 @@ from ..search.nodes import one_child
 from ..search.sdfs import INT32_MAX, node_budget
 from .c_code import PRELUDE, c_type, literal, primitives, translate
 
-TYPES, SEARCH = (Path(__file__).parent / "search.c").read_text().split("/* @functions: the generated callables go above this line */")
+TYPES, SEARCH = (Path(__file__).parent / "search.c").read_text().split(
+    "/* @functions: the generated callables go above this line */")
 MAX_STATE_SEARCH = 256  # state sizes tried when the state size is inferred from the callables
 
 # Return codes of NAME_solve and NAME_step (documented in the header and docs/guide/deploy.md).
@@ -429,7 +430,6 @@ def _step(unit: _Unit, opts, name: str, n_plant: int, plant_m: int) -> str:
     budgeted = int(opts.budgeted)
     has_fallback = unit.has_fallback
     previous = bool(opts.warm_start) or opts.budgeted
-    m = unit.m
     safe = ("for (int j = 0; j < FJ_NU; j++) s->u[j] = s->u[j];" if opts.u_safe is None else
             "{ static const double safe[FJ_NU] = {" + ", ".join(literal(v, np.float64) for v in opts.u_safe)
             + "}; for (int j = 0; j < FJ_NU; j++) s->u[j] = safe[j]; }")
