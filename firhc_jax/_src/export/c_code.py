@@ -91,13 +91,15 @@ def flat(index: Sequence[str], shape) -> str:
 
 @dataclasses.dataclass(frozen=True)
 class CValue:
-    """A value in the C function: an array ``name`` (from ``offset`` on), or with ``text`` a scalar literal."""
+    """A value in the C function: an array ``name`` (from ``offset`` on), or with ``text`` a scalar literal.
+    ``varying``: it depends on the input of the loop over the control set (``translate_children``)."""
 
     shape: tuple
     dtype: np.dtype
     name: str = ""
     text: str = ""
     offset: str = ""
+    varying: bool = False
 
     @property
     def size(self) -> int:
@@ -123,13 +125,18 @@ class CValue:
 
 
 class Emitter:
-    """The C domain: ``apply`` writes an equation's loops into ``lines`` and returns its outputs."""
+    """The C domain: ``apply`` writes an equation's loops and returns its outputs. An equation whose inputs do
+    not vary with the loop's input is written before that loop (``outer``), the others inside it (``inner``):
+    what only the parent state decides is computed once for all its children."""
 
     def __init__(self, tables: dict):
-        self.lines: list[str] = []
+        self.outer: list[str] = []
+        self.inner: list[str] = []
+        self.lines = self.outer
         self.tables = tables  # bytes key -> (name, C definition): the unit's static const arrays
         self.names = itertools.count()
         self.depth = 1
+        self.nesting = 0  # > 0 inside a body: it stays where its equation went
 
     # -- writing -------------------------------------------------------------------------------------------
     def emit(self, line: str) -> None:
@@ -179,6 +186,18 @@ class Emitter:
         return CValue(tuple(value.shape), dtype, name=self.tables[key][0])
 
     def apply(self, eqn, invals) -> list:
+        if self.nesting:
+            return self._rule(eqn, invals)
+        varying = any(v.varying for v in invals)
+        self.lines, depth = (self.inner, 2) if varying else (self.outer, 1)
+        self.depth, self.nesting = depth, 1
+        try:
+            outs = self._rule(eqn, invals)
+        finally:
+            self.nesting = 0
+        return [dataclasses.replace(o, varying=varying) for o in outs]
+
+    def _rule(self, eqn, invals) -> list:
         name = eqn.primitive.name
         outs = [v.aval for v in eqn.outvars]
         rule = getattr(self, "_" + name.replace("-", "_"), None)
@@ -624,20 +643,46 @@ def translate(name: str, fn: Callable, args: Sequence[jax.ShapeDtypeStruct], arg
     """C function ``name(args..., outs...)`` computing ``fn(*args)``: each argument a ``const`` pointer of its
     dtype, each output a pointer of the C type in ``out_types``, written element by element. ``where`` names
     ``fn`` in messages (or, called with a primitive's name, names the callable that uses it)."""
+    emitter, results = _emitted(fn, args, arg_names, tables, where)
+    params = [f"const {c_type(a.dtype)} *{n}" for a, n in zip(args, arg_names, strict=True)]
+    params += [f"{t} *out{i}" for i, t in enumerate(out_types)]
+    emitter.lines, emitter.depth = emitter.outer, 1
+    for i, (r, t) in enumerate(zip(results, out_types, strict=True)):
+        emitter.loops((r.size,), lambda ix, r=r, i=i, t=t: emitter.emit(f"out{i}[{ix[0]}] = ({t})({r.at(ix[0])});"))
+    return f"static void {name}({', '.join(params)}) {{\n" + "\n".join(emitter.outer) + "\n}\n"
+
+
+def translate_children(name: str, fn: Callable, args: Sequence[jax.ShapeDtypeStruct], arg_names: Sequence[str],
+                       table: str, count: int, out_types: Sequence[str], tables: dict, where) -> str:
+    """C function ``name(args without u..., outs...)`` computing ``fn`` for every row ``u`` of ``table``
+    (``count`` rows; ``u`` is the argument named "u"), output ``j`` of row ``c`` at ``out_j[c * size_j]``.
+    What does not depend on ``u`` is computed once, before the loop over the rows."""
+    emitter, results = _emitted(fn, args, arg_names, tables, where, varying="u")
+    u = args[arg_names.index("u")]
+    params = [f"const {c_type(a.dtype)} *{n}" for a, n in zip(args, arg_names, strict=True) if n != "u"]
+    params += [f"{t} *out{i}" for i, t in enumerate(out_types)]
+    emitter.lines, emitter.depth = emitter.inner, 2
+    for i, (r, t) in enumerate(zip(results, out_types, strict=True)):
+        emitter.loops((r.size,), lambda ix, r=r, i=i, t=t: emitter.emit(
+            f"out{i}[child * {r.size} + {ix[0]}] = ({t})({r.at(ix[0])});"))
+    loop = [f"    for (int child = 0; child < {count}; child++) {{",
+            f"        const {c_type(u.dtype)} *u = &{table}[child * {math.prod(u.shape)}];", *emitter.inner, "    }"]
+    return f"static void {name}({', '.join(params)}) {{\n" + "\n".join(emitter.outer + loop) + "\n}\n"
+
+
+def _emitted(fn, args, arg_names, tables: dict, where, varying: str = "") -> tuple[Emitter, list]:
+    """The emitter after translating ``fn``, and ``fn``'s outputs in it; a ``ValueError`` names the callable
+    and the primitive the translation does not cover."""
     closed = jax.make_jaxpr(fn)(*args)
     emitter = Emitter(tables)
-    inputs = [CValue(tuple(a.shape), np.dtype(a.dtype), name=n) for a, n in zip(args, arg_names, strict=True)]
+    inputs = [CValue(tuple(a.shape), np.dtype(a.dtype), name=n, varying=n == varying)
+              for a, n in zip(args, arg_names, strict=True)]
     try:
-        results = interpret(closed, inputs, emitter)
+        return emitter, interpret(closed, inputs, emitter)
     except Unsupported as e:
         culprit = where(e.primitive) if callable(where) else where
         raise ValueError(f"{culprit} uses {e}; the C export cannot translate it. Rewrite that part with the "
                          "supported primitives (the deployment guide lists them)") from None
-    params = [f"const {c_type(a.dtype)} *{n}" for a, n in zip(args, arg_names, strict=True)]
-    params += [f"{t} *out{i}" for i, t in enumerate(out_types)]
-    for i, (r, t) in enumerate(zip(results, out_types, strict=True)):
-        emitter.loops((r.size,), lambda ix, r=r, i=i, t=t: emitter.emit(f"out{i}[{ix[0]}] = ({t})({r.at(ix[0])});"))
-    return f"static void {name}({', '.join(params)}) {{\n" + "\n".join(emitter.lines) + "\n}\n"
 
 
 def primitives(closed) -> set[str]:

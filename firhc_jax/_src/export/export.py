@@ -25,7 +25,7 @@ from ..problem.callables import check_state
 from ..problem.problem import Problem, call, input_dtype
 from ..search.nodes import one_child
 from ..search.sdfs import INT32_MAX, node_budget
-from .c_code import PRELUDE, c_type, literal, primitives, translate
+from .c_code import PRELUDE, c_type, literal, primitives, translate, translate_children
 
 TYPES, SEARCH = (Path(__file__).parent / "search.c").read_text().split(
     "/* @functions: the generated callables go above this line */")
@@ -159,14 +159,16 @@ def _variant(unit: _Unit, problem: Problem, tag: str, controls: str, drop=()) ->
 
     unit.add(f"fj_{tag}_child_raw", child, [_x(n), u_spec, k_spec], ["x", "u", "k"],
              ["double", "double", "unsigned char"], culprit)
+    unit.functions.append(translate_children(
+        f"fj_{tag}_children_raw", child, [_x(n), u_spec, k_spec] + unit.specs, ["x", "u", "k"] + unit.p_names,
+        controls, problem.num_controls, ["double", "double", "unsigned char"], unit.tables, culprit))
     unit.functions.append(
         f"static void fj_{tag}_child(const double *x, int input, int32_t k, const fj_params *p, double *x_next, "
         f"double *stage, unsigned char *allowed) {{\n"
         f"    fj_{tag}_child_raw(x, &{controls}[input * {m}], &k{unit.p_args()}, x_next, stage, allowed);\n}}\n"
         f"static void fj_{tag}_children(const double *x, int32_t k, const fj_params *p, double *xs, "
         f"double *stage, unsigned char *allowed) {{\n"
-        f"    for (int i = 0; i < {problem.num_controls}; i++) fj_{tag}_child(x, i, k, p, xs + i * {n}, stage + i, "
-        f"allowed + i);\n}}\n")
+        f"    fj_{tag}_children_raw(x, &k{unit.p_args()}, xs, stage, allowed);\n}}\n")
     fields = {"terminal": "NULL", "terminal_cost": "NULL", "lower_bound": "NULL"}
     scalar = {"terminal": "unsigned char", "terminal_cost": "double", "lower_bound": "double"}
     for field in fields:
