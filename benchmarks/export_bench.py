@@ -7,10 +7,11 @@ One process, float64, pinned or not as the caller runs it. Rows:
   same function in a C loop (no Python), the Numba peer (``numba_peer.sdfs``) called from Python and in a
   compiled loop, and ``jax.jit(fj.sdfs)``. The ratio the target reads is C through ctypes over Numba called
   from Python: both pay one call from Python;
-* the two-level inverter's decision at N = 1, 2 and 3 (``NAME_step`` of the exported ``FIRHC``, warm start)
-  against the published FPGA times of a three-level drive (5.76 us at N = 1, 17.27 us at N = 2: Stellato,
-  Geyer, Goulart, IEEE TPEL 2017), with each generated controller's memory: its work arrays on the C stack,
-  its state, and the code and tables of the compiled object (``size``).
+* the two-level and three-level inverters' decisions at N = 1, 2 and 3 (``NAME_step`` of the exported
+  ``FIRHC``, warm start; the three-level one is ``LinearTracking``'s problem), through ``ctypes`` and
+  replayed in a C loop, against the published FPGA times of a three-level drive (5.76 us at N = 1,
+  17.27 us at N = 2: Stellato, Geyer, Goulart, IEEE TPEL 2017), with each generated controller's memory: its
+  work arrays on the C stack, its state, and the code and tables of the compiled object (``size``).
 
 Every row checks that the generated code found the library's cost and node count. The C code is compiled
 with ``cc -O2`` (the default of ``Exported.compile``) and ``-O3 -march=native``.
@@ -139,7 +140,7 @@ def run(args):
     from engine_bench import tank_states
 
     import firhc_jax as fj
-    from firhc_jax.models import inverter, tanks
+    from firhc_jax.models import tanks
     from firhc_jax.models.synthetic import SyntheticParams, benchmark_state, make_problem
 
     N = 3 if args.quick else 5
@@ -165,48 +166,97 @@ def run(args):
     for case in cases:
         print(engine_row(fj, peer, jitted, folder, *case, quick=args.quick, reps=reps))
 
-    print("\nThe two-level inverter's exported controller (warm start), NAME_step per decision along a closed loop "
-          "of 50 steps, against published FPGA decisions of a three-level drive. Memory: the work arrays on the C "
+    print("\nThe inverters' exported controllers (warm start, the step's observe included), NAME_step per decision "
+          "along a closed loop of 50 steps: through ctypes, and replayed in a C loop (the decision alone), against "
+          "published FPGA decisions of a three-level drive (27 switch states). Memory: the work arrays on the C "
           "stack (NAME_work_bytes()), the controller state, and the object's code and data (cc -O2, `size`).\n")
-    print("| N | nodes per decision (mean) | C ctypes -O2 (us) | C ctypes -O3 native (us) | ctrl.step (us) | FPGA "
-          "(us) | stack bytes | state bytes | code bytes | data bytes |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    published_us = {1: 5.76, 2: 17.27}
-    plant = inverter.make_plant()
-    for horizon in (1, 2) if args.quick else (1, 2, 3):
+    print("| controller | N | nodes per decision (mean) | C ctypes -O2 (us) | C loop -O2 (us) | C loop -O3 native (us) "
+          "| ctrl.step (us) | FPGA (us) | stack bytes | state bytes | code bytes | data bytes |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for kind in ("two-level, 8 inputs", "three-level, 27 inputs (LinearTracking)"):
+        for horizon in (1, 2) if args.quick else (1, 2, 3):
+            print(inverter_row(fj, folder, kind, horizon))
+
+
+def inverter_controller(fj, kind: str, horizon: int):
+    """``(ctrl, params of 50 steps, plant)`` of the two-level or three-level inverter's controller."""
+    from firhc_jax.models import inverter, three_level
+
+    refs = inverter.horizon_references(inverter.InverterParams(), 50, horizon)
+    if kind.startswith("two"):
         mem = inverter.make_problem(horizon)
         ctrl = fj.FIRHC(mem.problem, observe=mem.observe, warm_start=True)
-        refs = inverter.horizon_references(inverter.InverterParams(), 50, horizon)
-        params = [{"ref": jnp.asarray(r), "lambda_u": jnp.asarray(0.1)} for r in refs]
-        exported = fj.export_c(ctrl, folder / f"inverter{horizon}", name="inv", params=params[0])
-        text, data = footprint(exported, ("-O2",))
-        row = {}
-        for tag, flags in (("O2", ("-O2",)), ("fast", FAST)):
-            lib = exported.compile(flags=flags)
-            flat = [lib.flat_params(p) for p in params]
-            x, state, spent, nodes = np.array([1.0, -2.0]), lib.init(np.zeros(2)), [], []
-            for p_flat in flat:  # one closed loop, each decision timed over repeated calls from its state
-                saved = lib.State.from_buffer_copy(state)
-                t0 = time.perf_counter()
-                for _ in range(20):
-                    ctypes.memmove(ctypes.addressof(state), ctypes.addressof(saved), ctypes.sizeof(state))
-                    code, u = lib.step(state, x, p_flat)
-                spent.append((time.perf_counter() - t0) / 20)
-                nodes.append(state.nodes)
-                x = np.asarray(plant(jnp.asarray(x), jnp.asarray(u)))
-            row[tag] = 1e6 * statistics.median(spent)
-        x, state, spent = np.array([1.0, -2.0]), ctrl.init(np.zeros(2)), []
-        for p in params:
-            t0 = time.perf_counter()
-            u, state, _ = ctrl.step(state, x, p)
-            spent.append(time.perf_counter() - t0)
-            x = np.asarray(plant(jnp.asarray(x), jnp.asarray(u)))
-        step_us = 1e6 * statistics.median(spent[1:])
-        fpga = published_us.get(horizon)
-        print(f"| {horizon} | {np.mean(nodes):.1f} | {row['O2']:.2f} | {row['fast']:.2f} | {step_us:.0f} | "
-              f"{'-' if fpga is None else fpga} | {exported.work_bytes:,} | {exported.state_bytes} | {text:,} | "
-              f"{data:,} |")
+        return ctrl, [{"ref": jnp.asarray(r), "lambda_u": jnp.asarray(0.1)} for r in refs], inverter.make_plant()
+    lt = three_level.make_problem(horizon)
+    ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
+    return ctrl, [lt.params(jnp.asarray(r)) for r in refs], three_level.make_plant()
 
+
+def inverter_row(fj, folder, kind: str, horizon: int) -> str:
+    """One row of the second table: one closed loop through the generated step, timed three ways."""
+    ctrl, params, plant = inverter_controller(fj, kind, horizon)
+    exported = fj.export_c(ctrl, folder / f"{kind[:3]}{horizon}", name="inv", params=params[0], x0=np.zeros(2))
+    text, data = footprint(exported, ("-O2",))
+    lib = exported.compile()
+    flat = np.stack([lib.flat_params(p) for p in params])
+    x, state, spent, nodes, states = np.array([1.0, -2.0]), lib.init(np.zeros(2)), [], [], []
+    for p_flat in flat:  # one closed loop, each decision timed over repeated calls from its state
+        saved = lib.State.from_buffer_copy(state)
+        states.append(x)
+        t0 = time.perf_counter()
+        for _ in range(20):
+            ctypes.memmove(ctypes.addressof(state), ctypes.addressof(saved), ctypes.sizeof(state))
+            code, u = lib.step(state, x, p_flat)
+        spent.append((time.perf_counter() - t0) / 20)
+        nodes.append(state.nodes)
+        x = np.asarray(plant(jnp.asarray(x), jnp.asarray(u)))
+    ctypes_us = 1e6 * statistics.median(spent)
+    loops = {tag: 1e6 * step_loop(exported, flags, np.stack(states), flat) for tag, flags in
+             (("O2", ("-O2",)), ("fast", FAST))}
+    x, state, spent = np.array([1.0, -2.0]), ctrl.init(np.zeros(2)), []
+    for p in params:
+        t0 = time.perf_counter()
+        u, state, _ = ctrl.step(state, x, p)
+        spent.append(time.perf_counter() - t0)
+        x = np.asarray(plant(jnp.asarray(x), jnp.asarray(u)))
+    step_us = 1e6 * statistics.median(spent[1:])
+    fpga = {1: 5.76, 2: 17.27}.get(horizon)
+    return (f"| {kind} | {horizon} | {np.mean(nodes):.1f} | {ctypes_us:.2f} | {loops['O2']:.2f} | {loops['fast']:.2f} "
+            f"| {step_us:.0f} | {'-' if fpga is None else fpga} | {exported.work_bytes:,} | {exported.state_bytes} "
+            f"| {text:,} | {data:,} |")
+
+
+STEPS = r"""
+#define _POSIX_C_SOURCE 199309L
+#include <time.h>
+#include "{name}.h"
+double {name}_steps(int steps, int rounds, const double *xs, const double *ps) {{
+    {name}_state s;
+    double u[{up}_PLANT_NU];
+    struct timespec a, b;
+    clock_gettime(CLOCK_MONOTONIC, &a);
+    for (int r = 0; r < rounds; r++) {{
+        {name}_init(&s, NULL, NULL);
+        for (int t = 0; t < steps; t++) {name}_step(&s, xs + t * {up}_PLANT_NX, ps + t * {up}_NP, u);
+    }}
+    clock_gettime(CLOCK_MONOTONIC, &b);
+    return ((b.tv_sec - a.tv_sec) + 1e-9 * (b.tv_nsec - a.tv_nsec)) / ((double)steps * rounds);
+}}
+"""
+
+
+def step_loop(exported, flags, xs: np.ndarray, ps: np.ndarray, rounds: int = 200) -> float:
+    """Seconds per ``NAME_step`` replaying a recorded closed loop (its plant states and params) in C."""
+    folder = Path(tempfile.mkdtemp())
+    (folder / "steps.c").write_text(STEPS.format(name=exported.name, up=exported.name.upper()))
+    lib_path = folder / "steps.so"
+    subprocess.run(["cc", "-std=c99", *flags, "-fPIC", "-shared", f"-I{exported.source.parent}", "-o", str(lib_path),
+                    str(exported.source), str(folder / "steps.c"), "-lm"], check=True)
+    fn = getattr(ctypes.CDLL(str(lib_path)), f"{exported.name}_steps")
+    fn.restype = ctypes.c_double
+    fn.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p]
+    xs, ps = np.ascontiguousarray(xs, np.float64), np.ascontiguousarray(ps, np.float64)
+    return statistics.median(fn(len(xs), rounds, xs.ctypes.data, ps.ctypes.data) for _ in range(5))
 
 if __name__ == "__main__":
     main()
