@@ -17,7 +17,7 @@ from random_problems import make
 import firhc_jax as fj
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler (cc) on this machine")
-SETTINGS = settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+SETTINGS = settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 def same_search(problem, c_out, r, params=None, x0=None):
@@ -133,7 +133,7 @@ def test_generated_search_equals_sdfs_on_every_model(case, tmp_path):
         same_search(problem, lib.solve(x0, params), fj.sdfs(problem, x0, params=params), params, x0)
 
 
-@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.integers(0, 2**31 - 1), st.sampled_from(["loose", "tight"]), st.sampled_from([None, "unconstrained"]),
        st.booleans(), st.sampled_from([None, 25, 90]), st.booleans())
 def test_generated_controller_steps_as_firhc(tmp_path_factory, seed, terminal, fallback, warm, max_nodes, safe):
