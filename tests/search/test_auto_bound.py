@@ -20,6 +20,7 @@ def auto(shape):
     return pp.problem(shape, True, "auto")
 
 
+@pytest.mark.float32
 @SETTINGS
 @given(pp.cases(tightness=("none", "loose", "tight")))
 def test_every_solver_stays_exact_with_the_derived_bound(case):
@@ -152,3 +153,15 @@ def test_the_controller_and_its_fallback_take_the_derived_bound():
     plain = fj.FIRHC(problem.replace(lower_bound=None), fallback="unconstrained").simulate(jnp.array([6.0]), 6)
     np.testing.assert_array_equal(np.asarray(bounded.inputs), np.asarray(plain.inputs))
     assert np.asarray(bounded.used_fallback).any()  # the band is out of reach at first
+
+
+def test_input_memory_derives_the_bound_of_the_whole_wrapped_model():
+    base = fj.Problem(lambda x, u: 0.7 * x + u, jnp.array([-1.0, 0.0, 1.0]), lambda x, u: jnp.sum(x**2), 5,
+                      lower_bound="auto")
+    mem = fj.with_input_memory(base, fj.input_change_cost(0.5),
+                               transition=lambda u, u_prev: jnp.all(jnp.abs(u - u_prev) <= 1))
+    assert isinstance(mem.problem.lower_bound, AutoBound) and mem.problem.lower_bound.dynamics is mem.problem.dynamics
+    z = mem.observe(jnp.array([2.5]), jnp.array([-1.0]))
+    found = fj.sdfs(mem.problem, z)
+    assert same_cost(float(found.cost), float(fj.exhaustive(mem.problem, z).cost))
+    assert int(found.nodes) < int(fj.sdfs(mem.problem.replace(lower_bound=None), z).nodes)

@@ -48,7 +48,10 @@ limit, a cost of changing state, without carrying a flag in the state).
   more inputs: their stage costs plus the terminal cost, ``+inf`` where the
   terminal set or the constraints cannot be met in that many steps. With it
   every search prunes a node when ``cost + bound`` is not below the incumbent.
-  (The step index of the next input is ``N - steps_left``.)
+  (The step index of the next input is ``N - steps_left``.) ``lower_bound="auto"``
+  derives one from the model (``auto_bound``): per remaining step the least
+  stage cost over the box of states reachable by then, ``+inf`` where no
+  input's constraint or the terminal set can hold on that box.
 
 Nothing in a search is differentiable (it is a discrete argmin); the cost of
 a returned sequence can be re-evaluated differentiably with
