@@ -16,7 +16,8 @@ FUNCTIONS = {
     "transcendental": lambda x: jnp.stack([jnp.tanh(x[0]), jnp.exp(x[1]), jnp.log(1 + x[2] ** 2),
                                            jnp.sqrt(jnp.abs(x[0])), jax.nn.sigmoid(x[1]), jnp.log1p(x[2] ** 2)]),
     "trigonometric": lambda x: jnp.stack([jnp.sin(3 * x[0]), jnp.cos(x[1]), jnp.abs(jnp.sin(3 * x)).sum()]),
-    "powers": lambda x: jnp.stack([x[0] ** 3, x[1] ** 4, 1 / (1 + x[2] ** 2), (1 + x[0] ** 2) ** 0.7]),
+    "powers": lambda x: jnp.stack([x[0] ** 3, x[1] ** 4, 1 / (1 + x[2] ** 2), (1 + x[0] ** 2) ** 0.7,
+                                   (2.5 + x[1]) ** -1, (3 + x[2]) ** -3, (0.5 + x[0] ** 2) ** -2]),
     "order": lambda x: jnp.stack([jnp.maximum(x[0], x[1]), jnp.minimum(x[1], x[2]), jnp.clip(x[2], -0.5, 0.5),
                                   jnp.where(x[0] > 0, x[0], -2 * x[0]), jnp.sort(x)[1], jnp.sign(x[2])]),
     "linear algebra": lambda x: jnp.concatenate([A @ x, jnp.cumsum(x), jnp.sum(x * x, keepdims=True)]),
@@ -93,3 +94,17 @@ def test_a_while_loop_is_refused_by_name():
     closed = jax.make_jaxpr(fn)(jnp.ones(()))
     with pytest.raises(Unsupported, match="'while'"):
         enclose(closed, [Interval(jnp.asarray(1.0), jnp.asarray(2.0))])
+
+
+def test_a_possible_nan_stays_possible_through_the_functions_that_keep_it():
+    """sqrt of a possibly negative value may be NaN; abs, 0 *, max and tanh of NaN are NaN, and NaN >= 0 is
+    False: each comparison below must stay possibly False."""
+    for fn in (lambda v: jnp.abs(jnp.sqrt(v)) >= 0, lambda v: 0.0 * jnp.sqrt(v) == 0,
+               lambda v: jnp.maximum(jnp.sqrt(v), 1.0) >= 1.0, lambda v: jnp.tanh(jnp.sqrt(v)) >= -1.0,
+               lambda v: jnp.max(jnp.stack([jnp.sqrt(v), v])) >= -5.0):
+        closed = jax.make_jaxpr(fn)(jnp.zeros(()))
+        out = enclose(closed, [Interval(jnp.asarray(-1.0), jnp.asarray(4.0))])[0]
+        assert not bool(out.lo) and bool(out.hi)
+    ok = enclose(jax.make_jaxpr(lambda v: jnp.abs(jnp.sqrt(v)) >= 0)(jnp.zeros(())),
+                 [Interval(jnp.asarray(1.0), jnp.asarray(4.0))])[0]
+    assert bool(ok.lo)  # no NaN possible: surely True

@@ -17,7 +17,9 @@ real value, ``lo <= value <= hi``:
   plus as many of 1 for log and the trigonometric ones: XLA's approximations are a few ulps off;
 * a value that may be NaN (``sqrt`` or ``log`` of a possibly negative argument, a division by an interval
   holding 0, ``inf - inf``) is ``[-inf, +inf]``: every comparison on it is then both possibly True and
-  possibly False, which covers the concrete NaN's answers.
+  possibly False, which covers the concrete NaN's answers, and the primitives that would narrow that
+  interval although NaN passes through them (abs, mul, max, tanh, reductions, ...) give ``[-inf, +inf]``
+  again.
 
 Integer arithmetic is exact and assumed not to overflow. A primitive without a rule raises ``Unsupported``,
 naming it; so does a ``while`` loop (its trip count may depend on the values), while ``scan`` (a fixed
@@ -196,7 +198,7 @@ def _integer_pow(eqn, a, y=None):
             lo, hi = hi, lo
     else:
         lo, hi = lax.integer_pow(a.lo, y), lax.integer_pow(a.hi, y)
-        if y < 0:
+        if y < 0:  # decreasing on each side of 0, unbounded across it
             holds_zero = (a.lo <= 0) & (a.hi >= 0)
             lo, hi = jnp.where(holds_zero, -jnp.inf, hi), jnp.where(holds_zero, jnp.inf, lo)
     if _is_float(lo):
@@ -555,6 +557,37 @@ _RULES = {
 }
 
 
+# Primitives whose rule would narrow [-inf, inf], the interval of a value that may be NaN, although their
+# concrete result is then NaN again (abs(NaN), 0 * NaN, max(NaN, 1), tanh(NaN), ...): where an input may be
+# NaN their output is everything, elementwise or (for reductions and sorts) as a whole.
+_NAN_ELEMENTWISE = {"abs", "mul", "max", "min", "clamp", "sign", "exp", "exp2", "expm1", "tanh", "logistic", "erf",
+                    "atan", "integer_pow", "square", "cosh", "sin", "cos", "atan2", "pow", "rem"}
+_NAN_WHOLE = {"reduce_max", "reduce_min", "cummax", "cummin", "sort", "argmax", "argmin"}
+
+
+def _may_be_nan(v: Interval):
+    return (v.lo == -jnp.inf) & (v.hi == jnp.inf)
+
+
+def _guard_nan(name: str, invals: Sequence[Interval], outs: list) -> list:
+    floats = [v for v in invals if not v.point and _is_float(v.lo)]
+    if not floats:
+        return outs
+    guarded = []
+    for out in outs:
+        if not _is_float(out.lo):
+            guarded.append(out)
+            continue
+        if name in _NAN_WHOLE:
+            flag = jnp.any(jnp.stack([jnp.any(_may_be_nan(v)) for v in floats]))
+        else:
+            flag = jnp.zeros(np.shape(out.lo), bool)
+            for v in floats:
+                flag = flag | jnp.broadcast_to(_may_be_nan(v), np.shape(out.lo))
+        guarded.append(Interval(jnp.where(flag, -jnp.inf, out.lo), jnp.where(flag, jnp.inf, out.hi)))
+    return guarded
+
+
 class IntervalDomain:
     """The ``Domain`` of intervals (module docstring). ``apply`` raises ``Unsupported`` for a primitive
     without a rule."""
@@ -577,7 +610,10 @@ class IntervalDomain:
             why = "a loop whose number of iterations may depend on the values" if name == "while" else ""
             raise Unsupported(name, why)
         out = rule(eqn, *invals)
-        return out if isinstance(out, list) else [out]
+        out = out if isinstance(out, list) else [out]
+        if name in _NAN_ELEMENTWISE or name in _NAN_WHOLE:
+            out = _guard_nan(name, invals, out)
+        return out
 
 
 def enclose(closed, args: Sequence[Interval]) -> list[Interval]:
