@@ -21,7 +21,7 @@ N = 8, no N = 24) well under one. ``--variant``: the same structure with other p
 (``VARIANT``). Figures: docs/guide/budgets.md.
 
     python benchmarks/pumping_bench.py [--steps 72] [--quick] [--skip-others | --only-others] [--only 0,2]
-                                       [--variant]
+                                       [--variant] [--bound demand|target|auto|none]
 """
 from __future__ import annotations
 
@@ -43,10 +43,14 @@ VARIANT = pm.PumpingParams(area=(180.0, 140.0), lift=(25.0, 25.0, 34.0), a_coef=
                            h_shut=(55.0, 52.0, 67.0), power=(45.0, 75.0, 65.0), parallel=0.85, water_value=0.11)
 
 
-def pumping_setting(horizon: int, max_nodes, steps: int, station: pm.PumpingParams = STATION):
+def pumping_setting(horizon: int, max_nodes, steps: int, station: pm.PumpingParams = STATION,
+                    bound: str = "demand"):
     price, demand = pm.forecast(steps + horizon)
     params = pm.horizon_params(price, demand, steps, horizon)
-    problem = pm.make_problem(horizon, station)
+    if bound == "auto":
+        problem = pm.make_problem(horizon, station, bound=None).replace(lower_bound="auto")
+    else:
+        problem = pm.make_problem(horizon, station, bound=None if bound == "none" else bound)
     opts = {} if max_nodes is None else {"max_nodes": max_nodes}
     ctrl = fj.FIRHC(problem, **opts)
     x0 = jnp.asarray(pm.INITIAL_LEVELS)
@@ -140,11 +144,13 @@ def main():
                     help="their budget, as a fraction of their mean exact nodes")
     ap.add_argument("--only", default=None, help="comma-separated indices (0-4) of the pumping rows to run")
     ap.add_argument("--variant", action="store_true", help="the station with other plant numbers (VARIANT)")
+    ap.add_argument("--bound", default="demand", choices=("demand", "target", "auto", "none"),
+                    help="the pumping rows' lower bound: the model's two hand bounds, lower_bound=\"auto\" or none")
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
     steps = 12 if args.quick else args.steps
     station = VARIANT if args.variant else STATION
-    print(f"{platform.machine()}, jax {jax.__version__}, float64; pumping closed loop {steps} h"
+    print(f"{platform.machine()}, jax {jax.__version__}, float64; pumping closed loop {steps} h, bound {args.bound}"
           + (", the variant station" if args.variant else ""))
 
     seed_run = fj.FIRHC(pm.make_problem(4)).simulate(jnp.asarray(pm.INITIAL_LEVELS), 12,
@@ -164,7 +170,7 @@ def main():
           "| predicted bound violations / lowest plant margin |")
     print("|---|---|---|---|---|---|")
     for label, horizon, budget in settings:
-        print(row(label, pumping_setting(horizon, budget, steps, station)), flush=True)
+        print(row(label, pumping_setting(horizon, budget, steps, station, args.bound)), flush=True)
     if args.skip_others:
         return
     for name, steps_other in (("tanks", 40 if args.quick else 100), ("hopper", 200 if args.quick else 400)):

@@ -1,8 +1,9 @@
 """Benchmarks that read the library's internals run end to end on a small size (a subprocess from the
 repository's root, as the performance page's commands run them) and print their tables: those comparing
 LinearTracking with the plain search of every input, the split of one eager decision (which finds each
-call's compiled program where the lean path keeps it), and the generated C against the Numba peer. A change
-inside cannot leave them broken unnoticed."""
+call's compiled program where the lean path keeps it), the generated C against the Numba peer, and the derived
+lower bound against a hand-written one (each asserts that every bound's decisions are exact). A change inside
+cannot leave them broken unnoticed."""
 import os
 import subprocess
 import sys
@@ -21,6 +22,8 @@ RUNS = {  # script and a small size: what its table must show
                         ["plain sDFS", "LinearTracking"]),
     "call_bench.py": (["--calls", "20", "--rounds", "1"], ["## pinned to one core", "`lt.solve`", "compiled scan"]),
     "export_bench.py": (["--quick"], ["linear, 17 inputs", "| 1 | "]),
+    "auto_bound_bench.py": (["--uc-horizon", "3", "--uc-steps", "3", "--band-horizon", "5", "--band-states", "4"],
+                            ["## Unit commitment", "## Comfort band", "| auto |"]),
 }
 
 

@@ -244,3 +244,36 @@ def test_profile_command_refuses_an_unwritable_out_before_importing(tmp_path, ca
     with pytest.raises(SystemExit) as e:
         main(["profile", "no_such_module_xyz:case", "--out", str(a_file)])
     assert e.value.code == 2 and "exists and is not a folder" in capsys.readouterr().err
+
+
+def _late_cost_problem(lower_bound=None):
+    """Every sequence pays only at its last step, so that a search without a bound prunes almost nothing."""
+    import jax.numpy as jnp
+
+    return fj.Problem(lambda x, u, k: 0.9 * x + u, jnp.array([-0.5, 0.0, 0.5]),
+                      lambda x, u, k: jnp.where(k == 6, 10.0 + jnp.sum(x**2), 0.0), 7, step_index=True,
+                      lower_bound=lower_bound)
+
+
+def test_profile_warns_when_a_search_without_a_bound_prunes_little():
+    states = np.random.default_rng(1).uniform(-1, 1, (2, 1))
+    with pytest.warns(UserWarning, match="lower_bound=\"auto\""):
+        rows = fj.profile(_late_cost_problem(), states, pop_widths=(1,), lanes=(), repeats=1,
+                          max_exhaustive_nodes=1)
+    assert rows.bound is None and len(rows.advice) == 1
+    assert rows[0]["nodes"] / 2 > throughput.UNPRUNED_SHARE * _late_cost_problem().tree_size()
+
+
+def test_profile_times_the_search_with_and_without_the_bound():
+    states = np.random.default_rng(1).uniform(-1, 1, (2, 1))
+    rows = fj.profile(_late_cost_problem("auto"), states, pop_widths=(1,), lanes=(), repeats=1,
+                      max_exhaustive_nodes=1)
+    bound = rows.bound
+    assert set(bound) == {"seconds", "seconds_without", "nodes", "nodes_without", "slowdown"}
+    assert bound["nodes"] == rows[0]["nodes"] and bound["nodes_without"] > 2 * bound["nodes"]
+    assert bound["slowdown"] == pytest.approx(bound["seconds"] / bound["seconds_without"])
+    assert "lower_bound" in [c["callable"] for c in rows.node_costs]
+    costly = dict(bound, slowdown=throughput.BOUND_SLOWDOWN + 0.1)
+    assert "costs more than its pruning saves" in throughput._advice(_late_cost_problem("auto"), list(rows),
+                                                                         costly)[0]
+    assert throughput._advice(_late_cost_problem("auto"), list(rows), dict(bound, slowdown=1.0)) == []

@@ -54,6 +54,7 @@ import numpy as np
 
 from ..annotations import ArrayLike, PyTree
 from ..checks import as_batch, as_inputs, as_sequence, as_state, check_params, is_tracer, positive_int, sample_times
+from ..problem.auto_bound import AutoBound
 from ..problem.problem import Problem, input_dtype
 from ..runtime import lean
 from ..runtime.memory_cache import cached
@@ -128,7 +129,8 @@ class Options:
         if isinstance(self.fallback, Problem):
             return self.fallback
         if self.fallback and self.problem.terminal is not None:
-            return self.problem.replace(terminal=None, lower_bound=None)
+            derived = isinstance(self.problem.lower_bound, AutoBound)  # derived again without the terminal set
+            return self.problem.replace(terminal=None, lower_bound=self.problem.lower_bound if derived else None)
         return None
 
     @property
@@ -157,7 +159,8 @@ class FIRHC:
         terminal set and without its lower bound (whose ``+inf`` no longer
         holds), ``problem.replace(terminal=None, lower_bound=None)``: every
         other field, stage and terminal costs and hard constraints included,
-        is kept. Flagged in ``used_fallback``. A ``Problem`` (same horizon and
+        is kept (a ``lower_bound="auto"`` is derived again for that problem).
+        Flagged in ``used_fallback``. A ``Problem`` (same horizon and
         inputs): apply its optimum instead, e.g. the relaxed problem with a
         bound of its own.
       warm_start: (sDFS solvers) ``True``: seed each search with the previous

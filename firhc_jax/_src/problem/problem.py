@@ -48,7 +48,10 @@ limit, a cost of changing state, without carrying a flag in the state).
   more inputs: their stage costs plus the terminal cost, ``+inf`` where the
   terminal set or the constraints cannot be met in that many steps. With it
   every search prunes a node when ``cost + bound`` is not below the incumbent.
-  (The step index of the next input is ``N - steps_left``.)
+  (The step index of the next input is ``N - steps_left``.) ``lower_bound="auto"``
+  derives one from the model (``auto_bound``): per remaining step the least
+  stage cost over the box of states reachable by then, ``+inf`` where no
+  input's constraint or the terminal set can hold on that box.
 
 Nothing in a search is differentiable (it is a discrete argmin); the cost of
 a returned sequence can be re-evaluated differentiably with
@@ -66,6 +69,7 @@ import numpy as np
 
 from ..annotations import ArrayLike
 from ..checks import finite, input_rows, is_tracer, positive_int, real_array
+from .auto_bound import AutoBound
 
 
 @jax.tree_util.register_pytree_node_class
@@ -80,7 +84,10 @@ class Problem:
       horizon: prediction horizon N >= 1.
       terminal: optional ``terminal(x[, p]) -> bool`` tested on the last
         predicted state; ``None`` means no terminal constraint.
-      lower_bound: optional admissible ``lower_bound(x, steps_left[, p])``.
+      lower_bound: optional admissible ``lower_bound(x, steps_left[, p])``, or
+        ``"auto"``: a bound derived from the model by interval arithmetic
+        (``auto_bound``; afterwards ``problem.lower_bound`` is that callable,
+        and a copy made with ``replace`` derives it again from its own model).
       terminal_cost: optional ``terminal_cost(x_N[, p]) -> scalar >= 0``.
       constraint: optional ``constraint(x_next, u[, k][, p]) -> bool``.
       step_index: pass ``k`` to ``dynamics``, ``stage_cost`` and ``constraint``.
@@ -110,6 +117,13 @@ class Problem:
     previous_state: bool = False
 
     def __post_init__(self):
+        derive = isinstance(self.lower_bound, AutoBound)  # a copy (replace) derives it again from its own model
+        if isinstance(self.lower_bound, str):
+            if self.lower_bound != "auto":
+                raise ValueError(f'Problem.lower_bound must be a callable, "auto" or None, got {self.lower_bound!r}')
+            derive = True
+        if derive:
+            object.__setattr__(self, "lower_bound", None)
         for name in ("dynamics", "stage_cost"):
             if not callable(getattr(self, name)):
                 raise TypeError(f"Problem.{name} must be callable, got {type(getattr(self, name)).__name__}")
@@ -127,6 +141,11 @@ class Problem:
                              "stack grow with N and N^2")
         object.__setattr__(self, "horizon", horizon)
         object.__setattr__(self, "controls", _check_controls(self.controls))
+        if derive:
+            object.__setattr__(self, "lower_bound", AutoBound(
+                dynamics=self.dynamics, stage_cost=self.stage_cost, constraint=self.constraint, terminal=self.terminal,
+                terminal_cost=self.terminal_cost, horizon=self.horizon, step_index=self.step_index,
+                previous_state=self.previous_state, controls=self.controls, controls_key=_ControlsKey(self.controls)))
         object.__setattr__(self, "_key", tuple(getattr(self, f) for f in _CALLABLE_FIELDS)
                            + (self.horizon, self.step_index, self.previous_state, _ControlsKey(self.controls)))
 

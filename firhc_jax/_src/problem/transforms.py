@@ -11,6 +11,7 @@ from typing import Callable, NamedTuple
 
 import jax.numpy as jnp
 
+from .auto_bound import AutoBound
 from .problem import Problem
 
 
@@ -75,7 +76,9 @@ def with_input_memory(problem: Problem, switching_cost: Callable, transition: Ca
     if problem.terminal_cost is not None:
         def terminal_cost(z, *p):
             return problem.terminal_cost(split(z)[0], *p)
-    if problem.lower_bound is not None:
+    if isinstance(problem.lower_bound, AutoBound):
+        lower_bound = "auto"  # derived from the whole wrapped model, switching cost and transitions included
+    elif problem.lower_bound is not None:
         def lower_bound(z, steps_left, *p):
             return problem.lower_bound(split(z)[0], steps_left, *p)
 

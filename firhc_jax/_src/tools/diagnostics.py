@@ -114,10 +114,12 @@ def _remaining(problem: Problem, s: int) -> Problem:
     shift = problem.horizon - s
 
     def build():
-        def shifted(fn):
-            return None if fn is None else (lambda a, u, k, *p: fn(a, u, k + shift, *p))
-        return problem.replace(horizon=s, lower_bound=None, dynamics=shifted(problem.dynamics),
-                               stage_cost=shifted(problem.stage_cost), constraint=shifted(problem.constraint))
+        def shifted(fn, k_at):  # k is the argument after (x, u), or after (x, x_next, u) with previous_state
+            return None if fn is None else (lambda *a: fn(*a[:k_at], a[k_at] + shift, *a[k_at + 1:]))
+        after = 2 + problem.previous_state
+        return problem.replace(horizon=s, lower_bound=None, dynamics=shifted(problem.dynamics, 2),
+                               stage_cost=shifted(problem.stage_cost, after),
+                               constraint=shifted(problem.constraint, after))
 
     return cached(("remaining problem", problem.key, s), build)
 

@@ -12,11 +12,18 @@ load falls on all settings alike. A row keeps the median and the range of its ru
 (most solves per second) wins clearly only when its slowest run beats every other setting's fastest; the
 settings whose range reaches the fastest's are ``within_noise`` of it. The jitted searches and callables
 are kept in the package's cache (``memory_cache``): profiling the same problem again compiles nothing.
+
+Two pieces of advice come with the rows, as warnings and in ``Profile.advice``. With a ``lower_bound``,
+``fj.sdfs`` at pop width 1 is also timed without it (interleaved with the rest): a bound that makes the
+search more than ``BOUND_SLOWDOWN`` slower costs more to evaluate than its pruning saves. Without one, a
+search that computes more than ``UNPRUNED_SHARE`` of the tree's nodes on average (trees of at least
+``UNPRUNED_MIN_TREE`` nodes) prunes little: a bound (``lower_bound="auto"`` or one written by hand) may help.
 """
 from __future__ import annotations
 
 import statistics
 import time
+import warnings
 from typing import Callable, NamedTuple, Sequence
 
 import jax
@@ -37,6 +44,9 @@ POP_WIDTHS = (1, 2, 4, 8)
 LANES = (16, 64, 256)
 MAX_EXHAUSTIVE_NODES = 10_000_000
 CHILDREN = 16_384  # children per timed call of a callable: enough work that the call's dispatch is a small part
+BOUND_SLOWDOWN = 1.2  # a bound that makes sDFS slower than this factor is reported as costing more than it saves
+UNPRUNED_SHARE = 0.1  # a search without a bound that computes more of the tree than this is told to try one
+UNPRUNED_MIN_TREE = 1_000  # ... where the tree has at least this many nodes
 
 
 class Profile(list):
@@ -46,14 +56,19 @@ class Profile(list):
     ``callable``, ``ns`` (median ns per child), ``ns_min``, ``ns_max``, ``children`` (the children of one
     timed call), ``compile_s``), ``repeats`` (timed runs of every setting), ``compile_seconds`` (the first
     calls' extra time, summed over the searches and callables), ``seconds`` (the whole profile's time) and
-    ``for_controller`` (the fastest was chosen among the rows of one decision per call).
+    ``for_controller`` (the fastest was chosen among the rows of one decision per call), ``bound`` (with a
+    ``lower_bound``: ``fj.sdfs`` at pop width 1 with and without it, ``seconds``, ``seconds_without``,
+    ``nodes``, ``nodes_without`` over all states and ``slowdown``, the ratio of the two times; else None)
+    and ``advice`` (the warnings the profile gave, module docstring).
     """
 
     def __init__(self, rows: list[dict], node_costs: list[dict], repeats: int, compile_seconds: float,
-                 seconds: float, for_controller: bool = False):
+                 seconds: float, for_controller: bool = False, bound: dict | None = None,
+                 advice: Sequence[str] = ()):
         super().__init__(rows)
         self.node_costs, self.repeats = node_costs, repeats
         self.compile_seconds, self.seconds, self.for_controller = compile_seconds, seconds, for_controller
+        self.bound, self.advice = bound, list(advice)
 
     @property
     def clear_winner(self) -> bool:
@@ -260,19 +275,52 @@ def profile(problem: Problem, states: ArrayLike, params: PyTree = None, *, pop_w
         jobs.append(_Job(name, lambda slots=slots: [solve_batch(problem, X, params=params, lanes=slots,
                                                                 progress=False)]))
     node_jobs, children = _node_jobs(problem, X, params)
+    unbounded = []
+    if problem.lower_bound is not None and 1 in pop_widths:
+        plain = problem.replace(lower_bound=None)
+        unbounded = [_Job("sdfs pop_width=1 without lower_bound", _each(_search(plain, "sdfs", X, pop_width=1), one))]
 
-    everything = jobs + node_jobs
+    everything = jobs + unbounded + node_jobs
     with Progress(len(everything) * (1 + repeats), "profile", enabled=progress) as bar:
         firsts, times, results = _measure(everything, repeats, bar)
         bar.describe("profile")
     rows = [_row(solver, setting, times[j], firsts[j], results[j], solves, default, **options)
             for j, (solver, setting, solves, default, options) in enumerate(settings)]
     _mark(rows, for_controller)
+    bound = None
+    if unbounded:
+        j = len(jobs)
+        row = next(r for r in rows if r["setting"] == "sdfs pop_width=1")
+        without = statistics.median(times[j])
+        bound = {"seconds": row["seconds"], "seconds_without": without, "nodes": row["nodes"],
+                 "nodes_without": int(sum(int(r.nodes) for r in results[j])),
+                 "slowdown": row["seconds"] / without}
+    advice = _advice(problem, rows, bound)
+    for text in advice:
+        warnings.warn(text, stacklevel=2)
     node_costs = []
-    for j, job in enumerate(node_jobs, start=len(jobs)):
+    for j, job in enumerate(node_jobs, start=len(jobs) + len(unbounded)):
         median = statistics.median(times[j])
         node_costs.append({"callable": job.name, "ns": 1e9 * median / children,
                            "ns_min": 1e9 * min(times[j]) / children, "ns_max": 1e9 * max(times[j]) / children,
                            "children": children, "compile_s": max(firsts[j] - median, 0.0)})
     compile_seconds = sum(r["compile_s"] for r in rows) + sum(c["compile_s"] for c in node_costs)
-    return Profile(rows, node_costs, repeats, compile_seconds, time.perf_counter() - start, for_controller)
+    return Profile(rows, node_costs, repeats, compile_seconds, time.perf_counter() - start, for_controller, bound,
+                   advice)
+
+
+def _advice(problem: Problem, rows: list[dict], bound: dict | None) -> list[str]:
+    """The profile's warnings (module docstring)."""
+    if bound is not None and bound["slowdown"] > BOUND_SLOWDOWN:
+        return [f"the lower_bound makes fj.sdfs {bound['slowdown']:.2f}x slower on these states "
+                f"({bound['nodes_without']:,} nodes without it, {bound['nodes']:,} with it): evaluating it costs "
+                "more than its pruning saves; compare Profile.node_costs, and consider lower_bound=None"]
+    sdfs_row = next((r for r in rows if r["setting"] == "sdfs pop_width=1"), None)
+    tree = problem.tree_size()
+    if problem.lower_bound is None and sdfs_row is not None and tree >= UNPRUNED_MIN_TREE:
+        share = sdfs_row["nodes"] / sdfs_row["states"] / tree
+        if share > UNPRUNED_SHARE:
+            return [f"fj.sdfs computed {share:.0%} of the tree's {tree:,} nodes per state on average: without a "
+                    "lower_bound it prunes only by the cost so far; try Problem(..., lower_bound=\"auto\") or a "
+                    "bound of your own (docs/guide/bounds.md)"]
+    return []
