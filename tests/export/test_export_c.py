@@ -301,3 +301,13 @@ def test_the_command_line_exports_an_application_and_compares_it(tmp_path, capsy
     out = capsys.readouterr().out
     assert (tmp_path / "inv.h").exists() and (tmp_path / "inv.c").exists()
     assert "checked 6 closed-loop decisions against ctrl.step: all equal" in out, out
+
+
+def test_a_derived_lower_bound_exports_and_prunes_as_in_the_library(tmp_path):
+    rp = make(3, 2, 1, 3, 4, "tight")
+    problem = rp.problem().replace(lower_bound="auto")
+    lib = fj.export_c(problem, tmp_path, name="auto", x0=np.zeros(2)).compile()
+    for x0 in np.random.default_rng(3).uniform(-1, 1, (3, 2)):
+        r = fj.sdfs(problem, x0)
+        assert int(r.nodes) < problem.tree_size()
+        same_search(problem, lib.solve(x0), r, None, x0)
