@@ -167,8 +167,9 @@ def run(args):
         print(engine_row(fj, peer, jitted, folder, *case, quick=args.quick, reps=reps))
 
     print("\nThe inverters' exported controllers (warm start, the step's observe included), NAME_step per decision "
-          "along a closed loop of 50 steps: through ctypes, and replayed in a C loop (the decision alone), against "
-          "published FPGA decisions of a three-level drive (27 switch states). Memory: the work arrays on the C "
+          "along a closed loop of 50 steps: through ctypes, and replayed in a C loop (the decision alone; the "
+          "three-level one maps its raw reference too), against published FPGA decisions of a three-level drive "
+          "(27 switch states). Memory: the work arrays on the C "
           "stack (NAME_work_bytes()), the controller state, and the object's code and data (cc -O2, `size`).\n")
     print("| controller | N | nodes per decision (mean) | C ctypes -O2 (us) | C loop -O2 (us) | C loop -O3 native (us) "
           "| ctrl.step (us) | FPGA (us) | stack bytes | state bytes | code bytes | data bytes |")
@@ -179,26 +180,30 @@ def run(args):
 
 
 def inverter_controller(fj, kind: str, horizon: int):
-    """``(ctrl, params of 50 steps, plant)`` of the two-level or three-level inverter's controller."""
+    """``(what to export, ctrl, the exported code's params of 50 steps, ctrl.step's, plant)`` of the two-level
+    inverter's controller or the three-level one's (``LinearTracking``: the generated code takes the raw
+    reference and maps it as ``lt.params`` does)."""
     from firhc_jax.models import inverter, three_level
 
     refs = inverter.horizon_references(inverter.InverterParams(), 50, horizon)
     if kind.startswith("two"):
         mem = inverter.make_problem(horizon)
         ctrl = fj.FIRHC(mem.problem, observe=mem.observe, warm_start=True)
-        return ctrl, [{"ref": jnp.asarray(r), "lambda_u": jnp.asarray(0.1)} for r in refs], inverter.make_plant()
+        params = [{"ref": jnp.asarray(r), "lambda_u": jnp.asarray(0.1)} for r in refs]
+        return ctrl, ctrl, params, params, inverter.make_plant()
     lt = three_level.make_problem(horizon)
     ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
-    return ctrl, [lt.params(jnp.asarray(r)) for r in refs], three_level.make_plant()
+    raw = [(r, np.zeros((horizon, lt.n))) for r in refs]
+    return lt, ctrl, raw, [lt.params(*r) for r in raw], three_level.make_plant()
 
 
 def inverter_row(fj, folder, kind: str, horizon: int) -> str:
     """One row of the second table: one closed loop through the generated step, timed three ways."""
-    ctrl, params, plant = inverter_controller(fj, kind, horizon)
-    exported = fj.export_c(ctrl, folder / f"{kind[:3]}{horizon}", name="inv", params=params[0], x0=np.zeros(2))
+    target, ctrl, c_params, params, plant = inverter_controller(fj, kind, horizon)
+    exported = fj.export_c(target, folder / f"{kind[:3]}{horizon}", name="inv", params=c_params[0], x0=np.zeros(2))
     text, data = footprint(exported, ("-O2",))
     lib = exported.compile()
-    flat = np.stack([lib.flat_params(p) for p in params])
+    flat = np.stack([lib.flat_params(p) for p in c_params])
     x, state, spent, nodes, states = np.array([1.0, -2.0]), lib.init(np.zeros(2)), [], [], []
     for p_flat in flat:  # one closed loop, each decision timed over repeated calls from its state
         saved = lib.State.from_buffer_copy(state)

@@ -7,7 +7,7 @@ Writes ``firhc.h`` and ``firhc.c`` (``--name`` changes the prefix) for the appli
 application builds it, with the search at ``pop_width=1`` (the generated code's): the hopper (its fallback,
 observe, actuate and safe input), the three tanks (its fallback when a terminal box is set), the two-level
 inverter (its switching penalty, per-decision reference as parameters) and the three-level inverter
-(``LinearTracking``'s problem and observe). Prints the sizes and the memory the generated code needs; with
+(``LinearTracking``'s controller, the reference and disturbance as parameters). Prints the sizes and the memory the generated code needs; with
 ``--compare K`` compiles it with ``cc`` and runs K decisions of the application's closed loop through both the
 generated code and ``ctrl.step``, and reports any that differ.
 """
@@ -43,7 +43,8 @@ def register(subparsers) -> None:
 
 
 def controller(app: str, horizon: int, max_nodes):
-    """``(ctrl, params of each step or None, x0, u0, plant)`` of an application, as it builds them."""
+    """``(ctrl, params of each step or None, x0, u0, plant)`` of an application, as it builds them; for the
+    three-level inverter ``ctrl`` is ``(LinearTracking, its controller)`` and the params its raw data."""
     import jax
     import jax.numpy as jnp
 
@@ -79,8 +80,10 @@ def controller(app: str, horizon: int, max_nodes):
 
         lt = three_level.make_problem(horizon, three_level.PARAMS)
         ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True, **budget)
-        steps = [lt.params(jnp.asarray(r)) for r in refs[:100]]
+        steps = [(r, np.zeros((horizon, lt.n))) for r in refs[:100]]  # the raw data the generated code maps
         plant = jax.jit(three_level.make_plant(three_level.PARAMS))
+        return (lt, ctrl), steps, two_level.initial_currents(params), np.zeros(3), \
+            lambda x, u, t: plant(jnp.asarray(x), jnp.asarray(u))
     return ctrl, steps, two_level.initial_currents(params), np.zeros(3), \
         lambda x, u, t: plant(jnp.asarray(x), jnp.asarray(u))
 
@@ -94,7 +97,10 @@ def run(args) -> None:
     t0 = time.perf_counter()
     ctrl, steps, x0, u0, plant = controller(args.app, args.horizon, args.max_nodes)
     params = None if steps is None else steps[0]
-    exported = fj.export_c(ctrl, args.out, name=args.name, params=params, x0=x0)
+    tracker = None
+    if isinstance(ctrl, tuple):  # LinearTracking: the generated code maps the raw data as lt.params does
+        tracker, ctrl = ctrl
+    exported = fj.export_c(tracker or ctrl, args.out, name=args.name, params=params, x0=x0)
     e = exported
     print(f"{args.app}, N = {args.horizon}: wrote {e.header} and {e.source} in {time.perf_counter() - t0:.1f} s")
     print(f"  state n = {e.state_size} (the plant's: {e.plant_state_size}), {e.num_controls} inputs of dimension "
@@ -109,7 +115,7 @@ def run(args) -> None:
     x, state, c_state, differ = np.asarray(x0, float), ctrl.init(x0, u0), lib.init(x0, u0), 0
     for t in range(args.compare):
         p = None if steps is None else steps[t % len(steps)]
-        u, state, info = ctrl.step(state, x, p)
+        u, state, info = ctrl.step(state, x, p if tracker is None else tracker.params(*p))
         code, c_u = lib.step(c_state, x, p)
         if not np.allclose(c_u, np.asarray(u), rtol=1e-9, atol=1e-12) or c_state.nodes != int(info.nodes):
             differ += 1

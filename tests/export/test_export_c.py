@@ -311,3 +311,23 @@ def test_a_derived_lower_bound_exports_and_prunes_as_in_the_library(tmp_path):
         r = fj.sdfs(problem, x0)
         assert int(r.nodes) < problem.tree_size()
         same_search(problem, lib.solve(x0), r, None, x0)
+
+
+def test_a_linear_tracking_controller_exports_with_its_parameter_map(tmp_path):
+    from firhc_jax.models import thermal
+
+    lt, plant = thermal.make_problem(3), thermal.make_plant()
+    ctrl = fj.FIRHC(lt.problem, observe=lt.observe, warm_start=True)
+    lib = fj.export_c(lt, tmp_path, name="zones").compile()
+    rng = np.random.default_rng(0)
+    x = rng.normal(20, 1, lt.n)
+    state, c_state = ctrl.init(x), lib.init(x)
+    for _ in range(4):
+        y_ref, d = rng.normal(21, 0.5, (3, lt.C.shape[0])), rng.normal(0, 0.01, (3, lt.n))
+        u, state, info = ctrl.step(state, x, lt.params(y_ref, d))
+        code, c_u = lib.step(c_state, x, (y_ref, d))
+        assert code == 1 and c_state.nodes == int(info.nodes)
+        np.testing.assert_array_equal(c_u, np.asarray(u))
+        x = np.asarray(plant(jnp.asarray(x), jnp.asarray(u)))
+    with pytest.raises(ValueError, match="y_ref"):
+        fj.export_c(lt, tmp_path, params=(np.zeros((2, 2)), np.zeros((3, lt.n))))

@@ -21,6 +21,7 @@ from jax.flatten_util import ravel_pytree
 from ..checks import check_params
 from ..control.controller import FIRHC
 from ..control.decision import budget_of
+from ..linear.tracking import LinearTracking
 from ..problem.callables import check_state
 from ..problem.problem import Problem, call, input_dtype
 from ..search.nodes import one_child
@@ -65,8 +66,11 @@ def export_c(problem_or_controller, directory, *, name: str = "firhc", params=No
     ``FIRHC``, equal to ``fj.sdfs`` (and ``ctrl.step``) at ``pop_width=1``.
 
     Args:
-      problem_or_controller: an ``fj.Problem`` (generates ``NAME_solve``) or an ``fj.FIRHC`` with the
-        ``"sdfs"`` solver (also ``NAME_init`` and ``NAME_step``).
+      problem_or_controller: an ``fj.Problem`` (generates ``NAME_solve``), an ``fj.FIRHC`` with the
+        ``"sdfs"`` solver (also ``NAME_init`` and ``NAME_step``), or an ``fj.LinearTracking``: its controller
+        ``FIRHC(lt.problem, observe=lt.observe, warm_start=True)`` (with ``max_nodes``), whose parameters
+        are the raw data ``(y_ref [N, p], d [N, n])``, mapped in the generated code as ``lt.params`` maps
+        them (``params``: that pair, default zeros).
       directory: where the two files go (created if missing).
       name: the C prefix of every public symbol, a C identifier.
       params: an example of the problem's parameter pytree (shapes and dtypes are compiled in; the C code
@@ -81,6 +85,11 @@ def export_c(problem_or_controller, directory, *, name: str = "firhc", params=No
     """
     if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
         raise ValueError(f"name must be a C identifier (letters, digits, _), got {name!r}")
+    prepare = None
+    if isinstance(problem_or_controller, LinearTracking):
+        x0 = np.zeros(problem_or_controller.n) if x0 is None else x0
+        problem_or_controller, params, prepare = _tracking(problem_or_controller, params, max_nodes)
+        max_nodes = None
     controller = problem_or_controller if isinstance(problem_or_controller, FIRHC) else None
     problem = controller.problem if controller else problem_or_controller
     if not isinstance(problem, Problem):
@@ -90,7 +99,23 @@ def export_c(problem_or_controller, directory, *, name: str = "firhc", params=No
         if max_nodes is not None:
             raise TypeError("max_nodes is the controller's own (FIRHC(..., max_nodes=)); give it for a Problem only")
     with jax.enable_x64(True):
-        return _write(problem, controller, Path(directory).expanduser(), name, params, x0, max_nodes)
+        return _write(problem, controller, Path(directory).expanduser(), name, params, x0, max_nodes, prepare)
+
+
+def _tracking(lt: LinearTracking, data, max_nodes):
+    """``(controller, raw data, map)`` of a ``LinearTracking`` export: the data ``(y_ref, d)``."""
+    N, p_out, n = lt.horizon, lt.C.shape[0], lt.n
+    if data is None:
+        data = (np.zeros((N, p_out)), np.zeros((N, n)))
+    if not (isinstance(data, tuple) and len(data) == 2):
+        raise TypeError("params of a LinearTracking export is the pair (y_ref [N, p], d [N, n])")
+    y_ref, d = (np.asarray(a, np.float64) for a in data)
+    if y_ref.shape != (N, p_out) or d.shape != (N, n):
+        raise ValueError(f"params must be (y_ref [N, p] = [{N}, {p_out}], d [N, n] = [{N}, {n}]), got shapes "
+                         f"{y_ref.shape} and {d.shape}")
+    budget = {} if max_nodes is None else {"max_nodes": max_nodes}
+    ctrl = FIRHC(lt.problem, observe=lt.observe, warm_start=True, **budget)
+    return ctrl, (y_ref, d), lambda raw: lt.params(raw[0], raw[1])
 
 
 def _check_controller(ctrl: FIRHC) -> None:
@@ -116,6 +141,7 @@ class _Unit:
         self.specs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in self.leaves]
         self.has_params = params is not None
         self.controller = False
+        self.raw_specs = None  # the parameters the C code takes, when a map fills the callables' (prepare)
 
     def p(self, leaves):
         return jax.tree_util.tree_unflatten(self.treedef, leaves) if self.has_params else None
@@ -126,6 +152,15 @@ class _Unit:
 
     def p_args(self, prefix: str = "p->") -> str:
         return "".join(f", {prefix}{n}" for n in self.p_names)
+
+    def prepare(self, fn, raw) -> None:
+        """The C code takes ``raw`` (flattened) and fills the callables' parameters with ``fn(raw)``."""
+        leaves, tree = jax.tree_util.tree_flatten(raw)
+        self.raw_specs = [jax.ShapeDtypeStruct(np.shape(a), jnp.result_type(a)) for a in leaves]
+        names = [f"r{i}" for i in range(len(leaves))]
+        self.functions.append(translate(
+            "fj_prepare", lambda *r: jax.tree_util.tree_leaves(fn(jax.tree_util.tree_unflatten(tree, r))),
+            self.raw_specs, names, [c_type(s.dtype) for s in self.specs], self.tables, "the parameter map"))
 
     def add(self, fn_name, fn, specs, names, out_types, where):
         self.functions.append(translate(fn_name, fn, list(specs) + self.specs, list(names) + self.p_names,
@@ -260,7 +295,13 @@ def state_size(problem: Problem, params, x0, observe=None) -> tuple[int, int]:
     return observed(fits[0])[0], fits[0]
 
 
-def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, params, x0, max_nodes) -> Exported:
+def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, params, x0, max_nodes,
+           prepare=None) -> Exported:
+    """Write the two files. ``prepare``: the map from the parameters the C code takes (``params``) to those the
+    callables take, translated too (None: the same)."""
+    raw = params
+    if prepare is not None:
+        params = prepare(jax.tree_util.tree_map(jnp.asarray, raw))
     params = check_params(params)
     opts = ctrl.options if ctrl else None
     observe = opts.observe if opts else None
@@ -268,8 +309,10 @@ def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, 
     check_state(problem, jnp.zeros((n,), jnp.float64), params)
     unit = _Unit(problem, params, n)
     N, M, m = problem.horizon, problem.num_controls, problem.input_dim
-    flat, _ = ravel_pytree(params) if params is not None else (np.zeros(0), None)
+    flat, _ = ravel_pytree(raw) if raw is not None else (np.zeros(0), None)
     num_params = int(np.size(flat))
+    if prepare is not None:
+        unit.prepare(prepare, raw)
 
     variants = {"main": _variant(unit, problem, "main", _controls_table(unit, problem, "main"))}
     relaxed = opts.relaxed if opts else None
@@ -338,13 +381,20 @@ def _params_struct(unit: _Unit) -> str:
 
 
 def _unpack(unit: _Unit) -> str:
-    """C statements that fill ``fj_params pr`` from ``params`` and return -2 on a non-finite value."""
+    """C statements that fill ``fj_params pr`` from ``params`` (through the parameter map, if any) and return -2
+    on a non-finite value."""
     lines, offset = ["    fj_params pr;"], 0
-    for i, s in enumerate(unit.specs):
+    specs, target = (unit.specs, "pr.p") if unit.raw_specs is None else (unit.raw_specs, "raw")
+    for i, s in enumerate(specs):
         size = math.prod(s.shape)
+        if unit.raw_specs is not None:
+            lines.append(f"    {c_type(s.dtype)} raw{i}[{max(size, 1)}];")
         lines.append(f"    for (int j = 0; j < {size}; j++) {{ if (!isfinite(params[{offset} + j])) return "
-                     f"{CODES['BAD_PARAMS']}; pr.p{i}[j] = ({c_type(s.dtype)})params[{offset} + j]; }}")
+                     f"{CODES['BAD_PARAMS']}; {target}{i}[j] = ({c_type(s.dtype)})params[{offset} + j]; }}")
         offset += size
+    if unit.raw_specs is not None:
+        args = [f"raw{i}" for i in range(len(unit.raw_specs))] + [f"pr.p{i}" for i in range(len(unit.specs))]
+        lines.append(f"    fj_prepare({', '.join(args)});")
     return "\n".join(lines)
 
 
