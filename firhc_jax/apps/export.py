@@ -7,9 +7,9 @@ Writes ``firhc.h`` and ``firhc.c`` (``--name`` changes the prefix) for the appli
 application builds it, with the search at ``pop_width=1`` (the generated code's): the hopper (its fallback,
 observe, actuate and safe input), the three tanks (its fallback when a terminal box is set), the two-level
 inverter (its switching penalty, per-decision reference as parameters) and the three-level inverter
-(``LinearTracking``'s controller, the reference and disturbance as parameters). Prints the sizes and the memory the generated code needs; with
-``--compare K`` compiles it with ``cc`` and runs K decisions of the application's closed loop through both the
-generated code and ``ctrl.step``, and reports any that differ.
+(``LinearTracking``'s controller, the reference and disturbance as parameters). Prints the sizes and the
+memory the generated code needs; with ``--compare K`` compiles it with ``cc`` and runs K decisions of the
+application's closed loop through both the generated code and ``ctrl.step``, and reports any that differ.
 """
 from __future__ import annotations
 

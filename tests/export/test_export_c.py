@@ -85,49 +85,62 @@ def test_generated_search_equals_sdfs_on_random_problems(tmp_path_factory, seed,
                     params, x0)
 
 
-def model_cases():
-    from firhc_jax.models import (
-        grid_converter,
-        hopper,
-        inverter,
-        pumping,
-        spacecraft,
-        synthetic,
-        tanks,
-        thermal,
-        three_level,
-    )
-
-    P = hopper.HopperParams()
-    contact = hopper.observe(jnp.asarray(hopper.initial_state(P)), jnp.zeros(1))
-    contact = np.asarray(contact).copy()
-    contact[1] = -0.5  # moving down, in contact: a real decision
-    yield "hopper", hopper.make_problem(3, P, bound=True), None, [contact]
-    yield "tanks", tanks.make_problem(3, switch_penalty=5.0), None, [tanks.initial_state(),
-                                                                        tanks.initial_state((0.1, 0.3, 0.05), 3)]
-    yield "tanks-bound", tanks.make_problem(3, terminal_tol=0.05, bound=True), None, [tanks.initial_state()]
-    mem = inverter.make_problem(3)
-    ref = inverter.horizon_references(inverter.InverterParams(), 1, 3)[0]
-    p = {"ref": jnp.asarray(ref), "lambda_u": jnp.asarray(0.1)}
-    yield "inverter", mem.problem, p, [np.asarray(mem.observe(jnp.array([1.0, -2.0]), jnp.array([1.0, 0.0, 0.0]), p))]
-    price, demand = pumping.forecast(6)
-    hours = jax.tree_util.tree_map(lambda a: jnp.asarray(a[0]), pumping.horizon_params(price, demand, 1, 4))
-    yield "pumping", pumping.make_problem(4, bound="target"), hours, [np.asarray(pumping.INITIAL_LEVELS)]
-    yield "synthetic", synthetic.make_problem(3, dtype=np.float64), None, [np.asarray(synthetic.benchmark_state())]
-    x0s, inertia = spacecraft.random_loops(1, np.random.default_rng(0))
-    yield "spacecraft", spacecraft.make_problem(2), {"inertia": jnp.asarray(inertia[0]), "fuel": jnp.asarray(5.0)}, \
-        [x0s[0]]
-    for module in (three_level, grid_converter, thermal):
-        lt = module.make_problem(3)
-        rng = np.random.default_rng(1)
-        u_prev = jnp.asarray(lt.controls[2], jnp.float64)
-        yield (module.__name__.rsplit(".", 1)[1], lt.problem, lt.params(rng.normal(0, 1, (3, lt.C.shape[0]))),
-               [np.asarray(lt.observe(jnp.asarray(rng.normal(0, 1, lt.n)), u_prev))])
+MODELS = ("hopper", "tanks", "tanks-bound", "inverter", "pumping", "synthetic", "spacecraft", "three_level",
+          "grid_converter", "thermal")
 
 
-@pytest.mark.parametrize("case", list(model_cases()), ids=lambda c: c[0])
-def test_generated_search_equals_sdfs_on_every_model(case, tmp_path):
-    name, problem, params, states = case
+def model_case(name: str):
+    """``(problem, params, states)`` of a model of ``firhc_jax.models``, built when its test runs."""
+    from firhc_jax import models
+
+    if name == "hopper":
+        from firhc_jax.models import hopper
+
+        P = hopper.HopperParams()
+        contact = np.asarray(hopper.observe(jnp.asarray(hopper.initial_state(P)), jnp.zeros(1))).copy()
+        contact[1] = -0.5  # moving down, in contact: a real decision
+        return hopper.make_problem(3, P, bound=True), None, [contact]
+    if name.startswith("tanks"):
+        from firhc_jax.models import tanks
+
+        if name == "tanks-bound":
+            return tanks.make_problem(3, terminal_tol=0.05, bound=True), None, [tanks.initial_state()]
+        return tanks.make_problem(3, switch_penalty=5.0), None, [tanks.initial_state(),
+                                                                tanks.initial_state((0.1, 0.3, 0.05), 3)]
+    if name == "inverter":
+        from firhc_jax.models import inverter
+
+        mem = inverter.make_problem(3)
+        ref = inverter.horizon_references(inverter.InverterParams(), 1, 3)[0]
+        p = {"ref": jnp.asarray(ref), "lambda_u": jnp.asarray(0.1)}
+        return mem.problem, p, [np.asarray(mem.observe(jnp.array([1.0, -2.0]), jnp.array([1.0, 0.0, 0.0]), p))]
+    if name == "pumping":
+        from firhc_jax.models import pumping
+
+        price, demand = pumping.forecast(6)
+        hours = jax.tree_util.tree_map(lambda a: jnp.asarray(a[0]), pumping.horizon_params(price, demand, 1, 4))
+        return pumping.make_problem(4, bound="target"), hours, [np.asarray(pumping.INITIAL_LEVELS)]
+    if name == "synthetic":
+        from firhc_jax.models import synthetic
+
+        return synthetic.make_problem(3, dtype=np.float64), None, [np.asarray(synthetic.benchmark_state())]
+    if name == "spacecraft":
+        from firhc_jax.models import spacecraft
+
+        x0s, inertia = spacecraft.random_loops(1, np.random.default_rng(0))
+        return spacecraft.make_problem(2), {"inertia": jnp.asarray(inertia[0]), "fuel": jnp.asarray(5.0)}, [x0s[0]]
+    import importlib
+
+    lt = importlib.import_module(f"{models.__name__}.{name}").make_problem(3)
+    rng = np.random.default_rng(1)
+    u_prev = jnp.asarray(lt.controls[2], jnp.float64)
+    return (lt.problem, lt.params(rng.normal(0, 1, (3, lt.C.shape[0]))),
+            [np.asarray(lt.observe(jnp.asarray(rng.normal(0, 1, lt.n)), u_prev))])
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_generated_search_equals_sdfs_on_every_model(name, tmp_path):
+    problem, params, states = model_case(name)
     lib = fj.export_c(problem, tmp_path, name=name.replace("-", "_"), params=params, x0=states[0]).compile()
     for x0 in states:
         same_search(problem, lib.solve(x0, params), fj.sdfs(problem, x0, params=params), params, x0)
@@ -224,12 +237,11 @@ def c_function(fn, *args):
 
     from firhc_jax._src.export.c_code import PRELUDE, c_type, translate
 
-    with jax.enable_x64(True):
-        specs = [jax.ShapeDtypeStruct(np.shape(a), np.asarray(a).dtype) for a in args]
-        outs = jax.tree_util.tree_leaves(jax.eval_shape(fn, *args))
-        tables = {}
-        body = translate("f", lambda *a: jax.tree_util.tree_leaves(fn(*a)), specs,
-                         [f"a{i}" for i in range(len(args))], [c_type(o.dtype) for o in outs], tables, "fn")
+    specs = [jax.ShapeDtypeStruct(np.shape(a), np.asarray(a).dtype) for a in args]
+    outs = jax.tree_util.tree_leaves(jax.eval_shape(fn, *args))
+    tables = {}
+    body = translate("f", lambda *a: jax.tree_util.tree_leaves(fn(*a)), specs, [f"a{i}" for i in range(len(args))],
+                     [c_type(o.dtype) for o in outs], tables, "fn")
     source = "#include <stdint.h>\n#include <tgmath.h>\n" + PRELUDE + "\n".join(d for _, d in tables.values()) \
         + body.replace("static void f(", "void f(")
     folder = Path(tempfile.mkdtemp())
@@ -285,11 +297,10 @@ def _many(x, M, i, k):
 
 @pytest.mark.parametrize("i, k", [(0, 0), (2, 1), (-1, 2), (5, 7)])
 def test_the_translation_computes_what_jax_computes(i, k):
-    with jax.enable_x64(True):
-        x = np.array([0.3, -1.2, 2.5])
-        M = np.array([[0.5, -1.0, 2.0], [1.5, 0.25, -0.75], [3.0, 1.0, -2.0]])
-        args = (x, M, np.int32(i), np.int32(k))
-        expected = jax.tree_util.tree_leaves(jax.jit(_many)(*args))
+    x = np.array([0.3, -1.2, 2.5])
+    M = np.array([[0.5, -1.0, 2.0], [1.5, 0.25, -0.75], [3.0, 1.0, -2.0]])
+    args = (x, M, np.int32(i), np.int32(k))
+    expected = jax.tree_util.tree_leaves(jax.jit(_many)(*args))
     for got, want in zip(c_function(_many, *args), expected, strict=True):
         np.testing.assert_allclose(got, np.asarray(want), rtol=1e-13, atol=1e-15)
 
@@ -331,3 +342,23 @@ def test_a_linear_tracking_controller_exports_with_its_parameter_map(tmp_path):
         x = np.asarray(plant(jnp.asarray(x), jnp.asarray(u)))
     with pytest.raises(ValueError, match="y_ref"):
         fj.export_c(lt, tmp_path, params=(np.zeros((2, 2)), np.zeros((3, lt.n))))
+
+
+@pytest.mark.float32
+def test_an_export_computes_in_the_sessions_float(tmp_path):
+    """With x64 off (the default; ``--float32``) the callables' jaxprs are float32 and so is the generated code's
+    arithmetic (states and costs are handed over as double): the same decisions as the float32 search, costs
+    to float32's precision. Exporting changes no JAX setting, and the library's own calls afterwards still run."""
+    x64 = jax.config.jax_enable_x64
+    rp = make(5, 2, 1, 4, 4, "loose")
+    problem = rp.problem()
+    real = jax.dtypes.canonicalize_dtype(np.float64)
+    lib = fj.export_c(problem, tmp_path, name="f32", x0=np.zeros(2, real)).compile()
+    assert jax.config.jax_enable_x64 == x64
+    for x0 in np.random.default_rng(5).uniform(-1, 1, (4, 2)).astype(real):
+        code, sequence, cost, nodes = lib.solve(x0)
+        r = fj.sdfs(problem, x0)
+        assert code == int(bool(r.feasible))
+        if np.isfinite(float(r.cost)):
+            np.testing.assert_allclose(cost, float(r.cost), rtol=1e-5)
+            np.testing.assert_array_equal(sequence, np.asarray(r.sequence))

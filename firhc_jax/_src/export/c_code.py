@@ -644,7 +644,7 @@ def translate(name: str, fn: Callable, args: Sequence[jax.ShapeDtypeStruct], arg
     dtype, each output a pointer of the C type in ``out_types``, written element by element. ``where`` names
     ``fn`` in messages (or, called with a primitive's name, names the callable that uses it)."""
     emitter, results = _emitted(fn, args, arg_names, tables, where)
-    params = [f"const {c_type(a.dtype)} *{n}" for a, n in zip(args, arg_names, strict=True)]
+    params = [_parameter(a, n) for a, n in zip(args, arg_names, strict=True)]
     params += [f"{t} *out{i}" for i, t in enumerate(out_types)]
     emitter.lines, emitter.depth = emitter.outer, 1
     for i, (r, t) in enumerate(zip(results, out_types, strict=True)):
@@ -659,7 +659,7 @@ def translate_children(name: str, fn: Callable, args: Sequence[jax.ShapeDtypeStr
     What does not depend on ``u`` is computed once, before the loop over the rows."""
     emitter, results = _emitted(fn, args, arg_names, tables, where, varying="u")
     u = args[arg_names.index("u")]
-    params = [f"const {c_type(a.dtype)} *{n}" for a, n in zip(args, arg_names, strict=True) if n != "u"]
+    params = [_parameter(a, n) for a, n in zip(args, arg_names, strict=True) if n != "u"]
     params += [f"{t} *out{i}" for i, t in enumerate(out_types)]
     emitter.lines, emitter.depth = emitter.inner, 2
     for i, (r, t) in enumerate(zip(results, out_types, strict=True)):
@@ -670,13 +670,29 @@ def translate_children(name: str, fn: Callable, args: Sequence[jax.ShapeDtypeStr
     return f"static void {name}({', '.join(params)}) {{\n" + "\n".join(emitter.outer + loop) + "\n}\n"
 
 
+# Arguments the generated code always passes as double (states, the controller's inputs); where the jaxpr
+# takes another float type, the translated function converts them on entry.
+DOUBLE_ARGUMENTS = ("x", "x0", "u_in")
+
+
+def _parameter(spec, name: str) -> str:
+    """The C parameter of one argument."""
+    if name in DOUBLE_ARGUMENTS and np.dtype(spec.dtype) != np.float64:
+        return f"const double *{name}_in"
+    return f"const {c_type(spec.dtype)} *{name}"
+
+
 def _emitted(fn, args, arg_names, tables: dict, where, varying: str = "") -> tuple[Emitter, list]:
     """The emitter after translating ``fn``, and ``fn``'s outputs in it; a ``ValueError`` names the callable
     and the primitive the translation does not cover."""
     closed = jax.make_jaxpr(fn)(*args)
     emitter = Emitter(tables)
-    inputs = [CValue(tuple(a.shape), np.dtype(a.dtype), name=n, varying=n == varying)
-              for a, n in zip(args, arg_names, strict=True)]
+    inputs = []
+    for a, n in zip(args, arg_names, strict=True):
+        if n in DOUBLE_ARGUMENTS and np.dtype(a.dtype) != np.float64:  # a float32 session: its own rounding
+            emitter.emit(f"{c_type(a.dtype)} {n}[{max(1, math.prod(a.shape))}];")
+            emitter.emit(f"for (int j = 0; j < {math.prod(a.shape)}; j++) {n}[j] = ({c_type(a.dtype)}){n}_in[j];")
+        inputs.append(CValue(tuple(a.shape), np.dtype(a.dtype), name=n, varying=n == varying))
     try:
         return emitter, interpret(closed, inputs, emitter)
     except Unsupported as e:

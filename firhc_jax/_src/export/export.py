@@ -1,8 +1,10 @@
 """``fj.export_c``: a problem's search, or a controller's decision, as plain C99 with no Python and no XLA.
 
 The callables are translated from their jaxprs (``c_code``); the search is the template ``search.c``, the
-library's sDFS at ``pop_width=1`` rule for rule. Everything is traced with 64-bit types: the generated code
-takes and returns ``double`` states, parameters and inputs. Memory is sized at export: ``NAME_solve`` and
+library's sDFS at ``pop_width=1`` rule for rule. The callables are traced in the session's types (float64
+with x64 enabled, else float32) and computed in them; the generated functions take and return ``double``
+states, parameters and inputs. No JAX setting is changed: a trace under a temporary x64 setting would leave
+JAX's caches of the user's jitted functions with constants of the wrong type (docs/dev/xla_notes.md). Memory is sized at export: ``NAME_solve`` and
 ``NAME_step`` keep their work arrays on the C stack (``NAME_work_bytes()``), allocate nothing and need only
 libm.
 """
@@ -98,8 +100,7 @@ def export_c(problem_or_controller, directory, *, name: str = "firhc", params=No
         _check_controller(controller)
         if max_nodes is not None:
             raise TypeError("max_nodes is the controller's own (FIRHC(..., max_nodes=)); give it for a Problem only")
-    with jax.enable_x64(True):
-        return _write(problem, controller, Path(directory).expanduser(), name, params, x0, max_nodes, prepare)
+    return _write(problem, controller, Path(directory).expanduser(), name, params, x0, max_nodes, prepare)
 
 
 def _tracking(lt: LinearTracking, data, max_nodes):
@@ -167,8 +168,13 @@ class _Unit:
                                         out_types, self.tables, where))
 
 
+def _real():
+    """The session's float: the generated code computes the callables in it (float64 with x64 enabled)."""
+    return jax.dtypes.canonicalize_dtype(np.float64)
+
+
 def _x(n):
-    return jax.ShapeDtypeStruct((n,), jnp.float64)
+    return jax.ShapeDtypeStruct((n,), _real())
 
 
 def _variant(unit: _Unit, problem: Problem, tag: str, controls: str, drop=()) -> str:
@@ -255,7 +261,7 @@ def state_size(problem: Problem, params, x0, observe=None) -> tuple[int, int]:
 
     def model_fits(n):
         try:
-            x = jax.ShapeDtypeStruct((n,), jnp.float64)
+            x = _x(n)
             out = jax.eval_shape(lambda x: problem.next_state(x, problem.controls[0], 0, params), x)
             jax.eval_shape(lambda x: problem.cost_of_step(x, x, problem.controls[0], 0, params), x)
             for fn in (problem.terminal, problem.terminal_cost):
@@ -306,7 +312,7 @@ def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, 
     opts = ctrl.options if ctrl else None
     observe = opts.observe if opts else None
     n, n_plant = state_size(problem, params, x0, observe)
-    check_state(problem, jnp.zeros((n,), jnp.float64), params)
+    check_state(problem, jnp.zeros((n,), _real()), params)
     unit = _Unit(problem, params, n)
     N, M, m = problem.horizon, problem.num_controls, problem.input_dim
     flat, _ = ravel_pytree(raw) if raw is not None else (np.zeros(0), None)
@@ -335,7 +341,7 @@ def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, 
         unit.has_fallback = "fallback" in variants
         if opts.actuate:
             plant_m = int(np.prod(jax.eval_shape(lambda x, u: call(opts.actuate, params, x, u), _x(n_plant),
-                                                 jax.ShapeDtypeStruct((m,), jnp.float64)).shape))
+                                                 jax.ShapeDtypeStruct((m,), _real())).shape))
 
     budget = node_budget(max_nodes) if ctrl is None else budget_of(opts)
     header, source = _assemble(unit, problem, ctrl, name, n, n_plant, plant_m, num_params, int(budget))
@@ -364,13 +370,13 @@ def work_bytes(N: int, M: int, n: int, searches: int = 1) -> int:
 
 def _controller_functions(unit: _Unit, opts, n_plant: int) -> None:
     m = unit.m
-    u_spec = jax.ShapeDtypeStruct((m,), jnp.float64)
+    u_spec = jax.ShapeDtypeStruct((m,), input_dtype(opts.problem))  # the state's input (double in C)
     if opts.observe:
         unit.add("fj_observe", lambda x, u, *leaves: call(opts.observe, unit.p(leaves), x, u),
-                 [_x(n_plant), u_spec], ["x", "u"], ["double"], "observe")
+                 [_x(n_plant), u_spec], ["x", "u_in"], ["double"], "observe")
     if opts.actuate:
         unit.add("fj_actuate", lambda x, u, *leaves: call(opts.actuate, unit.p(leaves), x, u),
-                 [_x(n_plant), u_spec], ["x", "u"], ["double"], "actuate")
+                 [_x(n_plant), u_spec], ["x", "u_in"], ["double"], "actuate")
 
 
 def _params_struct(unit: _Unit) -> str:
