@@ -153,25 +153,31 @@ def band_states(count: int, horizon: int) -> np.ndarray:
     return np.stack([air, air - rng.uniform(1.5, 2.5, count)], axis=1)
 
 
+def decisions(problem, bound: str, X, params, reference):
+    """One decision from each state of ``X`` timed (after one that compiles): ``(row, costs)``; the costs must
+    be ``reference``'s (those of the first bound timed, when it is None): every bound is exact."""
+    fj.sdfs(problem, X[0], params=params)  # compiles
+    costs, nodes, times = [], [], []
+    for x in X:
+        t0 = time.perf_counter()
+        r = jax.block_until_ready(fj.sdfs(problem, x, params=params))
+        times.append(time.perf_counter() - t0)
+        costs.append(float(r.cost))
+        nodes.append(int(r.nodes))
+    if reference is None:
+        reference = np.asarray(costs)
+    assert np.allclose(costs, reference, rtol=1e-9, atol=0), (bound, costs, reference)  # exact
+    return {"bound": bound, "nodes_mean": float(np.mean(nodes)), "nodes_max": int(np.max(nodes)),
+            "ms": 1e3 * statistics.median(times), "ms_max": 1e3 * max(times), "decisions": len(X)}, reference
+
+
 def comfort_band(horizon: int, count: int) -> tuple[list[dict], int]:
     params = band_params(horizon)
     X = band_states(count, horizon)
     rows, reference = [], None
     for bound in ("none", "hand", "auto"):
-        problem = band_problem(horizon, bound)
-        fj.sdfs(problem, X[0], params=params)  # compiles
-        costs, nodes, times = [], [], []
-        for x in X:
-            t0 = time.perf_counter()
-            r = jax.block_until_ready(fj.sdfs(problem, x, params=params))
-            times.append(time.perf_counter() - t0)
-            costs.append(float(r.cost))
-            nodes.append(int(r.nodes))
-        if reference is None:
-            reference = np.asarray(costs)
-        assert np.allclose(costs, reference, rtol=1e-9, atol=0), (bound, costs, reference)  # exact
-        rows.append({"bound": bound, "nodes_mean": float(np.mean(nodes)), "nodes_max": int(np.max(nodes)),
-                     "ms": 1e3 * statistics.median(times), "ms_max": 1e3 * max(times), "decisions": len(X)})
+        row, reference = decisions(band_problem(horizon, bound), bound, X, params, reference)
+        rows.append(row)
     return rows, int(np.sum(np.isinf(reference)))
 
 
@@ -199,20 +205,9 @@ def heater(horizon: int, count: int) -> tuple[list[dict], object]:
     X = np.linspace(50.0, 70.0, count)[:, None]
     rows, reference = [], None
     for bound in ("none", "auto"):
-        problem = heater_problem(horizon, None if bound == "none" else "auto")
-        fj.sdfs(problem, X[0], params=params)  # compiles
-        costs, nodes, times = [], [], []
-        for x in X:
-            t0 = time.perf_counter()
-            r = jax.block_until_ready(fj.sdfs(problem, x, params=params))
-            times.append(time.perf_counter() - t0)
-            costs.append(float(r.cost))
-            nodes.append(int(r.nodes))
-        if reference is None:
-            reference = np.asarray(costs)
-        assert np.allclose(costs, reference, rtol=1e-9, atol=0), (bound, costs, reference)  # exact
-        rows.append({"bound": bound, "nodes_mean": float(np.mean(nodes)), "nodes_max": int(np.max(nodes)),
-                     "ms": 1e3 * statistics.median(times), "ms_max": 1e3 * max(times), "decisions": len(X)})
+        row, reference = decisions(heater_problem(horizon, None if bound == "none" else "auto"), bound, X, params,
+                                   reference)
+        rows.append(row)
     batch = {k: jnp.broadcast_to(v, (count,) + v.shape) for k, v in params.items()}
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")

@@ -193,6 +193,21 @@ static int fj_dfs(const fj_problem *P, const fj_params *p, const double *x0, fj_
     return row < 0;
 }
 
+/* One step of a given input from x at step k, as nodes.rollout_cost and the rollout's replay take it: the
+   child x_next, whether the constraint holds, the error flags the step raises, and the cost so far plus the
+   stage cost (and at the last step the terminal cost). */
+static double fj_given_step(const fj_problem *P, const fj_params *p, const double *x, int input, int k,
+                            double cost, double *x_next, unsigned char *allowed, int *flags) {
+    double s;
+    P->child(x, input, (int32_t)k, p, x_next, &s, allowed);
+    if (k == FJ_N - 1 && P->terminal_cost) s = s + P->terminal_cost(x_next, p);
+    double total = cost + s;
+    int nonfinite = isnan(total) || !fj_all_finite(x_next, FJ_NX);
+    int overflow = isinf(total) && isfinite(cost) && isfinite(s);
+    *flags = (s < 0) * FJ_NEGATIVE | nonfinite * FJ_NONFINITE | overflow * FJ_OVERFLOW;
+    return total;
+}
+
 /* sdfs._rollout: prefix[:length] replayed, then extended by the greedy rule; the cheaper of *start and it. */
 static void fj_rollout(const fj_problem *P, const fj_params *p, const double *x0, const int32_t *prefix,
                        int length, fj_incumbent *start, fj_work *w) {
@@ -202,19 +217,16 @@ static void fj_rollout(const fj_problem *P, const fj_params *p, const double *x0
     for (int j = 0; j < FJ_NX; j++) x[j] = x0[j];
     for (int k = 0; k < FJ_N; k++) {
         if (k < length) {
-            double xs[FJ_NX], s;
+            double xs[FJ_NX];
             unsigned char allowed;
-            P->child(x, prefix[k], (int32_t)k, p, xs, &s, &allowed);
-            if (k == FJ_N - 1 && P->terminal_cost) s = s + P->terminal_cost(xs, p);
-            double total = cost + s;
-            int nonfinite = isnan(total) || !fj_all_finite(xs, FJ_NX);
+            int flags;
+            double total = fj_given_step(P, p, x, prefix[k], k, cost, xs, &allowed, &flags);
             int met = ok && allowed;
-            int overflow = isinf(total) && isfinite(cost) && isfinite(s);
             start->nodes += 1;
-            if (met) start->flags |= (s < 0) * FJ_NEGATIVE | nonfinite * FJ_NONFINITE | overflow * FJ_OVERFLOW;
+            if (met) start->flags |= flags;
             for (int j = 0; j < FJ_NX; j++) x[j] = xs[j];
             cost = total;
-            ok = met && !nonfinite;
+            ok = met && !(flags & FJ_NONFINITE);
             path[k] = prefix[k];
         } else {
             fj_children *ch = &w->ch;
@@ -260,14 +272,11 @@ static void fj_candidate(const fj_problem *P, const fj_params *p, const double *
     int flags = 0, met = 1;
     for (int j = 0; j < FJ_NX; j++) x[j] = x0[j];
     for (int k = 0; k < FJ_N; k++) {
-        double xn[FJ_NX], s;
+        double xn[FJ_NX];
         unsigned char allowed;
-        P->child(x, seq[k], (int32_t)k, p, xn, &s, &allowed);
-        if (k == FJ_N - 1 && P->terminal_cost) s = s + P->terminal_cost(xn, p);
-        double c = cost + s;
-        int bad = isnan(c) || !fj_all_finite(xn, FJ_NX);
-        int overflow = isinf(c) && isfinite(cost) && isfinite(s);
-        if (met && allowed) flags |= (s < 0) * FJ_NEGATIVE | bad * FJ_NONFINITE | overflow * FJ_OVERFLOW;
+        int step_flags;
+        double c = fj_given_step(P, p, x, seq[k], k, cost, xn, &allowed, &step_flags);
+        if (met && allowed) flags |= step_flags;
         met = met && allowed;
         for (int j = 0; j < FJ_NX; j++) x[j] = xn[j];
         cost = c;

@@ -366,23 +366,22 @@ def _summed(lo, hi, magnitude, n: int) -> Interval:
     return _outward(lo - slack, hi + slack)
 
 
-def _reduce_sum(eqn, a):
-    axes = eqn.params["axes"]
-    n = int(np.prod([np.shape(a.lo)[i] for i in axes])) if axes else 1
+def _sum_of(eqn, a, n: int):
+    """A sum of ``n`` terms (a reduction or a cumulative sum) over the ends, widened by its rounding."""
     lo = eqn.primitive.bind(a.lo, **eqn.params)
     hi = lo if a.point else eqn.primitive.bind(a.hi, **eqn.params)
     if not _is_float(lo):
         return Interval(lo, hi)
     return _summed(lo, hi, eqn.primitive.bind(_magnitude(a), **eqn.params), n)
+
+
+def _reduce_sum(eqn, a):
+    axes = eqn.params["axes"]
+    return _sum_of(eqn, a, int(np.prod([np.shape(a.lo)[i] for i in axes])) if axes else 1)
 
 
 def _cumsum(eqn, a):
-    n = np.shape(a.lo)[eqn.params["axis"]]
-    lo = eqn.primitive.bind(a.lo, **eqn.params)
-    hi = lo if a.point else eqn.primitive.bind(a.hi, **eqn.params)
-    if not _is_float(lo):
-        return Interval(lo, hi)
-    return _summed(lo, hi, eqn.primitive.bind(_magnitude(a), **eqn.params), n)
+    return _sum_of(eqn, a, np.shape(a.lo)[eqn.params["axis"]])
 
 
 def _arg_reduce(eqn, a):
