@@ -152,40 +152,41 @@ def run(args):
     print("| problem | nodes | C ctypes -O2 | C ctypes -O3 native | C loop -O3 native | Numba py | Numba loop "
           "| jit(fj.sdfs) | C ctypes -O2 / Numba py | C loop / Numba loop |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    tank = tanks.make_problem(N)
-    states = tank_states(tank, 30 if args.quick else 100)
-    tank_p = peer.tank_params()
-    hard = states[int(np.argmax(peer.sdfs_batch(peer.tank_children_simd, tank_p, states, 17, N)[2]))]
     syn = make_problem(N, SyntheticParams(17), dtype=np.float64)
     cases = [("linear, 17 inputs", peer.linear_problem(N), peer.linear_children, peer.linear_plant(),
               np.array([1.5, -1.0, 0.8])),
              ("synthetic, 17 inputs", syn, peer.synthetic_children, peer.synthetic_params(syn),
-              np.asarray(benchmark_state(np.float64))),
-             ("three tanks, hardest state", tank, peer.tank_children_simd, tank_p, hard)]
+              np.asarray(benchmark_state(np.float64)))]
+    if not args.quick:  # finding the tanks' hardest state runs a closed loop first
+        tank = tanks.make_problem(N)
+        states = tank_states(tank, 100)
+        tank_p = peer.tank_params()
+        hard = states[int(np.argmax(peer.sdfs_batch(peer.tank_children_simd, tank_p, states, 17, N)[2]))]
+        cases.append(("three tanks, hardest state", tank, peer.tank_children_simd, tank_p, hard))
     jitted = jax.jit(fj.sdfs)
     for case in cases:
         print(engine_row(fj, peer, jitted, folder, *case, quick=args.quick, reps=reps))
 
     print("\nThe inverters' exported controllers (warm start, the step's observe included), NAME_step per decision "
-          "along a closed loop of 50 steps: through ctypes, and replayed in a C loop (the decision alone; the "
-          "three-level one maps its raw reference too), against published FPGA decisions of a three-level drive "
-          "(27 switch states). Memory: the work arrays on the C "
+          "along a closed loop of 50 steps (10 with --quick): through ctypes, and replayed in a C loop (the decision "
+          "alone; the three-level one maps its raw reference too), against published FPGA decisions of a "
+          "three-level drive (27 switch states). Memory: the work arrays on the C "
           "stack (NAME_work_bytes()), the controller state, and the object's code and data (cc -O2, `size`).\n")
     print("| controller | N | nodes per decision (mean) | C ctypes -O2 (us) | C loop -O2 (us) | C loop -O3 native (us) "
           "| ctrl.step (us) | FPGA (us) | stack bytes | state bytes | code bytes | data bytes |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for kind in ("two-level, 8 inputs", "three-level, 27 inputs (LinearTracking)"):
-        for horizon in (1, 2) if args.quick else (1, 2, 3):
-            print(inverter_row(fj, folder, kind, horizon))
+        for horizon in (1,) if args.quick else (1, 2, 3):
+            print(inverter_row(fj, folder, kind, horizon, 10 if args.quick else 50))
 
 
-def inverter_controller(fj, kind: str, horizon: int):
+def inverter_controller(fj, kind: str, horizon: int, steps: int):
     """``(what to export, ctrl, the exported code's params of 50 steps, ctrl.step's, plant)`` of the two-level
     inverter's controller or the three-level one's (``LinearTracking``: the generated code takes the raw
     reference and maps it as ``lt.params`` does)."""
     from firhc_jax.models import inverter, three_level
 
-    refs = inverter.horizon_references(inverter.InverterParams(), 50, horizon)
+    refs = inverter.horizon_references(inverter.InverterParams(), steps, horizon)
     if kind.startswith("two"):
         mem = inverter.make_problem(horizon)
         ctrl = fj.FIRHC(mem.problem, observe=mem.observe, warm_start=True)
@@ -197,9 +198,9 @@ def inverter_controller(fj, kind: str, horizon: int):
     return lt, ctrl, raw, [lt.params(*r) for r in raw], three_level.make_plant()
 
 
-def inverter_row(fj, folder, kind: str, horizon: int) -> str:
+def inverter_row(fj, folder, kind: str, horizon: int, steps: int) -> str:
     """One row of the second table: one closed loop through the generated step, timed three ways."""
-    target, ctrl, c_params, params, plant = inverter_controller(fj, kind, horizon)
+    target, ctrl, c_params, params, plant = inverter_controller(fj, kind, horizon, steps)
     exported = fj.export_c(target, folder / f"{kind[:3]}{horizon}", name="inv", params=c_params[0], x0=np.zeros(2))
     text, data = footprint(exported, ("-O2",))
     lib = exported.compile()
