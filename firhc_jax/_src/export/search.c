@@ -48,9 +48,12 @@ typedef struct {
 
 /* @functions: the generated callables go above this line */
 
+/* Whether every entry is finite: v * 0 is 0 for a finite v and NaN for an infinite or NaN one (one branch-free
+   pass; the code must not be compiled with -ffast-math, which would fold it away). */
 static int fj_all_finite(const double *v, int n) {
-    for (int i = 0; i < n; i++) if (!isfinite(v[i])) return 0;
-    return 1;
+    double zero = 0.0;
+    for (int i = 0; i < n; i++) zero += v[i] * 0.0;
+    return zero == 0.0;
 }
 
 /* The first index of the smallest entry (index 0 when every entry is +inf, as jnp's two reductions give). */
@@ -96,6 +99,17 @@ static void fj_expand(const fj_problem *P, const fj_params *p, const double *x, 
     }
 }
 
+/* fj_first_min of keys and leaf costs, which are never NaN (a NaN cost makes a child bad, its key +inf): one
+   pass of plain comparisons. */
+static int fj_first_min_key(const double *a, int n, double *low) {
+    double m = a[0];
+    int first = 0;
+    for (int i = 1; i < n; i++)
+        if (a[i] < m) { m = a[i]; first = i; }
+    *low = m;
+    return first;
+}
+
 static void fj_tally(fj_incumbent *s, const fj_children *ch) {
     s->nodes += FJ_M;
     s->iterations += 1;
@@ -127,14 +141,14 @@ static int fj_dfs(const fj_problem *P, const fj_params *p, const double *x0, fj_
         for (int r = FJ_N; r >= 0; r--) if (w->low[r] < inc->cost) { row = r; break; }              \
         if (row >= 0) {                                                                             \
             double low;                                                                             \
-            int i = fj_first_min(w->key[row], FJ_M, &low);                                          \
+            int i = fj_first_min_key(w->key[row], FJ_M, &low);                                      \
             pkey = low;                                                                             \
             pcost = w->cost[row][i];                                                                \
             for (int j = 0; j < FJ_NX; j++) px[j] = w->x[row][i][j];                                \
             for (int j = 0; j < FJ_N; j++) ppath[j] = (j == row - 1) ? i : w->parents[row][j];      \
             w->key[row][i] = inf;                                                                   \
             double rest = inf;                                                                      \
-            for (int j = 0; j < FJ_M; j++) rest = FJ_MIN(rest, w->key[row][j]);                     \
+            for (int j = 0; j < FJ_M; j++) rest = w->key[row][j] < rest ? w->key[row][j] : rest;    \
             w->low[row] = rest;                                                                     \
         }                                                                                           \
     } while (0)
@@ -161,7 +175,7 @@ static int fj_dfs(const fj_problem *P, const fj_params *p, const double *x0, fj_
         if (depth == leaf_depth) {
             for (int i = 0; i < FJ_M; i++)
                 leaf[i] = (alive && !ch->bad[i] && ch->terminal_ok[i]) ? ch->cost[i] : inf;
-            leaf_i = fj_first_min(leaf, FJ_M, &leaf_cost);
+            leaf_i = fj_first_min_key(leaf, FJ_M, &leaf_cost);
         }
         int improve = leaf_cost < inc->cost;
         if (improve) bound = leaf_cost;
@@ -176,7 +190,7 @@ static int fj_dfs(const fj_problem *P, const fj_params *p, const double *x0, fj_
                 int keep = alive && !ch->bad[i] && ch->key[i] < bound;
                 double key = keep ? ch->key[i] : inf;
                 w->key[depth][i] = key;
-                low = FJ_MIN(low, key);
+                low = key < low ? key : low;
                 if (keep) {
                     w->cost[depth][i] = ch->cost[i];
                     for (int j = 0; j < FJ_NX; j++) w->x[depth][i][j] = ch->x[i][j];
