@@ -26,6 +26,7 @@ from ._src.problem.transforms import InputMemory, with_input_memory
 from ._src.runtime.collector import collector_paused
 from ._src.runtime.disk_cache import enable_compilation_cache
 from ._src.runtime.memory_cache import cache_info, clear_cache, set_cache_size
+from ._src.runtime.small_loops import enable_small_loop_kernels
 from ._src.search.batch import solve_batch
 from ._src.search.nodes import rollout_cost
 from ._src.search.one_state import exhaustive, sdfs
@@ -38,7 +39,8 @@ __all__ = ["Problem", "quadratic_cost", "discretize", "linear_dynamics", "produc
            "SearchResult", "FIRHC",
            "ControllerState", "StepInfo", "ClosedLoop", "InfeasibleError", "InputMemory", "with_input_memory",
            "solve_batch", "clear_cache", "set_cache_size", "cache_info", "enable_compilation_cache", "check_problem",
-           "check_lower_bound", "diagnostics", "profile", "rollout_cost", "collector_paused", "export_c"]
+           "check_lower_bound", "diagnostics", "profile", "rollout_cost", "collector_paused", "export_c",
+           "enable_small_loop_kernels"]
 __version__ = "0.3.0"
 
 _install_old_paths(__name__)

@@ -22,6 +22,7 @@ RUNS = {  # script and a small size: what its table must show
                         ["plain sDFS", "LinearTracking"]),
     "call_bench.py": (["--calls", "20", "--rounds", "1"], ["## pinned to one core", "`lt.solve`", "compiled scan"]),
     "export_bench.py": (["--quick"], ["linear, 17 inputs", "| 1 | "]),
+    "small_loops_bench.py": (["--quick"], ["| ctrl.step, inverter N = 3 (us) |", "solve_batch"]),
     "auto_bound_bench.py": (["--uc-horizon", "3", "--uc-steps", "3", "--band-horizon", "5", "--band-states", "4"],
                             ["## Unit commitment", "## Comfort band", "| auto |"]),
 }

@@ -17,7 +17,7 @@ NAMESPACES = ("solvers", "linear_tracking", "diagnostics", "distributed")
 
 
 def test_the_public_names_are_kept():
-    assert len(fj.__all__) == 32
+    assert len(fj.__all__) == 33
     for name in fj.__all__:
         assert hasattr(fj, name), name
     for name in ("sdfs", "exhaustive", "profile"):
