@@ -46,10 +46,10 @@ def child(quick: bool) -> dict:
         return (time.perf_counter() - t0) / calls
 
     search = jax.jit(fj.sdfs)
+    x0 = jnp.array([0.6, 0.0])
     for N in (5, 8):
         problem = fj.Problem(pendulum, jnp.array([-1.0, 0.0, 1.0]),
                              fj.quadratic_cost(jnp.array([10.0, 1.0]), jnp.zeros(2), 0.1), N)
-        x0 = jnp.array([0.6, 0.0])
         calls = 50 if quick else 300
         out[f"jit(fj.sdfs), pendulum N = {N} (us)"] = 1e6 * per_call(lambda p=problem: search(p, x0), calls)
     mem = inverter.make_problem(3)
