@@ -18,7 +18,9 @@ N = 3: the run's time per step, plant included). Every time is also a multiple o
 percentiles (p99) of ``--calls`` calls a round, rounds interleaved; once pinned to one core
 (``os.sched_setaffinity``), once on every core.
 
-    python benchmarks/call_bench.py [--calls 2000] [--rounds 3] [--publish]
+    python benchmarks/call_bench.py [--calls 2000] [--rounds 3] [--publish] [--small-loops]
+
+``--small-loops``: the same, with ``fj.enable_small_loop_kernels()`` made first (its own process).
 """
 from __future__ import annotations
 
@@ -166,9 +168,16 @@ def main(argv=None):
     ap.add_argument("--calls", type=int, default=2000)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--publish", action="store_true", help="also write the tables to benchmarks/results/call.md")
+    ap.add_argument("--small-loops", action="store_true",
+                    help="opt in to fj.enable_small_loop_kernels() first (results/call_small_loops.md)")
     args = ap.parse_args(argv)
+    if args.small_loops:
+        import firhc_jax as fj
+
+        fj.enable_small_loop_kernels()
     jax.config.update("jax_enable_x64", True)
-    with published("call", args.publish, "python benchmarks/call_bench.py --publish"):
+    name, flag = ("call_small_loops", " --small-loops") if args.small_loops else ("call", "")
+    with published(name, args.publish, f"python benchmarks/call_bench.py --publish{flag}"):
         tables(args)
 
 

@@ -12,7 +12,7 @@ from reference import same_cost
 import firhc_jax as fj
 from firhc_jax._src.problem.auto_bound import AutoBound
 
-SETTINGS = settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+SETTINGS = settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 POP_WIDTH = {shape: 2 + i % 2 for i, shape in enumerate(pp.SHAPES)}
 
 
