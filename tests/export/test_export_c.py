@@ -362,3 +362,23 @@ def test_an_export_computes_in_the_sessions_float(tmp_path):
         if np.isfinite(float(r.cost)):
             np.testing.assert_allclose(cost, float(r.cost), rtol=1e-5)
             np.testing.assert_array_equal(sequence, np.asarray(r.sequence))
+
+
+def test_a_fallback_problem_of_its_own_exports_with_its_callables(tmp_path):
+    rp = make(3, 2, 1, 3, 4, "tight")
+    problem = rp.problem()
+    fallback = fj.Problem(problem.dynamics, problem.controls, lambda x, u: jnp.sum(jnp.abs(x)), 4,
+                          first_input_of=lambda x0, s: jnp.asarray(problem.controls, x0.dtype)[s[0]] * 0.5)
+    ctrl = fj.FIRHC(problem, fallback=fallback, warm_start=True, max_nodes=50)
+    lib = fj.export_c(ctrl, tmp_path, name="fb", x0=np.zeros(2)).compile()
+    x = np.array([0.5, -0.3])
+    state, c_state, used = ctrl.init(x), lib.init(x), 0
+    for _ in range(6):
+        u, state, info = ctrl.step(state, x)
+        code, c_u = lib.step(c_state, x)
+        used += bool(info.used_fallback)
+        assert code == (0 if info.held else 2 if info.used_fallback else 1)
+        assert (c_state.nodes, c_state.fallback_nodes) == (int(info.nodes), int(info.fallback_nodes))
+        np.testing.assert_allclose(c_u, np.asarray(u), rtol=1e-12)
+        x = np.asarray(rp.dynamics(jnp.asarray(x), jnp.asarray(u)))
+    assert used
