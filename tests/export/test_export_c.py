@@ -291,7 +291,9 @@ def _many(x, M, i, k):
                    jax.lax.dynamic_slice(M, (i, jnp.int32(0)), (1, 3)),
                    jax.lax.dynamic_update_slice(M, x[None], (i, jnp.int32(0))),
                    jnp.take(x, jnp.array([2, 0, 1])), x.astype(jnp.int32), (x > 0).astype(jnp.float64),
-                   jnp.arange(3) * i, jnp.linalg.norm(x), jnp.sum(M, axis=1, keepdims=True)),
+                   jnp.arange(3) * i, jnp.linalg.norm(x), jnp.sum(M, axis=1, keepdims=True),
+                   jnp.split(M, [1], axis=0)[1], jnp.right_shift(i * 8 + 3, 1), jnp.left_shift(k, 2),
+                   jax.lax.cumlogsumexp(x), jax.lax.cummax(x), jnp.cumprod(x)),
     }
 
 
