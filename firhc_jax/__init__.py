@@ -9,6 +9,7 @@ from . import diagnostics, distributed, linear_tracking, solvers  # noqa: F401  
 from ._src.control.closed_loop import ClosedLoop
 from ._src.control.controller import FIRHC, InfeasibleError
 from ._src.control.decision import ControllerState, StepInfo
+from ._src.export import engine as _c_engine  # noqa: F401  registers FIRHC(engine="c")
 from ._src.export.export import export_c
 from ._src.linear.tracking import LinearTracking
 from ._src.old_paths import install as _install_old_paths

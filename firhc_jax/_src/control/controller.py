@@ -60,6 +60,7 @@ from ..runtime import lean
 from ..runtime.memory_cache import cached
 from ..runtime.packed import compile_packed
 from ..search.result import SearchResult, raise_on_errors
+from . import engines
 from .closed_loop import ClosedLoop
 from .decision import ControllerState, StepInfo, budget_of, decide, decide_rows
 from .decision_checks import (
@@ -186,9 +187,14 @@ class FIRHC:
 
     def __init__(self, problem: Problem, solver: str = "sdfs", *, fallback: str | Problem | None = None,
                  warm_start: bool | Callable = False, observe: Optional[Callable] = None,
-                 actuate: Optional[Callable] = None, u_safe: ArrayLike | None = None, **solver_options: Any):
+                 actuate: Optional[Callable] = None, u_safe: ArrayLike | None = None, engine: str = "xla",
+                 **solver_options: Any):
         self.options = Options(**controller_options(problem, solver, fallback, warm_start, observe, actuate,
                                                     u_safe, solver_options))
+        self._engine = engines.engine(engine)
+        if self._engine is not None:
+            self._engine.check(self)
+        self.engine = engine
         self._last_plant = None  # the plant of the last compiled closed loop (_note_plant)
 
     problem = property(lambda self: self.options.problem)
@@ -250,7 +256,12 @@ class FIRHC:
                 params = check_params(params)
             if any(map(is_tracer, jax.tree_util.tree_leaves((state, x, params)))):
                 return self._decide()(state, x, params)
-            run = self._eager("step", decide_checked, (state, x, params))
+            if self._engine is None:
+                run = self._eager("step", decide_checked, (state, x, params))
+            else:
+                args = (state, x, params)
+                run = cached(("step", self.engine, self.options.key, lean.spec(args)),
+                             lambda: self._engine.build(self, *args))
             lean.remember(("step", self), raw, run)
         return run(state, x, params)
 
@@ -279,6 +290,8 @@ class FIRHC:
         instead of holding. Inside ``jit``/``vmap`` it holds and flags like
         ``step``. In a loop over time use ``init``/``step``.
         """
+        if self._engine is not None:
+            return self._call_engine(x, params, u_prev)
         run = lean.recall(("call", self), (x, params, u_prev))
         if run is None:
             x = as_state(x)
@@ -293,6 +306,22 @@ class FIRHC:
             u_prev = np.zeros(*self._input_form) if u_prev is None else np.asarray(u_prev, self._input_form[1])
         u, info, alarm = run(x, params, u_prev, budget_of(self.options))
         if alarm:  # the checks of the first call on these values, then the search's error flags, then no input
+            self.init(x, u_prev)
+            check_params(params)
+            raise_on_errors(info.result)
+            if info.held:
+                raise InfeasibleError(no_input_message(self.options, info))
+        return u, info
+
+    def _call_engine(self, x, params, u_prev):
+        """``__call__`` through the step of an engine other than XLA: one decision from scratch, then the
+        one-shot checks when the report raises an alarm (a non-finite value, an error flag, no input)."""
+        if u_prev is None:
+            u_prev = np.zeros(*self._input_form)
+        start = ControllerState(u=u_prev, plan=np.full((self.problem.horizon,), -1, np.int32),
+                                budget=budget_of(self.options))
+        u, _, info = self.step(start, x, params)
+        if info.held or info.result.nan_encountered or info.result.negative_cost or info.result.overflow:
             self.init(x, u_prev)
             check_params(params)
             raise_on_errors(info.result)

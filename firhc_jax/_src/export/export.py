@@ -10,6 +10,7 @@ Memory is sized at export: ``NAME_solve`` and ``NAME_step`` keep their work arra
 """
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import math
 from pathlib import Path
@@ -36,6 +37,59 @@ MAX_STATE_SEARCH = 256  # state sizes tried when the state size is inferred from
 
 # Return codes of NAME_solve and NAME_step (documented in the header and docs/guide/deploy.md).
 CODES = {"FOUND": 1, "FALLBACK": 2, "NONE": 0, "BAD_STATE": -1, "BAD_PARAMS": -2, "NEGATIVE_COST": -3}
+
+# NAME_state, field by field: (name, C type, length (0: a scalar, "m" or "N"), comment). What the next
+# decision needs, then the last decision's report: FIRHC.step's StepInfo and the deciding SearchResult, in their
+# types (int32 counts, one-byte flags), so that NumPy reads them in place.
+STATE_FIELDS = (
+    ("u", "double", "m", "the searched input applied last"),
+    ("plan", "int32_t", "N", "the last decision's sequence, -1: none"),
+    ("budget", "int32_t", 0, "node budget of a decision (2^31 - 1: none)"),
+    ("nodes", "int32_t", 0, "last decision: nodes of the terminal-constrained search"),
+    ("fallback_nodes", "int32_t", 0, "last decision: nodes of the fallback search"),
+    ("iterations", "int32_t", 0, "last decision: nodes expanded, both searches"),
+    ("result_nodes", "int32_t", 0, "last decision: nodes of the deciding search"),
+    ("cost", "double", 0, "last decision: the deciding search's cost (+inf: none)"),
+    ("stage_cost", "double", 0, "last decision: the model's stage cost of the applied step (NaN: held)"),
+    ("first_input", "double", "m", "last decision: the deciding search's input (NaN: none)"),
+    ("sequence", "int32_t", "N", "last decision: the deciding search's sequence (-1: none)"),
+    ("complete", "unsigned char", 0, "last decision: every search ran to the end"),
+    ("used_fallback", "unsigned char", 0, "last decision: the input came from the fallback search"),
+    ("feasible", "unsigned char", 0, "last decision: the terminal-constrained search found a sequence"),
+    ("result_feasible", "unsigned char", 0, "last decision: the deciding search found a sequence"),
+    ("held", "unsigned char", 0, "last decision: no input found, the safe input was applied"),
+    ("negative_cost", "unsigned char", 0, "last decision: a negative stage or terminal cost was computed"),
+    ("nan_encountered", "unsigned char", 0, "last decision: a non-finite state or NaN cost was met (discarded)"),
+    ("overflow", "unsigned char", 0, "last decision: a finite cost plus a finite stage cost overflowed"),
+)
+_CTYPES = {"double": ctypes.c_double, "int32_t": ctypes.c_int32, "unsigned char": ctypes.c_ubyte}
+_NUMPY = {"double": np.float64, "int32_t": np.int32, "unsigned char": np.bool_}
+
+
+def state_struct(m: int, N: int) -> type:
+    """``NAME_state`` as a ``ctypes.Structure`` (the same layout the C compiler gives it)."""
+    size = {"m": m, "N": N}
+    fields = [(name, _CTYPES[kind] * size[length] if length else _CTYPES[kind])
+              for name, kind, length, _ in STATE_FIELDS]
+    return type("State", (ctypes.Structure,), {"_fields_": fields})
+
+
+def state_dtype(m: int, N: int) -> np.dtype:
+    """``NAME_state`` as a NumPy record of the same layout, its flags as ``bool``."""
+    struct, size = state_struct(m, N), {"m": m, "N": N}
+    return np.dtype({"names": [f[0] for f in STATE_FIELDS],
+                     "formats": [(_NUMPY[kind], (size[length],)) if length else _NUMPY[kind]
+                                 for _, kind, length, _ in STATE_FIELDS],
+                     "offsets": [getattr(struct, f[0]).offset for f in STATE_FIELDS],
+                     "itemsize": ctypes.sizeof(struct)})
+
+
+def state_typedef(name: str, m: int, N: int) -> str:
+    """The C typedef of ``NAME_state``."""
+    size = {"m": m, "N": N}
+    lines = [f"    {kind} {field}{f'[{size[length]}]' if length else ''};  /* {comment} */"
+             for field, kind, length, comment in STATE_FIELDS]
+    return "typedef struct {\n" + "\n".join(lines) + f"\n}} {name}_state;\n\n"
 
 
 @dataclasses.dataclass
@@ -349,7 +403,7 @@ def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, 
     (directory / f"{name}.h").write_text(header)
     (directory / f"{name}.c").write_text(source)
     work = work_bytes(N, M, n, searches=2 if ctrl is not None else 1)
-    state_bytes = 0 if ctrl is None else _align(_align(8 * m + 4 * N, 8) + 3 * 8 + 4, 8)
+    state_bytes = 0 if ctrl is None else ctypes.sizeof(state_struct(m, N))
     return Exported(header=directory / f"{name}.h", source=directory / f"{name}.c", name=name, state_size=n,
                     plant_state_size=n_plant, input_size=m, plant_input_size=plant_m, horizon=N, num_controls=M,
                     num_params=num_params, work_bytes=work, state_bytes=state_bytes)
@@ -412,13 +466,7 @@ def _assemble(unit: _Unit, problem: Problem, ctrl, name: str, n: int, n_plant: i
            "long long *nodes);", f"size_t {name}_work_bytes(void);"]
     state = ""
     if ctrl is not None:
-        state = (f"typedef struct {{\n    double u[{m}];          /* the searched input applied last */\n"
-                 f"    int plan[{N}];          /* the last decision's sequence, -1: none */\n"
-                 "    long long budget;     /* node budget of a decision (2^31 - 1: none) */\n"
-                 "    long long nodes;      /* last decision: nodes of the terminal-constrained search */\n"
-                 "    long long fallback_nodes;  /* last decision: nodes of the fallback search */\n"
-                 "    int complete;         /* last decision: every search ran to the end */\n"
-                 f"}} {name}_state;\n\n")
+        state = state_typedef(name, m, N)
         api += [f"void {name}_init({name}_state *s, const double *x0, const double *u0);",
                 f"int {name}_step({name}_state *s, const double *x, const double *params, double *u);"]
     header = f"""/* Generated by firhc_jax.export_c: the exact finite-input search{' and controller' if ctrl else ''} \
@@ -509,12 +557,13 @@ def _step(unit: _Unit, opts, name: str, n_plant: int, plant_m: int) -> str:
     if has_fallback:
         fallback = f"""
     if (!isfinite(res.cost)) {{
-        long long left = {budgeted} ? (s->budget - res.nodes > 0 ? s->budget - res.nodes : 0) : s->budget;
+        long long left = {budgeted} ? (s->budget - res.nodes > 0 ? s->budget - res.nodes : 0) : (long long)s->budget;
         fj_incumbent second;
         int done2 = fj_search(&fj_fallback, &pr, xm, cand, count, left, {budgeted}, 0, &second, &w);
         second.flags |= res.flags;
+        second.iterations += res.iterations;
         complete = complete && done2;
-        s->fallback_nodes = second.nodes;
+        s->fallback_nodes = (int32_t)second.nodes;
         res = second;
         used = 1;
     }}"""
@@ -524,14 +573,33 @@ def _step(unit: _Unit, opts, name: str, n_plant: int, plant_m: int) -> str:
     unpack = _unpack(unit).replace(f"return {CODES['BAD_PARAMS']};", "{ bad = " + str(CODES['BAD_PARAMS'])
                                    + "; break; }")
     return f"""
+/* The last decision's report in the state (StepInfo's fields): res NULL for a decision that searched nothing. */
+static void fj_report({name}_state *s, const fj_incumbent *res, int used, int complete, int held, int flags) {{
+    int found = res && isfinite(res->cost);
+    s->result_feasible = found;
+    s->result_nodes = res ? (int32_t)res->nodes : 0;
+    s->complete = complete;
+    s->used_fallback = used;
+    s->feasible = found && !used;
+    s->held = held;
+    s->negative_cost = (flags & FJ_NEGATIVE) != 0;
+    s->nan_encountered = (flags & FJ_NONFINITE) != 0;
+    s->overflow = (flags & FJ_OVERFLOW) != 0;
+    s->iterations = res ? (int32_t)res->iterations : 0;
+    s->cost = res ? res->cost : INFINITY;
+    s->stage_cost = NAN;
+    for (int j = 0; j < FJ_N; j++) s->sequence[j] = found ? res->path[j] : -1;
+    for (int j = 0; j < FJ_NU; j++) s->first_input[j] = NAN;
+}}
+
 void {name}_init({name}_state *s, const double *x0, const double *u0) {{
     (void)x0;
     for (int j = 0; j < FJ_NU; j++) s->u[j] = u0 ? u0[j] : 0.0;
     for (int j = 0; j < FJ_N; j++) s->plan[j] = -1;
-    s->budget = {int(budget_of(opts))}LL;
+    s->budget = {int(budget_of(opts))};
     s->nodes = 0;
     s->fallback_nodes = 0;
-    s->complete = 1;
+    fj_report(s, NULL, 0, 1, 0, 0);
 }}
 
 int {name}_step({name}_state *s, const double *x, const double *params, double *u) {{
@@ -543,6 +611,7 @@ int {name}_step({name}_state *s, const double *x, const double *params, double *
         for (int j = 0; j < FJ_N; j++) s->plan[j] = -1;
         s->nodes = 0;
         s->fallback_nodes = 0;
+        fj_report(s, NULL, 0, 1, 1, FJ_NONFINITE);
         for (int j = 0; j < FJ_NU; j++) u[j] = s->u[j];
         return bad;
     }}
@@ -555,19 +624,24 @@ int {name}_step({name}_state *s, const double *x, const double *params, double *
     fj_incumbent res;
     int complete = fj_search(&fj_main, &pr, xm, cand, count, s->budget, {budgeted}, reserve, &res, &w);
     int used = 0;
-    s->nodes = res.nodes;
+    s->nodes = (int32_t)res.nodes;
     s->fallback_nodes = 0;{fallback}
-    s->complete = complete;
     double found[FJ_NU];
     int held = !isfinite(res.cost);
     if (!held) {{
         {pick}
         held = !fj_all_finite(found, FJ_NU);
     }}
+    fj_report(s, &res, used, complete, held, res.flags);
+    if (isfinite(res.cost))
+        for (int j = 0; j < FJ_NU; j++) s->first_input[j] = found[j];
     if (held) {{
         {safe}
         for (int j = 0; j < FJ_N; j++) s->plan[j] = -1;
     }} else {{
+        double x_next[FJ_NX];
+        unsigned char allowed;
+        fj_main.child(xm, res.path[0], 0, &pr, x_next, &s->stage_cost, &allowed);
         for (int j = 0; j < FJ_NU; j++) s->u[j] = found[j];
         for (int j = 0; j < FJ_N; j++) s->plan[j] = res.path[j];
     }}
@@ -600,10 +674,7 @@ class Compiled:
         self._p = np.zeros(e.num_params)
         self._inputs = (_address(self._x), _address(self._p) if e.num_params else None)
         if e.state_bytes:
-            fields = [("u", ctypes.c_double * e.input_size), ("plan", ctypes.c_int * e.horizon),
-                      ("budget", ctypes.c_longlong), ("nodes", ctypes.c_longlong),
-                      ("fallback_nodes", ctypes.c_longlong), ("complete", ctypes.c_int)]
-            self.State = type("State", (ctypes.Structure,), {"_fields_": fields})
+            self.State = state_struct(e.input_size, e.horizon)
             self._init, self._step = getattr(self.lib, f"{name}_init"), getattr(self.lib, f"{name}_step")
             self._init.argtypes, self._init.restype = [vp, vp, vp], None
             self._step.argtypes, self._step.restype = [vp, vp, vp, vp], ctypes.c_int

@@ -1,0 +1,179 @@
+"""``FIRHC(..., engine="c")``: eager decisions in generated C give the XLA decision's outputs, field by field.
+
+Every output of ``ctrl.step`` (the applied input, the next state, every ``StepInfo`` and ``SearchResult`` field)
+is compared with the default engine's along short closed loops: floats to 1e-9 relative (the C code rounds as the
+C compiler does), integers and flags exactly, dtypes and shapes equal.
+"""
+import shutil
+import threading
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from random_problems import make
+
+import firhc_jax as fj
+from firhc_jax._src.export import engine as c_engine
+
+pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler (cc) on this machine")
+
+
+def same_outputs(xla, c, rtol=1e-9):
+    """Two ``(u, state, info)`` triples agree leaf by leaf."""
+    assert jax.tree_util.tree_structure(xla) == jax.tree_util.tree_structure(c)
+    for path, a in jax.tree_util.tree_leaves_with_path(xla):
+        b = c
+        for key in path:
+            b = b[key.idx] if hasattr(key, "idx") else getattr(b, key.name)
+        a, b = np.asarray(a), np.asarray(b)
+        where = jax.tree_util.keystr(path)
+        assert (a.dtype, a.shape) == (b.dtype, b.shape), where
+        if np.issubdtype(a.dtype, np.floating):
+            np.testing.assert_allclose(b, a, rtol=rtol, atol=0, equal_nan=True, err_msg=where)
+        else:
+            np.testing.assert_array_equal(b, a, err_msg=where)
+
+
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 2**31 - 1), st.sampled_from(["none", "loose", "tight"]),
+       st.sampled_from([None, "unconstrained"]), st.booleans(), st.sampled_from([None, 25, 90]), st.booleans(),
+       st.booleans())
+def test_c_steps_give_the_xla_steps_outputs(seed, terminal, fallback, warm, max_nodes, safe, params):
+    rp = make(seed, 2, 1, 3, 4, terminal)
+    base = rp.problem()
+    if params:  # a per-step reference the callables read
+        problem = base.replace(dynamics=lambda x, u, p: rp.dynamics(x, u) + 0.05 * p["ref"][0],
+                               stage_cost=lambda x, u, p: rp.stage_cost(x, u) + p["w"] * jnp.sum(x**2),
+                               terminal=None if rp.radius is None else (lambda x, p: rp.terminal(x)))
+    else:
+        problem = base
+    options = dict(fallback=fallback, warm_start=warm, u_safe=rp.controls[0] if safe else None,
+                   observe=lambda x, u_prev, *p: x * 0.9 + 0.01 * u_prev[0],
+                   actuate=lambda x, u, *p: jnp.concatenate([u, u * 2.0]),
+                   **({} if max_nodes is None else {"max_nodes": max_nodes}))
+    xla, c = fj.FIRHC(problem, **options), fj.FIRHC(problem, engine="c", **options)
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-1, 1, 2)
+    s_xla, s_c = xla.init(x, rp.controls[1]), c.init(x, rp.controls[1])
+    for _ in range(6):
+        p = {"ref": rng.normal(0, 0.3, (4, 2)), "w": np.float64(0.2)} if params else None
+        out_xla, out_c = xla.step(s_xla, x, p), c.step(s_c, x, p)
+        same_outputs(out_xla, out_c)
+        (u, s_xla, _), (_, s_c, _) = out_xla, out_c
+        x = np.asarray(rp.dynamics(jnp.asarray(x), jnp.asarray(u[:1])))
+
+
+def test_the_inverter_controller_decides_as_in_xla():
+    from firhc_jax.models import inverter
+
+    prm = inverter.InverterParams()
+    mem = inverter.make_problem(2, prm)
+    refs = inverter.horizon_references(prm, 30, 2)
+    xla = fj.FIRHC(mem.problem, observe=mem.observe, warm_start=True, max_nodes=40, fallback="unconstrained")
+    c = fj.FIRHC(mem.problem, observe=mem.observe, warm_start=True, max_nodes=40, fallback="unconstrained",
+                 engine="c")
+    plant = jax.jit(inverter.make_plant(prm))
+    x = np.asarray(inverter.initial_currents(prm))
+    s_xla, s_c = xla.init(x), c.init(x)
+    for k in range(30):
+        p = {"ref": refs[k], "lambda_u": np.float64(0.1)}
+        out_xla, out_c = xla.step(s_xla, x, p), c.step(s_c, x, p)
+        same_outputs(out_xla, out_c)
+        (u, s_xla, _), (_, s_c, _) = out_xla, out_c
+        x = np.asarray(plant(x, u))
+
+
+def test_one_shot_calls_check_and_raise_as_in_xla():
+    problem = fj.Problem(lambda x, u, p: x * p["a"] + u, np.array([-1.0, 1.0]),
+                         lambda x, u, p: jnp.sum(x**2) - p["shift"], 2, terminal=lambda x, p: jnp.sum(x**2) < 1.0)
+    xla, c = fj.FIRHC(problem), fj.FIRHC(problem, engine="c")
+    good = {"a": np.float64(0.5), "shift": np.float64(0.0)}
+    same_outputs(xla(np.array([0.3]), good), c(np.array([0.3]), good))
+    same_outputs(xla(np.array([0.3]), good, u_prev=np.array([1.0])), c(np.array([0.3]), good, u_prev=np.array([1.0])))
+    with pytest.raises(fj.InfeasibleError):
+        c(np.array([90.0]), good)
+    with pytest.raises(ValueError, match="NaN or inf"):
+        c(np.array([np.nan]), good)
+    with pytest.raises(ValueError, match="NaN or inf"):
+        c(np.array([0.3]), {"a": np.float64(np.inf), "shift": np.float64(0.0)})
+    with pytest.raises(ValueError, match="negative"):
+        c(np.array([0.3]), {"a": np.float64(0.5), "shift": np.float64(10.0)})
+    # a step reports instead of raising, as the XLA step does
+    _, _, info = c.step(c.init(np.array([0.3])), np.array([np.nan]), good)
+    assert info.held and info.result.nan_encountered and not info.result.feasible
+
+
+def test_the_engine_is_checked_when_the_controller_is_made(monkeypatch):
+    problem = fj.Problem(lambda x, u: x + u, np.array([-1.0, 1.0]), lambda x, u: jnp.sum(x**2), 2)
+    with pytest.raises(ValueError, match="engine must be one of"):
+        fj.FIRHC(problem, engine="fortran")
+    with pytest.raises(ValueError, match="'sdfs' solver"):
+        fj.FIRHC(problem, "exhaustive", engine="c")
+    with pytest.raises(ValueError, match="pop_width=1"):
+        fj.FIRHC(problem, engine="c", pop_width=2)
+    with pytest.raises(ValueError, match="callable warm_start"):
+        fj.FIRHC(problem, engine="c", warm_start=lambda problem, x, prev, p: prev)
+    monkeypatch.setenv("CC", "no-such-compiler-here")
+    with pytest.raises(RuntimeError, match="no-such-compiler-here"):
+        fj.FIRHC(problem, engine="c")
+
+
+def test_an_untranslatable_callable_is_named_at_the_first_step():
+    problem = fj.Problem(lambda x, u: x + u, np.array([-1.0, 1.0]), lambda x, u: jnp.sort(x)[0] ** 2, 2)
+    ctrl = fj.FIRHC(problem, engine="c")
+    with pytest.raises(ValueError, match="stage_cost.*'sort'"):
+        ctrl.step(ctrl.init(np.zeros(2)), np.zeros(2))
+
+
+def test_a_signature_builds_once_and_traced_calls_run_in_xla(monkeypatch):
+    builds = []
+    real = c_engine.CStep.__init__
+    monkeypatch.setattr(c_engine.CStep, "__init__", lambda self, *a: builds.append(1) or real(self, *a))
+    problem = fj.Problem(lambda x, u: 0.5 * x + u, np.array([-1.0, 0.0, 1.0]), lambda x, u: jnp.sum(x**2), 3)
+    ctrl = fj.FIRHC(problem, engine="c", warm_start=True)
+    state = ctrl.init(np.zeros(2))
+    for x in np.random.default_rng(0).uniform(-1, 1, (5, 2)):
+        u, state, info = ctrl.step(state, x)
+    twin = fj.FIRHC(problem, engine="c", warm_start=True)  # equal options share the built code
+    twin.step(twin.init(np.zeros(2)), np.ones(2))
+    assert len(builds) == 1
+    ctrl.step(state, np.zeros(3))
+    assert len(builds) == 2
+    u_jit, _, info_jit = jax.jit(ctrl.step)(state, jnp.zeros(2))  # traced: the XLA decision
+    u_eager, _, info_eager = ctrl.step(state, np.zeros(2))
+    np.testing.assert_allclose(np.asarray(u_jit), u_eager)
+    assert isinstance(u_jit, jax.Array) and isinstance(u_eager, np.ndarray)
+
+
+def test_threads_decide_as_one_thread():
+    problem = fj.Problem(lambda x, u: jnp.tanh(x) + u, np.linspace(-1, 1, 5)[:, None],
+                         lambda x, u: jnp.sum(x**2) + 0.1 * jnp.sum(u**2), 4)
+    ctrl = fj.FIRHC(problem, engine="c")
+    xs = np.random.default_rng(1).uniform(-2, 2, (40, 1))
+    serial = [ctrl(x)[1].result.cost for x in xs]
+    out = [None] * len(xs)
+
+    def work(rows):
+        for i in rows:
+            out[i] = ctrl(xs[i])[1].result.cost
+
+    threads = [threading.Thread(target=work, args=(range(t, len(xs), 4),)) for t in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    np.testing.assert_array_equal(out, serial)
+
+
+@pytest.mark.float32
+def test_the_c_engine_returns_the_sessions_dtypes():
+    """With x64 off the outputs have the float32 decision's dtypes; the C code computes in float32 as the
+    exported callables do, so the values agree to float32's precision."""
+    rp = make(7, 2, 1, 4, 3, "loose")
+    xla, c = fj.FIRHC(rp.problem(), warm_start=True), fj.FIRHC(rp.problem(), warm_start=True, engine="c")
+    x = np.array([0.4, -0.2], jax.dtypes.canonicalize_dtype(np.float64))  # float32 with x64 off
+    out_xla, out_c = xla.step(xla.init(x), x), c.step(c.init(x), x)
+    same_outputs(out_xla, out_c, rtol=1e-5)
