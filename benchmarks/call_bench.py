@@ -11,7 +11,8 @@ Each public call is timed as users make it (new values every call, float64), and
 * **search**: the compiled program minus the call.
 
 Rows: ``fj.sdfs`` on a 2-state 3-input pendulum at N = 1 and 5, ``ctrl.step`` and the one-shot ``ctrl(x)``
-on the two-level inverter (8 switch states, the reference as per-step parameters) at N = 1 and 3,
+on the two-level inverter (8 switch states, the reference as per-step parameters) at N = 1 and 3 (``ctrl.step``
+also with ``engine="c"``: the generated C decision through ``ctypes``),
 ``lt.solve`` on the three-level inverter at N = 5, and the step of ``simulate``'s compiled scan (inverter,
 N = 3: the run's time per step, plant included). Every time is also a multiple of a trivial jitted call
 (``jax.jit(lambda x: x + 1.0)`` on a JAX array), measured in the same rounds. Medians (p50) and 99th
@@ -78,6 +79,14 @@ def cases(calls: int):
         out[f"`ctrl.step`, inverter (8 inputs), N = {N}"] = (
             lambda x, p, c=ctrl, s=state: c.step(s, x, p), lambda x, p, r=program, s=state: r(s, x, p),
             (state, xs[0], rows[0]), list(zip(xs, rows, strict=True)))
+        c_ctrl = fj.FIRHC(mem.problem, observe=mem.observe, engine="c")
+        c_state = c_ctrl.init(xs[0], np.zeros(3))
+        c_ctrl.step(c_state, xs[0], rows[0])
+        c_run = lean.recall(("step", c_ctrl), (c_state, xs[0], rows[0]))
+        record, _, _, _, _, *addresses = c_run._buffers()
+        out[f"`ctrl.step`, inverter (8 inputs), N = {N}, `engine=\"c\"`"] = (
+            lambda x, p, c=c_ctrl, s=c_state: c.step(s, x, p), lambda x, p, f=c_run._fn, a=addresses: f(*a),
+            None, list(zip(xs, rows, strict=True)))
         if N == 3:
             ctrl(xs[0], rows[0])
             program = lean.recall(("call", ctrl), (xs[0], rows[0], None))
@@ -131,7 +140,7 @@ def measure(calls: int, rounds: int) -> list[tuple]:
     scan = scan_step(calls)
     t_triv, t_scan = [], []
     times = {name: {"public": [], "program": [], "call": []} for name in table}
-    trivials = {name: trivial_of(c[2]) for name, c in table.items()}
+    trivials = {name: trivial_of(c[2]) for name, c in table.items() if c[2] is not None}
     for _ in range(rounds):
         for _ in range(calls):
             t0 = time.perf_counter()
@@ -143,8 +152,8 @@ def measure(calls: int, rounds: int) -> list[tuple]:
                     t0 = time.perf_counter()
                     fn(*a)
                     times[name][which].append(time.perf_counter() - t0)
-            triv_args = trivials[name]
-            for _ in argsets:
+            triv_args = trivials.get(name)
+            for _ in argsets if triv_args is not None else ():
                 t0 = time.perf_counter()
                 triv_args(*args).block_until_ready()
                 times[name]["call"].append(time.perf_counter() - t0)
@@ -155,8 +164,12 @@ def measure(calls: int, rounds: int) -> list[tuple]:
     rows.append(("trivial `jax.jit(lambda x: x + 1.0)`", *percentiles(t_triv), None, None, None, 1.0))
     for name, t in times.items():
         p50, p99 = percentiles(t["public"])
-        prog, call = percentiles(t["program"])[0], percentiles(t["call"])[0]
-        rows.append((name, p50, p99, p50 - prog, call, prog - call, p50 / unit))
+        prog = percentiles(t["program"])[0]
+        if t["call"]:
+            call = percentiles(t["call"])[0]
+            rows.append((name, p50, p99, p50 - prog, call, prog - call, p50 / unit))
+        else:  # the C engine: Python is everything but the C call, which the search column holds
+            rows.append((name, p50, p99, p50 - prog, None, prog, p50 / unit))
     s = 1e6 * float(np.median(t_scan))
     rows.append(("`simulate`'s compiled scan, one step (inverter, N = 3, plant included)", s, None, None, None,
                  None, s / unit))
@@ -183,7 +196,9 @@ def main(argv=None):
 
 def tables(args) -> None:
     print("\nPython: the public call minus its compiled program; call: a program of the same arguments that only "
-          "adds one; search + outputs: the program minus that call. us; p50 unless said.")
+          "adds one; search + outputs: the program minus that call. us; p50 unless said. `engine=\"c\"` rows: "
+          "search + outputs is the C decision called through ctypes on buffers already written; Python is the "
+          "rest (writing the arguments, reading the outputs, the signature look-up).")
     every = os.sched_getaffinity(0)
     for label, cores in (("pinned to one core", {max(every)}), ("every core", every)):
         os.sched_setaffinity(0, cores)

@@ -1,8 +1,9 @@
-"""``FIRHC(..., engine="c")``: eager decisions in generated C give the XLA decision's outputs, field by field.
+"""``engine="c"``: eager searches and decisions in generated C give the XLA program's outputs, field by field.
 
-Every output of ``ctrl.step`` (the applied input, the next state, every ``StepInfo`` and ``SearchResult`` field)
-is compared with the default engine's along short closed loops: floats to 1e-9 relative (the C code rounds as the
-C compiler does), integers and flags exactly, dtypes and shapes equal.
+Every field of ``fj.sdfs``'s result, and every output of ``ctrl.step`` (the applied input, the next state,
+every ``StepInfo`` and ``SearchResult`` field), is compared with the default engine's along short closed
+loops: floats to 1e-9 relative (the C code rounds as the C compiler does), integers and flags exactly, dtypes
+and shapes equal.
 """
 import shutil
 import threading
@@ -35,6 +36,44 @@ def same_outputs(xla, c, rtol=1e-9):
             np.testing.assert_allclose(b, a, rtol=rtol, atol=0, equal_nan=True, err_msg=where)
         else:
             np.testing.assert_array_equal(b, a, err_msg=where)
+
+
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 2**31 - 1), st.integers(1, 5), st.integers(1, 5), st.sampled_from(["none", "loose", "tight"]),
+       st.sampled_from([None, 7, 40]), st.booleans(), st.booleans())
+def test_c_searches_give_fj_sdfs_results(seed, N, M, terminal, max_nodes, warm, params):
+    rp = make(seed, 2, 1, M, N, terminal)
+    problem = rp.problem()
+    if params:
+        problem = problem.replace(dynamics=lambda x, u, p: rp.dynamics(x, u) + 0.05 * p["ref"][0],
+                                  stage_cost=lambda x, u, p: rp.stage_cost(x, u) + p["w"] * jnp.sum(x**2),
+                                  terminal=None if rp.radius is None else (lambda x, p: rp.terminal(x)))
+    rng = np.random.default_rng(seed)
+    for x0 in rng.uniform(-1, 1, (3, 2)):
+        p = {"ref": rng.normal(0, 0.3, (N, 2)), "w": np.float64(0.2)} if params else None
+        ws = rng.integers(0, M, N) if warm else None
+        same_outputs(fj.sdfs(problem, x0, params=p, warm_start=ws, max_nodes=max_nodes),
+                     fj.sdfs(problem, x0, params=p, warm_start=ws, max_nodes=max_nodes, engine="c"))
+
+
+def test_a_c_search_checks_and_raises_as_fj_sdfs():
+    problem = fj.Problem(lambda x, u, p: x * p["a"] + u, np.array([-1.0, 1.0]),
+                         lambda x, u, p: jnp.sum(x**2) - p["shift"], 3)
+    good = {"a": np.float64(0.5), "shift": np.float64(0.0)}
+    fj.sdfs(problem, np.array([0.3]), params=good, warm_start=np.array([0, 1, 0]), engine="c")
+    for call, match in [((np.array([np.nan]), good, None), "NaN or inf"),
+                        ((np.array([0.3]), {"a": np.float64(np.inf), "shift": np.float64(0.0)}, None), "NaN or inf"),
+                        ((np.array([0.3]), {"a": np.float64(0.5), "shift": np.float64(10.0)}, None), "negative"),
+                        ((np.array([0.3]), good, np.array([0, 2, 0])), "warm_start indices")]:
+        with pytest.raises(ValueError, match=match):  # the values of a call that skips the checks (lean)
+            x0, p, ws = call
+            fj.sdfs(problem, x0, params=p, warm_start=ws, engine="c")
+    with pytest.raises(ValueError, match="pop_width=1"):
+        fj.sdfs(problem, np.array([0.3]), params=good, pop_width=2, engine="c")
+    with pytest.raises(ValueError, match="engine must be one of"):
+        fj.sdfs(problem, np.array([0.3]), params=good, engine="C")
+    traced = jax.jit(lambda x: fj.sdfs(problem, x, params=good, engine="c").cost)(jnp.array([0.3]))  # XLA
+    np.testing.assert_allclose(float(traced), float(fj.sdfs(problem, np.array([0.3]), params=good).cost))
 
 
 @settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])

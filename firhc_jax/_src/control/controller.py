@@ -56,11 +56,10 @@ from ..annotations import ArrayLike, PyTree
 from ..checks import as_batch, as_inputs, as_sequence, as_state, check_params, is_tracer, positive_int, sample_times
 from ..problem.auto_bound import AutoBound
 from ..problem.problem import Problem, input_dtype
-from ..runtime import lean
+from ..runtime import engines, lean
 from ..runtime.memory_cache import cached
 from ..runtime.packed import compile_packed
 from ..search.result import SearchResult, raise_on_errors
-from . import engines
 from .closed_loop import ClosedLoop
 from .decision import ControllerState, StepInfo, budget_of, decide, decide_rows
 from .decision_checks import (

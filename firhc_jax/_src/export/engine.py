@@ -1,17 +1,20 @@
-"""The ``"c"`` engine: a controller's eager decisions (``ctrl.step``, ``ctrl(x)``) in generated C.
+"""The ``"c"`` engine: eager searches (``fj.sdfs``) and a controller's eager decisions (``ctrl.step``,
+``ctrl(x)``) in generated C.
 
-On the first eager decision for a signature of arguments the controller is exported (``export_c``, with these
+On the first eager call for a signature of arguments the problem or controller is exported (``export_c``, with these
 parameters' shapes), compiled with the system's C compiler (``$CC``, else ``cc``) into a shared library in a
 folder of this process, and called through ``ctypes`` from then on: one C call a decision, no XLA program.
 The arguments are written into buffers of fixed address (one set per thread: the C code is reentrant) and the
-outputs read back from the controller state's report (``export.STATE_FIELDS``) in one structured cast, as
-NumPy arrays of the dtypes the XLA decision returns. The C code computes in float64 and rounds as the C
-compiler does (no contraction into fused multiply-adds, ISO C), so costs can differ from XLA's in the last
-bits, and an exact tie can be broken towards another optimal sequence.
+outputs read back in place from the record the C code fills (``export.RESULT_FIELDS``, the controller state's
+report ``export.STATE_FIELDS``), as NumPy arrays of the dtypes the XLA program returns. The C code computes the
+callables in the session's float, as the export does, and rounds as the C compiler does (ISO C: no contraction
+into fused multiply-adds), so costs can differ from XLA's in the last bits, and an exact tie can be broken
+towards another optimal sequence.
 """
 from __future__ import annotations
 
 import atexit
+import ctypes
 import functools
 import itertools
 import os
@@ -25,9 +28,11 @@ import numpy as np
 
 from ..control.decision import ControllerState, StepInfo
 from ..control.decision_checks import decide_checked
-from ..control.engines import ENGINES
+from ..runtime.engines import ENGINES
 from ..search.result import SearchResult
-from .export import _check_controller, compile_shared, export_c, state_dtype
+from ..search.sdfs import INT32_MAX
+from ..search.sdfs import search as sdfs_search
+from .export import _check_controller, compile_shared, export_c, result_dtype, state_dtype
 
 FLAGS = (("-O3", "-march=native"), ("-O3",))  # the first set the compiler takes
 _folder: Optional[str] = None
@@ -49,17 +54,106 @@ def _build_folder() -> str:
         return _folder
 
 
+def _have_compiler() -> None:
+    if shutil.which(compiler()) is None:
+        raise RuntimeError(f"engine='c' compiles generated C with {compiler()!r} (set $CC), which is not on this "
+                           "machine's PATH; use engine='xla'")
+
+
+def _compiled(what, params, x0):
+    """``what`` (a problem or controller) exported into this process's folder and compiled: the ``Compiled``."""
+    with _lock:
+        name = f"fj{next(_names)}"
+    exported = export_c(what, _build_folder(), name=name, params=params, x0=np.asarray(x0))
+    for flags in FLAGS:
+        try:
+            return compile_shared(exported, cc=compiler(), flags=flags)
+        except RuntimeError:
+            if flags is FLAGS[-1]:
+                raise
+
+
+def _address(a: np.ndarray) -> int:
+    return a.__array_interface__["data"][0]
+
+
+def _write_params(buffer: np.ndarray, params) -> None:
+    """The parameters' leaves into ``buffer``, flattened as the generated code takes them."""
+    start = 0
+    for leaf in jax.tree_util.tree_leaves(params):
+        leaf = np.ravel(leaf)
+        buffer[start:start + leaf.size] = leaf
+        start += leaf.size
+
+
+def _casts(record: np.dtype, floats: dict) -> tuple:
+    """``(field, dtype)`` of the floating outputs whose session dtype (float32 without x64) is not the record's."""
+    return tuple((field, np.dtype(a.dtype)) for field, a in floats.items() if np.dtype(a.dtype) != record[field].base)
+
+
 class CEngine:
     name = "c"
 
+    def check_search(self, pop_width: int) -> None:
+        if pop_width != 1:
+            raise ValueError(f"engine='c' runs the paper's search, pop_width=1; got pop_width={pop_width}")
+        _have_compiler()
+
+    def build_search(self, problem, x0, params, budgeted: bool):
+        return CSearch(problem, x0, params, budgeted)
+
     def check(self, ctrl) -> None:
         _check_controller(ctrl)
-        if shutil.which(compiler()) is None:
-            raise RuntimeError(f"engine='c' compiles generated C with {compiler()!r} (set $CC), which is not on "
-                               "this machine's PATH; use engine='xla'")
+        _have_compiler()
 
     def build(self, ctrl, state, x, params):
         return CStep(ctrl, state, x, params)
+
+
+class CSearch:
+    """``fj.sdfs`` of one problem in C for one signature of ``(x0, params)`` (checked arguments)."""
+
+    def __init__(self, problem, x0, params, budgeted: bool):
+        out = jax.eval_shape(lambda x, p: sdfs_search(problem, x, p, None, INT32_MAX, pop_width=1,
+                                                      budgeted=budgeted), x0, params)
+        self.lib = _compiled(problem, params, x0)
+        self._fn = getattr(self.lib.lib, f"{self.lib.exported.name}_search")
+        self._fn.restype = ctypes.c_int
+        self._fn.argtypes = [ctypes.c_void_p] * 3 + [ctypes.c_int, ctypes.c_int32, ctypes.c_void_p]
+        e = self.lib.exported
+        self._budgeted, self._N, self._M = int(budgeted), e.horizon, e.num_controls
+        self._n_x, self._n_p = e.state_size, e.num_params
+        self._record = result_dtype(e.input_size, e.horizon)
+        self._casts = _casts(self._record, {"cost": out.cost, "first_input": out.first_input})
+        self._local = threading.local()
+
+    def _buffers(self):
+        b = getattr(self._local, "buffers", None)
+        if b is None:
+            record, x, p, seed = (np.zeros((), self._record), np.zeros(self._n_x), np.zeros(self._n_p),
+                                  np.zeros(self._N, np.int32))
+            b = self._local.buffers = (record.reshape(1).view(np.uint8), x, p, seed, _address(record), _address(x),
+                                       _address(p) if self._n_p else None, _address(seed))
+        return b
+
+    def __call__(self, x0, params, warm_start, max_nodes):
+        """``(result, alarm)`` as ``fj.sdfs``'s compiled search gives them."""
+        raw, xb, pb, seed, ra, xa, pa, sa = self._buffers()
+        if warm_start is not None:
+            if not (np.all(warm_start == -1) or (np.all(warm_start >= 0) and np.all(warm_start < self._M))):
+                return None, True  # refused by the checks the caller runs on an alarm, before the result is read
+            seed[:] = warm_start
+        xb[:] = x0
+        if self._n_p:
+            _write_params(pb, params)
+        code = self._fn(xa, pa, None if warm_start is None else sa, self._budgeted, int(max_nodes), ra)
+        r = raw.copy().view(self._record).reshape(())
+        f = {field: r[field].astype(dtype) for field, dtype in self._casts} if self._casts else r
+        result = SearchResult(cost=f["cost"], sequence=r["sequence"], first_input=f["first_input"],
+                              nodes=r["nodes"], feasible=r["feasible"], iterations=r["iterations"],
+                              negative_cost=r["negative_cost"], nan_encountered=r["nan_encountered"],
+                              overflow=r["overflow"], complete=r["complete"])
+        return result, code < 0 or bool(r["nan_encountered"] | r["overflow"])
 
 
 class CStep:
@@ -68,25 +162,15 @@ class CStep:
     def __init__(self, ctrl, state, x, params):
         opts = ctrl.options
         out = jax.eval_shape(functools.partial(decide_checked, opts), state, x, params)  # the callables' checks
-        with _lock:
-            name = f"fj{next(_names)}"
-        exported = export_c(ctrl, _build_folder(), name=name, params=params, x0=np.asarray(x))
-        for flags in FLAGS:
-            try:
-                self.lib = compile_shared(exported, cc=compiler(), flags=flags)
-                break
-            except RuntimeError:
-                if flags is FLAGS[-1]:
-                    raise
+        self.lib = _compiled(ctrl, params, x)
+        exported = self.lib.exported
         self._fn = self.lib._step
         self._n_x, self._n_u = exported.plant_state_size, exported.plant_input_size
         self._n_p = exported.num_params
         self._record = state_dtype(exported.input_size, exported.horizon)
         u_plant, next_state, info = out
-        floats = {"u": next_state.u, "cost": info.result.cost, "stage_cost": info.stage_cost,
-                  "first_input": info.result.first_input}  # the session's floating dtypes (float32 without x64)
-        self._casts = tuple((field, np.dtype(a.dtype)) for field, a in floats.items()
-                            if np.dtype(a.dtype) != self._record[field].base)
+        self._casts = _casts(self._record, {"u": next_state.u, "cost": info.result.cost,
+                                            "stage_cost": info.stage_cost, "first_input": info.result.first_input})
         self._u_dtype = np.dtype(u_plant.dtype)
         self._local = threading.local()
 
@@ -96,9 +180,8 @@ class CStep:
         if b is None:
             record, x, p, u = (np.zeros((), self._record), np.zeros(self._n_x), np.zeros(self._n_p),
                                np.zeros(self._n_u))
-            address = lambda a: a.__array_interface__["data"][0]  # noqa: E731
-            b = self._local.buffers = (record, record.reshape(1).view(np.uint8), x, p, u, address(record),
-                                       address(x), address(p) if self._n_p else None, address(u))
+            b = self._local.buffers = (record, record.reshape(1).view(np.uint8), x, p, u, _address(record),
+                                       _address(x), _address(p) if self._n_p else None, _address(u))
         return b
 
     def __call__(self, state: ControllerState, x, params):
@@ -106,11 +189,7 @@ class CStep:
         record["u"], record["plan"], record["budget"] = state.u, state.plan, state.budget
         xb[:] = x
         if self._n_p:
-            start = 0
-            for leaf in jax.tree_util.tree_leaves(params):
-                leaf = np.ravel(leaf)
-                pb[start:start + leaf.size] = leaf
-                start += leaf.size
+            _write_params(pb, params)
         self._fn(ra, xa, pa, ua)
         r = raw.copy().view(self._record).reshape(())  # a structured copy is several times slower
         f = {field: r[field].astype(dtype) for field, dtype in self._casts} if self._casts else r

@@ -62,34 +62,61 @@ STATE_FIELDS = (
     ("nan_encountered", "unsigned char", 0, "last decision: a non-finite state or NaN cost was met (discarded)"),
     ("overflow", "unsigned char", 0, "last decision: a finite cost plus a finite stage cost overflowed"),
 )
+# NAME_result, field by field (as STATE_FIELDS): fj.sdfs's SearchResult, what NAME_search writes.
+RESULT_FIELDS = (
+    ("cost", "double", 0, "the optimal cost (+inf: none)"),
+    ("first_input", "double", "m", "the input to apply (NaN: none)"),
+    ("sequence", "int32_t", "N", "the optimal input indices (-1: none)"),
+    ("nodes", "int32_t", 0, "nodes computed (a seed's included)"),
+    ("iterations", "int32_t", 0, "nodes expanded"),
+    ("feasible", "unsigned char", 0, "a sequence meets the terminal set and the constraints"),
+    ("complete", "unsigned char", 0, "the search ran to the end (not stopped by the budget): optimal"),
+    ("negative_cost", "unsigned char", 0, "a negative stage or terminal cost was computed"),
+    ("nan_encountered", "unsigned char", 0, "a non-finite state or NaN cost was met (discarded)"),
+    ("overflow", "unsigned char", 0, "a finite cost plus a finite stage cost overflowed"),
+)
 _CTYPES = {"double": ctypes.c_double, "int32_t": ctypes.c_int32, "unsigned char": ctypes.c_ubyte}
 _NUMPY = {"double": np.float64, "int32_t": np.int32, "unsigned char": np.bool_}
 
 
-def state_struct(m: int, N: int) -> type:
-    """``NAME_state`` as a ``ctypes.Structure`` (the same layout the C compiler gives it)."""
+def _struct(fields, m: int, N: int) -> type:
+    """A ``ctypes.Structure`` of ``fields`` (``STATE_FIELDS``, ``RESULT_FIELDS``): the C compiler's layout."""
     size = {"m": m, "N": N}
-    fields = [(name, _CTYPES[kind] * size[length] if length else _CTYPES[kind])
-              for name, kind, length, _ in STATE_FIELDS]
-    return type("State", (ctypes.Structure,), {"_fields_": fields})
+    return type("Struct", (ctypes.Structure,), {"_fields_": [
+        (name, _CTYPES[kind] * size[length] if length else _CTYPES[kind]) for name, kind, length, _ in fields]})
 
 
-def state_dtype(m: int, N: int) -> np.dtype:
-    """``NAME_state`` as a NumPy record of the same layout, its flags as ``bool``."""
-    struct, size = state_struct(m, N), {"m": m, "N": N}
-    return np.dtype({"names": [f[0] for f in STATE_FIELDS],
+def _record(fields, m: int, N: int) -> np.dtype:
+    """The NumPy record of the same layout as ``_struct``, its flags as ``bool``."""
+    struct, size = _struct(fields, m, N), {"m": m, "N": N}
+    return np.dtype({"names": [f[0] for f in fields],
                      "formats": [(_NUMPY[kind], (size[length],)) if length else _NUMPY[kind]
-                                 for _, kind, length, _ in STATE_FIELDS],
-                     "offsets": [getattr(struct, f[0]).offset for f in STATE_FIELDS],
+                                 for _, kind, length, _ in fields],
+                     "offsets": [getattr(struct, f[0]).offset for f in fields],
                      "itemsize": ctypes.sizeof(struct)})
 
 
-def state_typedef(name: str, m: int, N: int) -> str:
-    """The C typedef of ``NAME_state``."""
+def state_struct(m: int, N: int) -> type:
+    """``NAME_state`` as a ``ctypes.Structure``."""
+    return _struct(STATE_FIELDS, m, N)
+
+
+def state_dtype(m: int, N: int) -> np.dtype:
+    """``NAME_state`` as a NumPy record (``FIRHC(engine="c")`` reads its outputs from it in place)."""
+    return _record(STATE_FIELDS, m, N)
+
+
+def result_dtype(m: int, N: int) -> np.dtype:
+    """``NAME_result`` as a NumPy record (``fj.sdfs(engine="c")`` reads its result from it in place)."""
+    return _record(RESULT_FIELDS, m, N)
+
+
+def typedef(fields, name: str, m: int, N: int) -> str:
+    """The C typedef ``name`` of ``fields``."""
     size = {"m": m, "N": N}
     lines = [f"    {kind} {field}{f'[{size[length]}]' if length else ''};  /* {comment} */"
-             for field, kind, length, comment in STATE_FIELDS]
-    return "typedef struct {\n" + "\n".join(lines) + f"\n}} {name}_state;\n\n"
+             for field, kind, length, comment in fields]
+    return "typedef struct {\n" + "\n".join(lines) + f"\n}} {name};\n\n"
 
 
 @dataclasses.dataclass
@@ -463,10 +490,12 @@ def _assemble(unit: _Unit, problem: Problem, ctrl, name: str, n: int, n_plant: i
     N, M, m = problem.horizon, problem.num_controls, problem.input_dim
     up = name.upper()
     api = [f"int {name}_solve(const double *x0, const double *params, int *sequence, double *cost, "
-           "long long *nodes);", f"size_t {name}_work_bytes(void);"]
-    state = ""
+           "long long *nodes);",
+           f"int {name}_search(const double *x0, const double *params, const int32_t *seed, int budgeted, "
+           f"int32_t max_nodes, {name}_result *result);", f"size_t {name}_work_bytes(void);"]
+    state = typedef(RESULT_FIELDS, f"{name}_result", m, N)
     if ctrl is not None:
-        state = state_typedef(name, m, N)
+        state += typedef(STATE_FIELDS, f"{name}_state", m, N)
         api += [f"void {name}_init({name}_state *s, const double *x0, const double *u0);",
                 f"int {name}_step({name}_state *s, const double *x, const double *params, double *u);"]
     header = f"""/* Generated by firhc_jax.export_c: the exact finite-input search{' and controller' if ctrl else ''} \
@@ -481,10 +510,15 @@ def _assemble(unit: _Unit, problem: Problem, ctrl, name: str, n: int, n_plant: i
      0  none does (cost +inf, sequence all -1), or a node budget stopped the search before it found one;
     -1  x0 is not finite;  -2  a parameter is not finite;
     -3  a negative stage or terminal cost was computed: pruning is not exact (fj.sdfs raises ValueError).
+
+   {name}_search(x0, params, seed, budgeted, max_nodes, result): the same search with fj.sdfs's whole result
+   ({name}_result); seed: NULL, or [N] indices evaluated first as fj.sdfs's warm_start (all -1: none); budgeted:
+   0, or 1 to search within max_nodes as fj.sdfs(max_nodes=) does. Returns the codes of {name}_solve.
 */
 #ifndef {up}_H
 #define {up}_H
 #include <stddef.h>
+#include <stdint.h>
 #define {up}_NX {n}
 #define {up}_PLANT_NX {n_plant}
 #define {up}_M {M}
@@ -528,6 +562,30 @@ int {name}_solve(const double *x0, const double *params, int *sequence, double *
     *nodes = out.nodes;
     if (out.flags & FJ_NEGATIVE) return {CODES['NEGATIVE_COST']};
     return isfinite(out.cost) ? {CODES['FOUND']} : {CODES['NONE']};
+}}
+
+int {name}_search(const double *x0, const double *params, const int32_t *seed, int budgeted, int32_t max_nodes,
+                  {name}_result *r) {{
+    if (!fj_all_finite(x0, FJ_NX)) return {CODES['BAD_STATE']};
+{_unpack(unit)}
+    fj_work w;
+    fj_incumbent out;
+    int count = seed != NULL && seed[0] >= 0;
+    int complete = fj_search(&fj_main, &pr, x0, seed, count, max_nodes, budgeted, 0, &out, &w);
+    int found = isfinite(out.cost);
+    r->cost = out.cost;
+    r->nodes = (int32_t)out.nodes;
+    r->iterations = (int32_t)out.iterations;
+    r->feasible = found;
+    r->complete = complete;
+    r->negative_cost = (out.flags & FJ_NEGATIVE) != 0;
+    r->nan_encountered = (out.flags & FJ_NONFINITE) != 0;
+    r->overflow = (out.flags & FJ_OVERFLOW) != 0;
+    for (int j = 0; j < FJ_N; j++) r->sequence[j] = found ? out.path[j] : -1;
+    if (found) fj_main_first_input(x0, out.path, &pr, r->first_input);
+    else for (int j = 0; j < FJ_NU; j++) r->first_input[j] = NAN;
+    if (out.flags & FJ_NEGATIVE) return {CODES['NEGATIVE_COST']};
+    return found ? {CODES['FOUND']} : {CODES['NONE']};
 }}
 """
 

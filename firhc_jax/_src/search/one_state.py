@@ -10,7 +10,7 @@ from ..annotations import ArrayLike, PyTree
 from ..checks import as_sequence, is_tracer
 from ..problem.callables import search_inputs
 from ..problem.problem import Problem
-from ..runtime import lean
+from ..runtime import engines, lean
 from ..runtime.memory_cache import cached, compiled
 from ..runtime.packed import compile_packed
 from . import solvers
@@ -22,7 +22,7 @@ from .sdfs import search as sdfs_search
 
 def sdfs(problem: Problem, x0: ArrayLike, *, params: PyTree = None, pop_width: int = 1,
          warm_start: ArrayLike | None = None, max_nodes: int | ArrayLike | None = None,
-         max_memory: int = DEFAULT_MAX_MEMORY) -> SearchResult:
+         max_memory: int = DEFAULT_MAX_MEMORY, engine: str = "xla") -> SearchResult:
     """Exact optimal input sequence by sorted depth-first search.
 
     Args:
@@ -49,13 +49,20 @@ def sdfs(problem: Problem, x0: ArrayLike, *, params: PyTree = None, pop_width: i
         value: changing it does not recompile.
       max_memory: bytes the stack may take (``stack_memory``); larger problems
         are refused before anything is allocated.
+      engine: what runs an eager call: ``"xla"`` (default), the compiled JAX
+        search; ``"c"``, the search exported as C (``fj.export_c``), compiled
+        with the system's C compiler on the first call for each argument
+        shape and called through ``ctypes`` (``pop_width=1``; the result's
+        fields, shapes and dtypes as ``"xla"``'s, costs to the last bits as
+        the C compiler rounds). A traced call runs in XLA either way.
 
     Works under ``jax.jit`` and ``jax.vmap`` over ``x0`` and ``params``. In an
     un-jitted call a negative stage cost raises ``ValueError``. Not
     differentiable (a discrete search); see ``fj.rollout_cost``.
     """
     budgeted = max_nodes is not None
-    entry = ("sdfs", problem, type(pop_width), pop_width, budgeted, type(max_memory), max_memory)  # True is not 1
+    entry = ("sdfs", problem, type(pop_width), pop_width, budgeted, type(max_memory), max_memory,
+             engine)  # True is not 1
     args = (x0, params, warm_start)
     run = None if is_tracer(max_nodes) else lean.recall(entry, args)
     if run is None:  # the first call of this signature (or a traced one): every check
@@ -68,9 +75,15 @@ def sdfs(problem: Problem, x0: ArrayLike, *, params: PyTree = None, pop_width: i
             run = compiled(sdfs_search, problem, pop_width=options["pop_width"], budgeted=budgeted)
             return raise_on_errors(run(x0, params, ws, node_budget(max_nodes)))
         checked = (x0, params, ws, node_budget(max_nodes))
+        outside = engines.engine(engine)
+        if outside is not None:
+            outside.check_search(options["pop_width"])
+            build = lambda: outside.build_search(problem, x0, params, budgeted)  # noqa: E731
+        else:
+            build = lambda: compile_packed(_eager_search(problem, options["pop_width"], budgeted), *checked)  # noqa: E731
         run = lean.first_call(entry, args, lambda: cached(
-            ("eager", sdfs_search, problem.key, options["pop_width"], budgeted, lean.spec(checked[:3])),
-            lambda: compile_packed(_eager_search(problem, options["pop_width"], budgeted), *checked)))
+            ("eager", engine, sdfs_search, problem.key, options["pop_width"], budgeted, lean.spec(checked[:3])),
+            build))
         args = checked[:3]
     result, alarm = run(*args[:2], _indices(args[2]), node_budget(max_nodes))
     if alarm:  # the value checks of the first call, on these values (each raises with its own message), then

@@ -1,8 +1,9 @@
-"""Engines that run a controller's eager decisions outside XLA, by name (``FIRHC(..., engine=)``).
+"""Engines that run eager searches and decisions outside XLA, by name (``fj.sdfs(..., engine=)``,
+``FIRHC(..., engine=)``).
 
-``"xla"`` (the default) is the compiled JAX decision. Other engines live in the areas above the controller
-(``"c"``: the generated C of ``fj.export_c``, ``firhc_jax._src.export.engine``) and register here when the
-package is imported, so the controller never imports them.
+``"xla"`` (the default) is the compiled JAX program. Other engines live in the areas above the searches and the
+controller (``"c"``: the generated C of ``fj.export_c``, ``firhc_jax._src.export.engine``) and register here
+when the package is imported, so neither imports them.
 """
 from __future__ import annotations
 
@@ -10,6 +11,13 @@ from typing import Any, Callable, Protocol
 
 
 class Engine(Protocol):
+    def check_search(self, pop_width: int) -> None:
+        """Raise where this engine cannot run an ``fj.sdfs`` of these options."""
+
+    def build_search(self, problem, x0, params, budgeted: bool) -> Callable[..., tuple]:
+        """``run(x0, params, warm_start, max_nodes) -> (result, alarm)`` for arguments of these shapes and dtypes,
+        as ``fj.sdfs``'s compiled search."""
+
     def check(self, ctrl) -> None:
         """Raise where this engine cannot run ``ctrl``'s decisions (at construction)."""
 
