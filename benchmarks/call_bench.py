@@ -10,14 +10,13 @@ Each public call is timed as users make it (new values every call, float64), and
   (``firhc_jax._src.runtime.packed``);
 * **search**: the compiled program minus the call.
 
-Rows: ``fj.sdfs`` on a 2-state 3-input pendulum at N = 1 and 5, ``ctrl.step`` and the one-shot ``ctrl(x)``
-on the two-level inverter (8 switch states, the reference as per-step parameters) at N = 1 and 3 (``ctrl.step``
-also with ``engine="c"``: the generated C decision through ``ctypes``),
-``lt.solve`` on the three-level inverter at N = 5, and the step of ``simulate``'s compiled scan (inverter,
-N = 3: the run's time per step, plant included). Every time is also a multiple of a trivial jitted call
-(``jax.jit(lambda x: x + 1.0)`` on a JAX array), measured in the same rounds. Medians (p50) and 99th
-percentiles (p99) of ``--calls`` calls a round, rounds interleaved; once pinned to one core
-(``os.sched_setaffinity``), once on every core.
+Rows: ``fj.sdfs`` on a 2-state 3-input pendulum at N = 1 and 5 (also with ``engine="c"``), ``ctrl.step`` and the
+one-shot ``ctrl(x)`` on the two-level inverter (8 switch states, the reference as per-step parameters) at N = 1 and
+3 (``ctrl.step`` also with ``engine="c"``: the generated C decision through ``ctypes``), ``lt.solve`` on the
+three-level inverter at N = 5, and the step of ``simulate``'s compiled scan (inverter, N = 3: the run's time per
+step, plant included). Every time is also a multiple of a trivial jitted call (``jax.jit(lambda x: x + 1.0)`` on a
+JAX array), measured in the same rounds. Medians (p50) and 99th percentiles (p99) of ``--calls`` calls a round,
+rounds interleaved; once pinned to one core (``os.sched_setaffinity``), once on every core.
 
     python benchmarks/call_bench.py [--calls 2000] [--rounds 3] [--publish] [--small-loops]
 
@@ -60,11 +59,17 @@ def cases(calls: int):
                              horizon=N)
         argsets = [(rng.uniform(-0.6, 0.6, 2),) for _ in range(calls)]
         fj.sdfs(problem, *argsets[0])
-        entry = ("sdfs", problem, int, 1, False, int, fj.sdfs.__kwdefaults__["max_memory"])
+        entry = ("sdfs", problem, int, 1, False, int, fj.sdfs.__kwdefaults__["max_memory"], "xla")
         program = lean.recall(entry, (argsets[0][0], None, None))
         out[f"`fj.sdfs`, pendulum (2 states, 3 inputs), N = {N}"] = (
             lambda x, p=problem: fj.sdfs(p, x), lambda x, r=program: r(x, None, None, budget), (argsets[0][0],),
             argsets)
+        fj.sdfs(problem, *argsets[0], engine="c")
+        c_run = lean.recall(entry[:-1] + ("c",), (argsets[0][0], None, None))
+        _, _, _, _, *addresses = c_run._buffers()
+        out[f"`fj.sdfs`, pendulum (2 states, 3 inputs), N = {N}, `engine=\"c\"`"] = (
+            lambda x, p=problem: fj.sdfs(p, x, engine="c"),
+            lambda x, f=c_run._fn, a=addresses, b=int(budget): f(a[1], a[2], None, 0, b, a[0]), None, argsets)
 
     prm = inverter.InverterParams()
     for N in (1, 3):

@@ -5,13 +5,14 @@ One process, float64, pinned or not as the caller runs it. Rows:
 * the engine benchmark's problems at N = 5 (the 17-input linear plant, the synthetic plant, the three tanks at
   their hardest closed-loop state): the generated ``NAME_solve`` called through ``ctypes`` from Python, the
   same function in a C loop (no Python), the Numba peer (``numba_peer.sdfs``) called from Python and in a
-  compiled loop, and ``jax.jit(fj.sdfs)``. The ratio the target reads is C through ctypes over Numba called
-  from Python: both pay one call from Python;
-* the two-level and three-level inverters' decisions at N = 1, 2 and 3 (``NAME_step`` of the exported
-  ``FIRHC``, warm start; the three-level one is ``LinearTracking``'s problem), through ``ctypes`` and
-  replayed in a C loop, against the published FPGA times of a three-level drive (5.76 us at N = 1,
-  17.27 us at N = 2: Stellato, Geyer, Goulart, IEEE TPEL 2017), with each generated controller's memory: its
-  work arrays on the C stack, its state, and the code and tables of the compiled object (``size``).
+  compiled loop, ``jax.jit(fj.sdfs)`` and the public ``fj.sdfs(..., engine="c")`` (the same C with the
+  library's checks and result). The ratios the targets read are C through ctypes, and the public call with the
+  C engine, over Numba called from Python: each pays one call from Python;
+* the two-level and three-level inverters' decisions at N = 1, 2 and 3 (``NAME_step`` of the exported ``FIRHC``,
+  warm start; the three-level one is ``LinearTracking``'s problem), through ``ctypes`` and replayed in a C loop,
+  and ``ctrl.step`` with either engine, against the published FPGA times of a three-level drive (5.76 us at N = 1,
+  17.27 us at N = 2: Stellato, Geyer, Goulart, IEEE TPEL 2017), with each generated controller's memory: its work
+  arrays on the C stack, its state, and the code and tables of the compiled object (``size``).
 
 Every row checks that the generated code found the library's cost and node count. The C code is compiled
 with ``cc -O2`` (the default of ``Exported.compile``) and ``-O3 -march=native``.
@@ -119,9 +120,14 @@ def engine_row(fj, peer, jitted, folder, label, problem, children, P, x0, *, qui
         loops.append((time.perf_counter() - t0) / calls)
     times["nb_loop"] = statistics.median(loops)
     times["jit"] = median_call(lambda: jax.block_until_ready(jitted(problem, x0)), calls, reps)
+    public = fj.sdfs(problem, x0, engine="c")
+    if int(public.nodes) != nodes or not np.isclose(float(public.cost), float(ref.cost), rtol=1e-9):
+        raise AssertionError(f"{label}: fj.sdfs(engine='c') found {float(public.cost)}, {int(public.nodes)} nodes")
+    times["engine"] = median_call(lambda: fj.sdfs(problem, x0, engine="c"), calls, reps)
     us = {k: 1e6 * v for k, v in times.items()}
     return (f"| {label} | {nodes:,} | {us['O2']:.2f} | {us['fast']:.2f} | {us['loop']:.2f} | {us['nb']:.2f} "
-            f"| {us['nb_loop']:.2f} | {us['jit']:.1f} | {us['O2'] / us['nb']:.2f} | {us['loop'] / us['nb_loop']:.2f} |")
+            f"| {us['nb_loop']:.2f} | {us['jit']:.1f} | {us['engine']:.2f} | {us['O2'] / us['nb']:.2f} "
+            f"| {us['engine'] / us['nb']:.2f} | {us['loop'] / us['nb_loop']:.2f} |")
 
 
 def main(argv=None):
@@ -148,10 +154,11 @@ def run(args):
     folder = Path(tempfile.mkdtemp())
     print(f"Generated C against the Numba peer, N = {N}, float64; times per decision (us), medians of {reps}.")
     print("ctypes: NAME_solve called from Python; C loop: the same in a loop in C; Numba py: numba_peer.sdfs called "
-          "from Python; Numba loop: per solve in a compiled loop; jit: jax.jit(fj.sdfs).\n")
+          "from Python; Numba loop: per solve in a compiled loop; jit: jax.jit(fj.sdfs); engine c: the public "
+          "fj.sdfs(problem, x0, engine=\"c\").\n")
     print("| problem | nodes | C ctypes -O2 | C ctypes -O3 native | C loop -O3 native | Numba py | Numba loop "
-          "| jit(fj.sdfs) | C ctypes -O2 / Numba py | C loop / Numba loop |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| jit(fj.sdfs) | fj.sdfs engine c | C ctypes -O2 / Numba py | engine c / Numba py | C loop / Numba loop |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     syn = make_problem(N, SyntheticParams(17), dtype=np.float64)
     cases = [("linear, 17 inputs", peer.linear_problem(N), peer.linear_children, peer.linear_plant(),
               np.array([1.5, -1.0, 0.8])),
@@ -173,8 +180,9 @@ def run(args):
           "three-level drive (27 switch states). Memory: the work arrays on the C "
           "stack (NAME_work_bytes()), the controller state, and the object's code and data (cc -O2, `size`).\n")
     print("| controller | N | nodes per decision (mean) | C ctypes -O2 (us) | C loop -O2 (us) | C loop -O3 native (us) "
-          "| ctrl.step (us) | FPGA (us) | stack bytes | state bytes | code bytes | data bytes |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| ctrl.step (us) | ctrl.step engine c (us) | FPGA (us) | stack bytes | state bytes | code bytes "
+          "| data bytes |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for kind in ("two-level, 8 inputs", "three-level, 27 inputs (LinearTracking)"):
         for horizon in (1,) if args.quick else (1, 2, 3):
             print(inverter_row(fj, folder, kind, horizon, 10 if args.quick else 50))
@@ -226,10 +234,18 @@ def inverter_row(fj, folder, kind: str, horizon: int, steps: int) -> str:
         spent.append(time.perf_counter() - t0)
         x = np.asarray(plant(jnp.asarray(x), jnp.asarray(u)))
     step_us = 1e6 * statistics.median(spent[1:])
+    c_ctrl = fj.FIRHC(ctrl.problem, observe=ctrl.observe, warm_start=True, engine="c")
+    x, state, spent = np.array([1.0, -2.0]), c_ctrl.init(np.zeros(2)), []
+    for p in jax.tree_util.tree_map(np.asarray, params):  # NumPy in: a JAX array costs the C engine a copy out
+        t0 = time.perf_counter()
+        u, state, info = c_ctrl.step(state, x, p)
+        spent.append(time.perf_counter() - t0)
+        x = np.asarray(plant(jnp.asarray(x), jnp.asarray(u)))
+    engine_us = 1e6 * statistics.median(spent[1:])
     fpga = {1: 5.76, 2: 17.27}.get(horizon)
     return (f"| {kind} | {horizon} | {np.mean(nodes):.1f} | {ctypes_us:.2f} | {loops['O2']:.2f} | {loops['fast']:.2f} "
-            f"| {step_us:.0f} | {'-' if fpga is None else fpga} | {exported.work_bytes:,} | {exported.state_bytes} "
-            f"| {text:,} | {data:,} |")
+            f"| {step_us:.0f} | {engine_us:.2f} | {'-' if fpga is None else fpga} | {exported.work_bytes:,} "
+            f"| {exported.state_bytes} | {text:,} | {data:,} |")
 
 
 STEPS = r"""

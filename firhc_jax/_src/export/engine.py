@@ -77,13 +77,24 @@ def _address(a: np.ndarray) -> int:
     return a.__array_interface__["data"][0]
 
 
-def _write_params(buffer: np.ndarray, params) -> None:
-    """The parameters' leaves into ``buffer``, flattened as the generated code takes them."""
-    start = 0
-    for leaf in jax.tree_util.tree_leaves(params):
-        leaf = np.ravel(leaf)
-        buffer[start:start + leaf.size] = leaf
-        start += leaf.size
+def _shapes(params) -> tuple:
+    return tuple(np.shape(leaf) for leaf in jax.tree_util.tree_leaves(params))
+
+
+def _param_views(buffer: np.ndarray, shapes: tuple) -> tuple:
+    """Views of ``buffer``, one per parameter leaf in its shape (``_shapes``): the leaves written into them lie
+    flattened as the generated code takes them."""
+    views, start = [], 0
+    for shape in shapes:
+        size = int(np.prod(shape))
+        views.append(buffer[start:start + size].reshape(shape))
+        start += size
+    return tuple(views)
+
+
+def _write_params(views: tuple, params) -> None:
+    for view, leaf in zip(views, jax.tree_util.tree_leaves(params), strict=True):
+        view[...] = leaf
 
 
 def _casts(record: np.dtype, floats: dict) -> tuple:
@@ -122,7 +133,7 @@ class CSearch:
         self._fn.argtypes = [ctypes.c_void_p] * 3 + [ctypes.c_int, ctypes.c_int32, ctypes.c_void_p]
         e = self.lib.exported
         self._budgeted, self._N, self._M = int(budgeted), e.horizon, e.num_controls
-        self._n_x, self._n_p = e.state_size, e.num_params
+        self._n_x, self._n_p, self._shapes = e.state_size, e.num_params, _shapes(params)
         self._record = result_dtype(e.input_size, e.horizon)
         self._casts = _casts(self._record, {"cost": out.cost, "first_input": out.first_input})
         self._local = threading.local()
@@ -132,8 +143,9 @@ class CSearch:
         if b is None:
             record, x, p, seed = (np.zeros((), self._record), np.zeros(self._n_x), np.zeros(self._n_p),
                                   np.zeros(self._N, np.int32))
-            b = self._local.buffers = (record.reshape(1).view(np.uint8), x, p, seed, _address(record), _address(x),
-                                       _address(p) if self._n_p else None, _address(seed))
+            b = self._local.buffers = (record.reshape(1).view(np.uint8), x, _param_views(p, self._shapes), seed,
+                                       _address(record), _address(x), _address(p) if self._n_p else None,
+                                       _address(seed))
         return b
 
     def __call__(self, x0, params, warm_start, max_nodes):
@@ -147,7 +159,7 @@ class CSearch:
         if self._n_p:
             _write_params(pb, params)
         code = self._fn(xa, pa, None if warm_start is None else sa, self._budgeted, int(max_nodes), ra)
-        r = raw.copy().view(self._record).reshape(())
+        r = np.ndarray((), self._record, raw.copy())
         f = {field: r[field].astype(dtype) for field, dtype in self._casts} if self._casts else r
         result = SearchResult(cost=f["cost"], sequence=r["sequence"], first_input=f["first_input"],
                               nodes=r["nodes"], feasible=r["feasible"], iterations=r["iterations"],
@@ -166,7 +178,7 @@ class CStep:
         exported = self.lib.exported
         self._fn = self.lib._step
         self._n_x, self._n_u = exported.plant_state_size, exported.plant_input_size
-        self._n_p = exported.num_params
+        self._n_p, self._shapes = exported.num_params, _shapes(params)
         self._record = state_dtype(exported.input_size, exported.horizon)
         u_plant, next_state, info = out
         self._casts = _casts(self._record, {"u": next_state.u, "cost": info.result.cost,
@@ -180,8 +192,9 @@ class CStep:
         if b is None:
             record, x, p, u = (np.zeros((), self._record), np.zeros(self._n_x), np.zeros(self._n_p),
                                np.zeros(self._n_u))
-            b = self._local.buffers = (record, record.reshape(1).view(np.uint8), x, p, u, _address(record),
-                                       _address(x), _address(p) if self._n_p else None, _address(u))
+            b = self._local.buffers = (record, record.reshape(1).view(np.uint8), x, _param_views(p, self._shapes), u,
+                                       _address(record), _address(x), _address(p) if self._n_p else None,
+                                       _address(u))
         return b
 
     def __call__(self, state: ControllerState, x, params):
@@ -191,7 +204,7 @@ class CStep:
         if self._n_p:
             _write_params(pb, params)
         self._fn(ra, xa, pa, ua)
-        r = raw.copy().view(self._record).reshape(())  # a structured copy is several times slower
+        r = np.ndarray((), self._record, raw.copy())  # a structured copy is several times slower
         f = {field: r[field].astype(dtype) for field, dtype in self._casts} if self._casts else r
         result = SearchResult(cost=f["cost"], sequence=r["sequence"], first_input=f["first_input"],
                               nodes=r["result_nodes"], feasible=r["result_feasible"], iterations=r["iterations"],
