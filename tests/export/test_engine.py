@@ -216,3 +216,34 @@ def test_the_c_engine_returns_the_sessions_dtypes():
     x = np.array([0.4, -0.2], jax.dtypes.canonicalize_dtype(np.float64))  # float32 with x64 off
     out_xla, out_c = xla.step(xla.init(x), x), c.step(c.init(x), x)
     same_outputs(out_xla, out_c, rtol=1e-5)
+
+
+def test_a_plant_with_sub_steps_is_searched_across_the_control_set():
+    """A child that is a loop (a plant's sub-steps) is translated operation by operation across the control set
+    for the engine (the form a compiler vectorises): the same results as XLA's, and the same as the row-by-row
+    translation ``fj.export_c`` writes."""
+    def dynamics(x, u):
+        def sub_step(i, h):
+            return h + 0.05 * (u - jnp.sqrt(jnp.abs(h)) * jnp.array([1.0, 0.7]))
+        return jax.lax.fori_loop(0, 4, sub_step, x)
+
+    problem = fj.Problem(dynamics, np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [0.5, 0.2]]),
+                         lambda x, u: jnp.sum((x - 0.6) ** 2) + 0.01 * jnp.sum(u), 4,
+                         terminal=lambda x: jnp.all(jnp.abs(x - 0.6) < 0.5))
+    rows = fj.export_c(problem, c_engine._build_folder(), name="rows_form", x0=np.zeros(2)).compile()
+    for x0 in np.random.default_rng(3).uniform(0, 1.5, (6, 2)):
+        c = fj.sdfs(problem, x0, engine="c")
+        same_outputs(fj.sdfs(problem, x0), c)
+        code, sequence, cost, nodes = rows.solve(x0)
+        assert nodes == int(c.nodes) and (cost == float(c.cost) or np.isinf(cost) == np.isinf(float(c.cost)))
+    run = lean_run(problem)
+    assert "_rows(" in run.lib.exported.source.read_text()  # the engine took the across form
+    assert "_rows(" not in rows.exported.source.read_text()
+
+
+def lean_run(problem):
+    """The engine's compiled search of ``problem`` for a float64 ``[2]`` state, as ``fj.sdfs`` keeps it."""
+    from firhc_jax._src.runtime import lean
+
+    entry = ("sdfs", problem, int, 1, False, int, fj.sdfs.__kwdefaults__["max_memory"], "c")
+    return lean.recall(entry, (np.zeros(2), None, None))

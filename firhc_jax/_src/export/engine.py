@@ -32,7 +32,7 @@ from ..runtime.engines import ENGINES
 from ..search.result import SearchResult
 from ..search.sdfs import INT32_MAX
 from ..search.sdfs import search as sdfs_search
-from .export import _check_controller, compile_shared, export_c, result_dtype, state_dtype
+from .export import _check_controller, compile_shared, export, result_dtype, state_dtype
 
 FLAGS = (("-O3", "-march=native"), ("-O3",))  # the first set the compiler takes
 _folder: Optional[str] = None
@@ -64,7 +64,7 @@ def _compiled(what, params, x0):
     """``what`` (a problem or controller) exported into this process's folder and compiled: the ``Compiled``."""
     with _lock:
         name = f"fj{next(_names)}"
-    exported = export_c(what, _build_folder(), name=name, params=params, x0=np.asarray(x0))
+    exported = export(what, _build_folder(), name=name, params=params, x0=np.asarray(x0), across_loops=True)
     for flags in FLAGS:
         try:
             return compile_shared(exported, cc=compiler(), flags=flags)

@@ -166,6 +166,15 @@ def export_c(problem_or_controller, directory, *, name: str = "firhc", params=No
     ``ValueError`` naming the cause: a primitive the C translation does not cover (named, with the callable
     it is in), a solver or option the template does not implement, a callable ``warm_start``.
     """
+    return export(problem_or_controller, directory, name=name, params=params, x0=x0, max_nodes=max_nodes)
+
+
+def export(problem_or_controller, directory, *, name: str = "firhc", params=None, x0=None,
+           max_nodes: Optional[int] = None, across_loops: bool = False) -> Exported:
+    """``export_c``. ``across_loops``: a problem whose child is a loop (its plant's sub-steps) computes its
+    children operation by operation across the control set (``translate_children(across=True)``): the faster
+    form compiled with ``-O3`` and the target's vector instructions, slower at ``-O2``, so only the ``"c"``
+    engine, which compiles it so, asks for it."""
     if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
         raise ValueError(f"name must be a C identifier (letters, digits, _), got {name!r}")
     prepare = None
@@ -181,7 +190,8 @@ def export_c(problem_or_controller, directory, *, name: str = "firhc", params=No
         _check_controller(controller)
         if max_nodes is not None:
             raise TypeError("max_nodes is the controller's own (FIRHC(..., max_nodes=)); give it for a Problem only")
-    return _write(problem, controller, Path(directory).expanduser(), name, params, x0, max_nodes, prepare)
+    return _write(problem, controller, Path(directory).expanduser(), name, params, x0, max_nodes, prepare,
+                  across_loops)
 
 
 def _tracking(lt: LinearTracking, data, max_nodes):
@@ -224,6 +234,7 @@ class _Unit:
         self.has_params = params is not None
         self.controller = False
         self.raw_specs = None  # the parameters the C code takes, when a map fills the callables' (prepare)
+        self.across_loops = False  # children across the control set where a child is a loop (export)
 
     def p(self, leaves):
         return jax.tree_util.tree_unflatten(self.treedef, leaves) if self.has_params else None
@@ -281,9 +292,11 @@ def _variant(unit: _Unit, problem: Problem, tag: str, controls: str, drop=()) ->
 
     unit.add(f"fj_{tag}_child_raw", child, [_x(n), u_spec, k_spec], ["x", "u", "k"],
              ["double", "double", "unsigned char"], culprit)
+    specs = [_x(n), u_spec, k_spec] + unit.specs
+    across = unit.across_loops and bool({"while", "scan"} & primitives(jax.make_jaxpr(child)(*specs)))
     unit.functions.append(translate_children(
-        f"fj_{tag}_children_raw", child, [_x(n), u_spec, k_spec] + unit.specs, ["x", "u", "k"] + unit.p_names,
-        controls, problem.num_controls, ["double", "double", "unsigned char"], unit.tables, culprit))
+        f"fj_{tag}_children_raw", child, specs, ["x", "u", "k"] + unit.p_names, controls, problem.num_controls,
+        ["double", "double", "unsigned char"], unit.tables, culprit, across=across))
     unit.functions.append(
         f"static void fj_{tag}_child(const double *x, int input, int32_t k, const fj_params *p, double *x_next, "
         f"double *stage, unsigned char *allowed) {{\n"
@@ -383,7 +396,7 @@ def state_size(problem: Problem, params, x0, observe=None) -> tuple[int, int]:
 
 
 def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, params, x0, max_nodes,
-           prepare=None) -> Exported:
+           prepare=None, across_loops: bool = False) -> Exported:
     """Write the two files. ``prepare``: the map from the parameters the C code takes (``params``) to those the
     callables take, translated too (None: the same)."""
     raw = params
@@ -395,6 +408,7 @@ def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, 
     n, n_plant = state_size(problem, params, x0, observe)
     check_state(problem, jnp.zeros((n,), _real()), params)
     unit = _Unit(problem, params, n)
+    unit.across_loops = across_loops
     N, M, m = problem.horizon, problem.num_controls, problem.input_dim
     flat, _ = ravel_pytree(raw) if raw is not None else (np.zeros(0), None)
     num_params = int(np.size(flat))
