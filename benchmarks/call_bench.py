@@ -13,10 +13,11 @@ Each public call is timed as users make it (new values every call, float64), and
 Rows: ``fj.sdfs`` on a 2-state 3-input pendulum at N = 1 and 5 (also with ``engine="c"``), ``ctrl.step`` and the
 one-shot ``ctrl(x)`` on the two-level inverter (8 switch states, the reference as per-step parameters) at N = 1 and
 3 (``ctrl.step`` also with ``engine="c"``: the generated C decision through ``ctypes``), ``lt.solve`` on the
-three-level inverter at N = 5, and the step of ``simulate``'s compiled scan (inverter, N = 3: the run's time per
-step, plant included). Every time is also a multiple of a trivial jitted call (``jax.jit(lambda x: x + 1.0)`` on a
-JAX array), measured in the same rounds. Medians (p50) and 99th percentiles (p99) of ``--calls`` calls a round,
-rounds interleaved; once pinned to one core (``os.sched_setaffinity``), once on every core.
+three-level inverter at N = 5 (also with ``engine="c"``), and the step of ``simulate``'s compiled scan (inverter, N
+= 3: the run's time per step, plant included). Every time is also a multiple of a trivial jitted call
+(``jax.jit(lambda x: x + 1.0)`` on a JAX array), measured in the same rounds. Medians (p50) and 99th percentiles
+(p99) of ``--calls`` calls a round, rounds interleaved; once pinned to one core (``os.sched_setaffinity``), once on
+every core.
 
     python benchmarks/call_bench.py [--calls 2000] [--rounds 3] [--publish] [--small-loops]
 
@@ -101,11 +102,16 @@ def cases(calls: int):
                 (xs[0], rows[0], u0, budget), list(zip(xs, rows, strict=True)))
 
     lt, largs = three_level_calls(calls)
-    program = lean.recall(("lt.solve", lt, True), largs[0] + (None, None))
-    device = lt._on_device(np.float64) + (lt._controls, lt._class_of)
+    program = lean.recall(("lt.solve", lt, True, "xla"), largs[0] + (None, None))
     out["`lt.solve`, three-level inverter, N = 5"] = (
-        lambda x, u, y: lt.solve(x, u, y), lambda x, u, y: program(*device, x, u, y, None, None, budget),
-        device + largs[0] + (None, None, budget), largs)
+        lambda x, u, y: lt.solve(x, u, y), lambda x, u, y: program(x, u, y, None, None, budget),
+        lt._on_device(np.float64) + (lt._controls, lt._class_of) + largs[0] + (None, None, budget), largs)
+    lt.solve(*largs[0], engine="c")
+    c_run = lean.recall(("lt.solve", lt, True, "c"), largs[0] + (None, None))
+    _, _, _, _, _, ra, xa, ua, pa, _ = c_run._buffers()
+    out["`lt.solve`, three-level inverter, N = 5, `engine=\"c\"`"] = (
+        lambda x, u, y: lt.solve(x, u, y, engine="c"),
+        lambda x, u, y, f=c_run._fn, b=int(budget): f(xa, ua, pa, None, 0, b, ra), None, largs)
     return out
 
 

@@ -15,7 +15,8 @@ Sections (each prints a table):
   ``--decoder-until``), so both see the same load: totals,
   medians and their ratio; and where ``lt.solve``'s time goes: its nodes, its iterations (one batched
   expansion each), the time of a decision of N = 1 (one iteration: the cost before the first node) and the
-  rest per iteration.
+  rest per iteration; then the same decisions through ``lt.solve(..., engine="c")`` (same J and nodes
+  asserted) and their ratios to the decoder.
 
     python benchmarks/converter_bench.py [--sections nodes peer] [--node-horizons 5 10] [--horizons 5 10 12]
         [--steps 100] [--decoder-until 12] [--publish]
@@ -66,12 +67,16 @@ def decisions(N: int, steps: int, decoder: bool = False):
     Y, D = grid_converter.decision_data(steps, N)
     x, u, plan = grid_converter.initial_state(), np.zeros(3), np.full(N, -1, np.int32)
     timed(lt.solve, x, u, Y[0], D[0], warm_start=plan)  # compiles
+    timed(lt.solve, x, u, Y[0], D[0], warm_start=plan, engine="c")  # generates and compiles the C
     records = []
     for k in range(steps):
         ws = np.concatenate([plan[1:], plan[-1:]])
         arguments = (x, u, Y[k], D[k], ws)
         result, seconds = timed(lt.solve, *arguments[:4], warm_start=ws)
-        records.append((arguments, result, seconds) + (() if peer is None else timed(peer, arguments, result)[1:]))
+        in_c, c_seconds = timed(lt.solve, *arguments[:4], warm_start=ws, engine="c")
+        assert np.isclose(float(in_c.cost), float(result.cost), rtol=1e-9) and int(in_c.nodes) == int(result.nodes)
+        records.append((arguments, result, seconds, c_seconds)
+                       + (() if peer is None else timed(peer, arguments, result)[1:]))
         plan = np.asarray(result.sequence)
         u = lt.controls[plan[0]]
         x = A @ x + B @ u + D[k][0]
@@ -107,25 +112,28 @@ def section_peer(args):
     print(f"\n## Time per decision against the sphere decoder, {args.steps} closed-loop decisions, lt.solve deciding "
           f"and timed, the decoder right after on the same decision (same J), up to N = {args.decoder_until}")
     print(f"{'N':>3} {'lt.solve ms total':>17} {'median':>7} {'decoder ms total':>16} {'median':>7} "
-          f"{'total ratio':>11} {'nodes mean':>10} {'nodes max':>10} {'iterations':>10} {'us/iteration':>12}")
+          f"{'total ratio':>11} {'nodes mean':>10} {'nodes max':>10} {'iterations':>10} {'us/iteration':>12} "
+          f"{'engine c ms total':>17} {'median':>7} {'c/decoder total':>15} {'c/decoder median':>16}")
     fixed = None
     for N in sorted(set(args.horizons) | {1}):
         _, records = decisions(N, args.steps, decoder=N <= args.decoder_until)
-        ours = [r[2] for r in records]
-        theirs = [r[3] for r in records if len(r) > 3]
+        ours, in_c = np.array([r[2] for r in records]) * 1e3, np.array([r[3] for r in records]) * 1e3
+        theirs = np.array([r[4] for r in records if len(r) > 4]) * 1e3
         iterations = [int(r[1].iterations) for r in records]
         nodes = [int(r[1].nodes) for r in records]
-        ours, theirs = np.array(ours) * 1e3, np.array(theirs) * 1e3
         if N == 1:
             fixed = np.median(ours)
         per_iteration = 1e3 * (ours.sum() - fixed * len(ours)) / max(np.sum(iterations) - len(ours), 1)
         peer_cols = (f"{theirs.sum():>16.1f} {np.median(theirs):>7.3f} {ours.sum() / theirs.sum():>11.3f}"
                      if len(theirs) else f"{'not run':>16} {'':>7} {'':>11}")
+        c_ratios = (f"{in_c.sum() / theirs.sum():>15.3f} {np.median(in_c) / np.median(theirs):>16.3f}"
+                    if len(theirs) else f"{'':>15} {'':>16}")
         print(f"{N:>3} {ours.sum():>17.1f} {np.median(ours):>7.3f} {peer_cols} {np.mean(nodes):>10,.0f} "
-              f"{max(nodes):>10,d} {np.mean(iterations):>10.1f} {per_iteration if N > 1 else float('nan'):>12.1f}",
-              flush=True)
+              f"{max(nodes):>10,d} {np.mean(iterations):>10.1f} {per_iteration if N > 1 else float('nan'):>12.1f} "
+              f"{in_c.sum():>17.1f} {np.median(in_c):>7.3f} {c_ratios}", flush=True)
     print(f"(us/iteration: lt.solve's time less {fixed:.3f} ms a decision, the median decision at N = 1, which "
-          "runs one iteration, over the iterations after the first)")
+          "runs one iteration, over the iterations after the first; engine c: lt.solve(..., engine=\"c\") on the "
+          "same decision, right after)")
 
 
 SECTIONS = {"nodes": section_nodes, "peer": section_peer}

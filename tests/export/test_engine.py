@@ -247,3 +247,36 @@ def lean_run(problem):
 
     entry = ("sdfs", problem, int, 1, False, int, fj.sdfs.__kwdefaults__["max_memory"], "c")
     return lean.recall(entry, (np.zeros(2), None, None))
+
+
+@settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 2**31 - 1), st.integers(1, 4), st.booleans(), st.sampled_from([None, 30]), st.booleans())
+def test_c_tracking_solves_give_lt_solve_results(seed, N, warm, max_nodes, disturbance):
+    """``lt.solve(..., engine="c")`` (observe, the parameter map, the search over classes and the members in C)
+    gives ``lt.solve``'s result field by field, warm starts (indices into ``controls``) and budgets included."""
+    from firhc_jax.models import three_level
+
+    lt = three_level.make_problem(N)
+    rng = np.random.default_rng(seed)
+    for _ in range(3):
+        x, u = rng.normal(0, 1, lt.n), np.asarray(lt.controls[rng.integers(len(lt.controls))], np.float64)
+        y, d = rng.normal(0, 1, (N, lt.C.shape[0])), rng.normal(0, 0.1, (N, lt.n)) if disturbance else None
+        ws = rng.integers(0, len(lt.controls), N) if warm else None
+        same_outputs(lt.solve(x, u, y, d, warm_start=ws, max_nodes=max_nodes),
+                     lt.solve(x, u, y, d, warm_start=ws, max_nodes=max_nodes, engine="c"), rtol=1e-12)
+
+
+def test_a_c_tracking_solve_checks_and_raises_as_lt_solve():
+    from firhc_jax.models import three_level
+
+    lt = three_level.make_problem(2)
+    x, u, y = np.zeros(lt.n), np.zeros(lt.m), np.zeros((2, lt.C.shape[0]))
+    lt.solve(x, u, y, engine="c")
+    for args, match in [((np.full(lt.n, np.nan), u, y, None), "NaN or inf"),
+                        ((x, np.full(lt.m, np.inf), y, None), "NaN or inf"),
+                        ((x, u, np.full_like(y, np.nan), None), "NaN or inf"),
+                        ((x, u, y, np.full(2, 99)), "warm_start indices")]:
+        with pytest.raises(ValueError, match=match):  # the values of a call that skips the checks (lean)
+            lt.solve(*args[:3], warm_start=args[3], engine="c")
+    with pytest.raises(ValueError, match="engine must be one of"):
+        lt.solve(x, u, y, engine="fpga")

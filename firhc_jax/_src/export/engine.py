@@ -102,6 +102,16 @@ def _casts(record: np.dtype, floats: dict) -> tuple:
     return tuple((field, np.dtype(a.dtype)) for field, a in floats.items() if np.dtype(a.dtype) != record[field].base)
 
 
+def _search_outputs(r: np.ndarray, casts: tuple, code: int) -> tuple:
+    """``(SearchResult, alarm)`` from a filled ``NAME_result`` record ``r`` (a copy) and the call's return code:
+    the alarm of the XLA search (a value the checks refuse, an error flag)."""
+    f = {field: r[field].astype(dtype) for field, dtype in casts} if casts else r
+    result = SearchResult(cost=f["cost"], sequence=r["sequence"], first_input=f["first_input"], nodes=r["nodes"],
+                          feasible=r["feasible"], iterations=r["iterations"], negative_cost=r["negative_cost"],
+                          nan_encountered=r["nan_encountered"], overflow=r["overflow"], complete=r["complete"])
+    return result, code < 0 or bool(r["nan_encountered"] | r["overflow"])
+
+
 class CEngine:
     name = "c"
 
@@ -112,6 +122,12 @@ class CEngine:
 
     def build_search(self, problem, x0, params, budgeted: bool):
         return CSearch(problem, x0, params, budgeted)
+
+    def check_tracking(self) -> None:
+        _have_compiler()
+
+    def build_tracking(self, lt, x, u_prev, y_ref, d, budgeted: bool):
+        return CTrack(lt, x, u_prev, y_ref, d, budgeted)
 
     def check(self, ctrl) -> None:
         _check_controller(ctrl)
@@ -159,14 +175,49 @@ class CSearch:
         if self._n_p:
             _write_params(pb, params)
         code = self._fn(xa, pa, None if warm_start is None else sa, self._budgeted, int(max_nodes), ra)
-        r = np.ndarray((), self._record, raw.copy())
-        f = {field: r[field].astype(dtype) for field, dtype in self._casts} if self._casts else r
-        result = SearchResult(cost=f["cost"], sequence=r["sequence"], first_input=f["first_input"],
-                              nodes=r["nodes"], feasible=r["feasible"], iterations=r["iterations"],
-                              negative_cost=r["negative_cost"], nan_encountered=r["nan_encountered"],
-                              overflow=r["overflow"], complete=r["complete"])
-        return result, code < 0 or bool(r["nan_encountered"] | r["overflow"])
+        return _search_outputs(np.ndarray((), self._record, raw.copy()), self._casts, code)
 
+
+class CTrack:
+    """``LinearTracking.solve`` of one tracker in C for one signature of its arguments (checked)."""
+
+    def __init__(self, lt, x, u_prev, y_ref, d, budgeted: bool):
+        out = jax.eval_shape(lambda *a: lt.solve(*a, max_nodes=INT32_MAX if budgeted else None), x, u_prev, y_ref,
+                             d)
+        self._d_shape = (lt.horizon, lt.n)
+        raw = (np.asarray(y_ref, np.float64), np.zeros(self._d_shape) if d is None else np.asarray(d, np.float64))
+        self.lib = _compiled(lt, raw, x)
+        e = self.lib.exported
+        self._fn = getattr(self.lib.lib, f"{e.name}_track")
+        self._fn.restype = ctypes.c_int
+        self._fn.argtypes = [ctypes.c_void_p] * 4 + [ctypes.c_int, ctypes.c_int32, ctypes.c_void_p]
+        self._budgeted, self._class_of = int(budgeted), np.asarray(lt.class_of, np.int32)
+        self._n_x, self._n_u, self._N, self._shapes = e.plant_state_size, lt.m, e.horizon, _shapes(raw)
+        self._record = result_dtype(e.input_size, e.horizon)
+        self._casts = _casts(self._record, {"cost": out.cost, "first_input": out.first_input})
+        self._local = threading.local()
+
+    def _buffers(self):
+        b = getattr(self._local, "buffers", None)
+        if b is None:
+            record, x, u, p, seed = (np.zeros((), self._record), np.zeros(self._n_x), np.zeros(self._n_u),
+                                     np.zeros(sum(int(np.prod(s)) for s in self._shapes)), np.zeros(self._N, np.int32))
+            b = self._local.buffers = (record.reshape(1).view(np.uint8), x, u, _param_views(p, self._shapes), seed,
+                                       _address(record), _address(x), _address(u), _address(p), _address(seed))
+        return b
+
+    def __call__(self, x, u_prev, y_ref, d, warm_start, max_nodes):
+        """``(result, alarm)`` as ``LinearTracking.solve``'s compiled search gives them."""
+        raw, xb, ub, (yv, dv), seed, ra, xa, ua, pa, sa = self._buffers()
+        if warm_start is not None:
+            M = self._class_of.shape[0]
+            if not (np.all(warm_start == -1) or (np.all(warm_start >= 0) and np.all(warm_start < M))):
+                return None, True  # refused by the checks the caller runs on an alarm, before the result is read
+            seed[:] = np.where(warm_start >= 0, self._class_of[np.maximum(warm_start, 0)], -1)
+        xb[:], ub[:], yv[...] = x, u_prev, y_ref
+        dv[...] = 0.0 if d is None else d
+        code = self._fn(xa, ua, pa, None if warm_start is None else sa, self._budgeted, int(max_nodes), ra)
+        return _search_outputs(np.ndarray((), self._record, raw.copy()), self._casts, code)
 
 class CStep:
     """One controller's decision in C for one signature of ``(state, x, params)`` (checked arguments)."""

@@ -70,7 +70,7 @@ from __future__ import annotations
 import functools
 import warnings
 from collections.abc import Mapping
-from typing import NamedTuple, Optional
+from typing import Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -79,7 +79,7 @@ import numpy as np
 from ..annotations import ArrayLike
 from ..checks import as_sequence, as_state, finite, is_tracer, matrix, non_negative, numeric, positive_int
 from ..problem.problem import Problem, _check_controls
-from ..runtime import lean
+from ..runtime import engines, lean
 from ..runtime.memory_cache import cached, compiled
 from ..runtime.packed import compile_packed
 from ..search.one_state import sdfs
@@ -366,7 +366,8 @@ class LinearTracking:
         return self._device[key]
 
     def solve(self, x: ArrayLike, u_prev: ArrayLike, y_ref: ArrayLike, d: ArrayLike | None = None, *,
-              warm_start: ArrayLike | None = None, max_nodes: int | ArrayLike | None = None) -> SearchResult:
+              warm_start: ArrayLike | None = None, max_nodes: int | ArrayLike | None = None,
+              engine: str = "xla") -> SearchResult:
         """The exact minimiser of J from state ``x`` ``[n]`` after input
         ``u_prev`` ``[m]``, for ``y_ref`` ``[N, p]`` and ``d`` ``[N, n]`` (default 0).
 
@@ -375,9 +376,11 @@ class LinearTracking:
         ``[N]`` is evaluated first and becomes the initial radius if feasible;
         ``max_nodes`` as in ``fj.sdfs``. Runs in ``x``'s floating dtype;
         works under ``jax.jit`` and ``jax.vmap``, and new values never
-        recompile."""
+        recompile. ``engine="c"`` runs an eager call in C as ``fj.sdfs``'s
+        does (``export_c``'s ``NAME_track``, compiled on the first call for
+        each argument shape); a traced call runs in XLA either way."""
         args = (x, u_prev, y_ref, d, warm_start)
-        entry = ("lt.solve", self, max_nodes is None)
+        entry = ("lt.solve", self, max_nodes is None, engine)
         run = None if is_tracer(max_nodes) else lean.recall(entry, args)
         if run is None:  # the first call of this signature (or a traced one): every check
             x, u_prev, y_ref, d, warm_start = self._checked(*args)
@@ -390,21 +393,37 @@ class LinearTracking:
                 run = compiled(_solve, self.shared_problem, observe=self.observe)
                 return raise_on_errors(run(*self._on_device(x.dtype), self._controls, self._class_of, *checked,
                                            budget))
-            run = lean.first_call(entry, args, lambda: cached(
-                ("lt.solve", "eager", self.shared_problem.key, self.observe, max_nodes is None, lean.spec(checked)),
-                lambda: compile_packed(functools.partial(_solve_eager, self.shared_problem, observe=self.observe,
-                                                         budgeted=max_nodes is not None),
-                                       *self._on_device(x.dtype), self._controls, self._class_of, *checked,
-                                       node_budget(max_nodes))))
+            outside = engines.engine(engine)
+            if outside is not None:
+                outside.check_tracking()
+                run = lean.first_call(entry, args, lambda: outside.build_tracking(
+                    self, *checked[:4], max_nodes is not None))
+            else:
+                run = lean.first_call(entry, args, lambda: self._eager(checked, max_nodes))
             args = checked
         x, u_prev, y_ref, d, warm_start = args
-        result, alarm = run(*self._on_device(jax.dtypes.canonicalize_dtype(x.dtype)), self._controls,
-                            self._class_of, x, u_prev, y_ref, d,
-                            None if warm_start is None else np.asarray(warm_start, np.int32), node_budget(max_nodes))
+        result, alarm = run(x, u_prev, y_ref, d, None if warm_start is None else np.asarray(warm_start, np.int32),
+                            node_budget(max_nodes))
         if alarm:  # the value checks of the first call on these values (each raises with its own message), then
             self._checked(x, u_prev, y_ref, d, warm_start)  # the search's error flags
             raise_on_errors(result)
         return result
+
+    def _eager(self, checked: tuple, max_nodes) -> Callable:
+        """``run(x, u_prev, y_ref, d, warm_start, max_nodes) -> (result, alarm)``: the compiled eager call for the
+        checked arguments' shapes and dtypes, shared by trackers of equal shapes (the model travels as an
+        argument)."""
+        program = cached(
+            ("lt.solve", "eager", self.shared_problem.key, self.observe, max_nodes is None, lean.spec(checked)),
+            lambda: compile_packed(functools.partial(_solve_eager, self.shared_problem, observe=self.observe,
+                                                     budgeted=max_nodes is not None),
+                                   *self._on_device(checked[0].dtype), self._controls, self._class_of, *checked,
+                                   node_budget(max_nodes)))
+
+        def run(x, u_prev, y_ref, d, warm_start, budget):
+            return program(*self._on_device(jax.dtypes.canonicalize_dtype(x.dtype)), self._controls,
+                           self._class_of, x, u_prev, y_ref, d, warm_start, budget)
+        return run
 
     def _checked(self, x, u_prev, y_ref, d, warm_start) -> tuple:
         """``solve``'s arguments, checked: ``x`` a finite state [n] (``as_state``), the vectors of their shapes

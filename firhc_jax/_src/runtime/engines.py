@@ -1,5 +1,5 @@
 """Engines that run eager searches and decisions outside XLA, by name (``fj.sdfs(..., engine=)``,
-``FIRHC(..., engine=)``).
+``lt.solve(..., engine=)``, ``FIRHC(..., engine=)``).
 
 ``"xla"`` (the default) is the compiled JAX program. Other engines live in the areas above the searches and the
 controller (``"c"``: the generated C of ``fj.export_c``, ``firhc_jax._src.export.engine``) and register here
@@ -17,6 +17,12 @@ class Engine(Protocol):
     def build_search(self, problem, x0, params, budgeted: bool) -> Callable[..., tuple]:
         """``run(x0, params, warm_start, max_nodes) -> (result, alarm)`` for arguments of these shapes and dtypes,
         as ``fj.sdfs``'s compiled search."""
+
+    def check_tracking(self) -> None:
+        """Raise where this engine cannot run ``LinearTracking.solve``."""
+
+    def build_tracking(self, lt, x, u_prev, y_ref, d, budgeted: bool) -> Callable[..., tuple]:
+        """``run(x, u_prev, y_ref, d, warm_start, max_nodes) -> (result, alarm)`` as ``lt.solve``'s compiled call."""
 
     def check(self, ctrl) -> None:
         """Raise where this engine cannot run ``ctrl``'s decisions (at construction)."""
