@@ -149,11 +149,12 @@ def export_c(problem_or_controller, directory, *, name: str = "firhc", params=No
     ``FIRHC``, equal to ``fj.sdfs`` (and ``ctrl.step``) at ``pop_width=1``.
 
     Args:
-      problem_or_controller: an ``fj.Problem`` (generates ``NAME_solve``), an ``fj.FIRHC`` with the
-        ``"sdfs"`` solver (also ``NAME_init`` and ``NAME_step``), or an ``fj.LinearTracking``: its controller
-        ``FIRHC(lt.problem, observe=lt.observe, warm_start=True)`` (with ``max_nodes``), whose parameters
-        are the raw data ``(y_ref [N, p], d [N, n])``, mapped in the generated code as ``lt.params`` maps
-        them (``params``: that pair, default zeros).
+      problem_or_controller: an ``fj.Problem`` (generates ``NAME_solve`` and ``NAME_search``), an
+        ``fj.FIRHC`` with the ``"sdfs"`` solver (also ``NAME_init`` and ``NAME_step``), or an
+        ``fj.LinearTracking``: its controller ``FIRHC(lt.problem, observe=lt.observe, warm_start=True)``
+        (with ``max_nodes``), whose parameters are the raw data ``(y_ref [N, p], d [N, n])``, mapped in the
+        generated code as ``lt.params`` maps them (``params``: that pair, default zeros), and ``NAME_track``,
+        ``lt.solve``.
       directory: where the two files go (created if missing).
       name: the C prefix of every public symbol, a C identifier.
       params: an example of the problem's parameter pytree (shapes and dtypes are compiled in; the C code
