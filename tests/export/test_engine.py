@@ -5,6 +5,7 @@ every ``StepInfo`` and ``SearchResult`` field), is compared with the default eng
 loops: floats to 1e-9 relative (the C code rounds as the C compiler does), integers and flags exactly, dtypes
 and shapes equal.
 """
+import re
 import shutil
 import threading
 
@@ -280,3 +281,20 @@ def test_a_c_tracking_solve_checks_and_raises_as_lt_solve():
             lt.solve(*args[:3], warm_start=args[3], engine="c")
     with pytest.raises(ValueError, match="engine must be one of"):
         lt.solve(x, u, y, engine="fpga")
+
+
+def test_what_a_child_computes_from_its_input_alone_is_folded_into_tables():
+    """The engine's export computes at export what a child derives from its input alone (a LinearTracking
+    child's class lookup), read per row from tables; ``fj.export_c`` keeps computing it in the loop. Both give
+    ``lt.solve``'s nodes."""
+    from firhc_jax._src.runtime import lean
+    from firhc_jax.models import three_level
+
+    lt = three_level.make_problem(2)
+    x, u, y = np.full(lt.n, 0.3), np.zeros(lt.m), np.ones((2, lt.C.shape[0]))
+    c = lt.solve(x, u, y, engine="c")
+    run = lean.recall(("lt.solve", lt, True, "c"), (x, u, y, None, None))
+    assert re.search(r"fj_table\d+\[child \* ", run.lib.exported.source.read_text())
+    plain = fj.export_c(lt, c_engine._build_folder(), name="plain_lt", params=(y, np.zeros((2, lt.n))), x0=x)
+    assert not re.search(r"fj_table\d+\[child \* ", plain.source.read_text())
+    assert int(c.nodes) == int(lt.solve(x, u, y).nodes)

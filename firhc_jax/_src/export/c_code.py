@@ -11,9 +11,10 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-from typing import Callable, Sequence
+from typing import Callable, Optional, Sequence
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ..jaxpr.interpret import Unsupported, interpret
@@ -654,15 +655,20 @@ def translate(name: str, fn: Callable, args: Sequence[jax.ShapeDtypeStruct], arg
 
 def translate_children(name: str, fn: Callable, args: Sequence[jax.ShapeDtypeStruct], arg_names: Sequence[str],
                        table: str, count: int, out_types: Sequence[str], tables: dict, where, *,
-                       across: bool = False) -> str:
+                       across: bool = False, rows: Optional[np.ndarray] = None) -> str:
     """C function ``name(args without u..., outs...)`` computing ``fn`` for every row ``u`` of ``table``
     (``count`` rows; ``u`` is the argument named "u"), output ``j`` of row ``c`` at ``out_j[c * size_j]``.
     What does not depend on ``u`` is computed once, before the loop over the rows. ``across``: each operation
     on every row at once (``fn`` vmapped over the rows), loops a compiler vectorises across the rows at ``-O3``;
-    the faster form where a row's own code is a loop (a plant's sub-steps), the slower one elsewhere."""
+    the faster form where a row's own code is a loop (a plant's sub-steps), the slower one elsewhere. ``rows``:
+    the table's values; what depends on ``u`` alone is then computed here, once per row, into tables (JAX's
+    partial evaluation splits ``fn``), and the loop computes the rest."""
     if across:
         return _translate_across(name, fn, args, arg_names, table, count, out_types, tables, where)
-    emitter, results = _emitted(fn, args, arg_names, tables, where, varying="u")
+    if rows is not None:
+        emitter, results = _emitted_folded(fn, args, arg_names, tables, where, rows)
+    else:
+        emitter, results = _emitted(fn, args, arg_names, tables, where, varying="u")
     u = args[arg_names.index("u")]
     params = [_parameter(a, n) for a, n in zip(args, arg_names, strict=True) if n != "u"]
     params += [f"{t} *out{i}" for i, t in enumerate(out_types)]
@@ -704,16 +710,52 @@ def _parameter(spec, name: str) -> str:
 def _emitted(fn, args, arg_names, tables: dict, where, varying: str = "") -> tuple[Emitter, list]:
     """The emitter after translating ``fn``, and ``fn``'s outputs in it; a ``ValueError`` names the callable
     and the primitive the translation does not cover."""
-    closed = jax.make_jaxpr(fn)(*args)
     emitter = Emitter(tables)
+    inputs = _inputs(emitter, args, arg_names, varying)
+    return emitter, _interpreted(jax.make_jaxpr(fn)(*args), inputs, emitter, where)
+
+
+def _emitted_folded(fn, args, arg_names, tables: dict, where, rows: np.ndarray) -> tuple[Emitter, list]:
+    """``_emitted`` of ``fn`` with its part that depends on ``u`` alone computed for every row of ``rows``: the
+    residuals of ``u``'s partial evaluation become tables read at the row (``child``), or constants where
+    every row's is the same."""
+    from jax._src.interpreters import partial_eval as pe
+
+    closed = jax.make_jaxpr(fn)(*args)
+    iu = arg_names.index("u")
+    known, unknown, _, residuals = pe.partial_eval_jaxpr_nounits(
+        closed, [i != iu for i in range(len(args))], instantiate=True)
+    values = jax.vmap(jax.extend.core.jaxpr_as_fun(known))(jnp.asarray(rows, args[iu].dtype))
+    emitter = Emitter(tables)
+    inputs = []
+    for aval, value in zip(residuals, values, strict=True):
+        value = np.asarray(value)
+        if np.all(value == value[:1]) or value.shape[0] == 1:
+            inputs.append(emitter.constant(value[0], aval))
+        else:
+            table_value = emitter.constant(value, jax.ShapeDtypeStruct(value.shape, aval.dtype))
+            size = math.prod(aval.shape)
+            inputs.append(CValue(tuple(aval.shape), np.dtype(aval.dtype), name=table_value.name,
+                                 offset=f"child * {size}", varying=True))
+    others = [(a, n) for i, (a, n) in enumerate(zip(args, arg_names, strict=True)) if i != iu]
+    inputs += _inputs(emitter, [a for a, _ in others], [n for _, n in others], "")
+    return emitter, _interpreted(unknown, inputs, emitter, where)
+
+
+def _inputs(emitter, args, arg_names, varying: str) -> list:
+    """The translated function's arguments as values (a float32 session's states converted on entry)."""
     inputs = []
     for a, n in zip(args, arg_names, strict=True):
         if n in DOUBLE_ARGUMENTS and np.dtype(a.dtype) != np.float64:  # a float32 session: its own rounding
             emitter.emit(f"{c_type(a.dtype)} {n}[{max(1, math.prod(a.shape))}];")
             emitter.emit(f"for (int j = 0; j < {math.prod(a.shape)}; j++) {n}[j] = ({c_type(a.dtype)}){n}_in[j];")
         inputs.append(CValue(tuple(a.shape), np.dtype(a.dtype), name=n, varying=n == varying))
+    return inputs
+
+
+def _interpreted(closed, inputs, emitter, where) -> list:
     try:
-        return emitter, interpret(closed, inputs, emitter)
+        return interpret(closed, inputs, emitter)
     except Unsupported as e:
         culprit = where(e.primitive) if callable(where) else where
         raise ValueError(f"{culprit} uses {e}; the C export cannot translate it. Rewrite that part with the "

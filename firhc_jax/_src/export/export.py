@@ -237,6 +237,7 @@ class _Unit:
         self.controller = False
         self.raw_specs = None  # the parameters the C code takes, when a map fills the callables' (prepare)
         self.across_loops = False  # children across the control set where a child is a loop (export)
+        self.fold_inputs = False  # what a child computes from its input alone, computed at export (export)
 
     def p(self, leaves):
         return jax.tree_util.tree_unflatten(self.treedef, leaves) if self.has_params else None
@@ -298,7 +299,8 @@ def _variant(unit: _Unit, problem: Problem, tag: str, controls: str, drop=()) ->
     across = unit.across_loops and bool({"while", "scan"} & primitives(jax.make_jaxpr(child)(*specs)))
     unit.functions.append(translate_children(
         f"fj_{tag}_children_raw", child, specs, ["x", "u", "k"] + unit.p_names, controls, problem.num_controls,
-        ["double", "double", "unsigned char"], unit.tables, culprit, across=across))
+        ["double", "double", "unsigned char"], unit.tables, culprit, across=across,
+        rows=np.asarray(problem.controls) if unit.fold_inputs and not across else None))
     unit.functions.append(
         f"static void fj_{tag}_child(const double *x, int input, int32_t k, const fj_params *p, double *x_next, "
         f"double *stage, unsigned char *allowed) {{\n"
@@ -411,7 +413,7 @@ def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, 
     n, n_plant = state_size(problem, params, x0, observe)
     check_state(problem, jnp.zeros((n,), _real()), params)
     unit = _Unit(problem, params, n)
-    unit.across_loops = across_loops
+    unit.across_loops = unit.fold_inputs = across_loops
     N, M, m = problem.horizon, problem.num_controls, problem.input_dim
     flat, _ = ravel_pytree(raw) if raw is not None else (np.zeros(0), None)
     num_params = int(np.size(flat))
