@@ -64,7 +64,7 @@ def _compiled(what, params, x0):
     """``what`` (a problem or controller) exported into this process's folder and compiled: the ``Compiled``."""
     with _lock:
         name = f"fj{next(_names)}"
-    exported = export(what, _build_folder(), name=name, params=params, x0=np.asarray(x0), across_loops=True)
+    exported = export(what, _build_folder(), name=name, params=params, x0=np.asarray(x0), for_engine=True)
     for flags in FLAGS:
         try:
             return compile_shared(exported, cc=compiler(), flags=flags)

@@ -171,11 +171,13 @@ def export_c(problem_or_controller, directory, *, name: str = "firhc", params=No
 
 
 def export(problem_or_controller, directory, *, name: str = "firhc", params=None, x0=None,
-           max_nodes: Optional[int] = None, across_loops: bool = False) -> Exported:
-    """``export_c``. ``across_loops``: a problem whose child is a loop (its plant's sub-steps) computes its
-    children operation by operation across the control set (``translate_children(across=True)``): the faster
-    form compiled with ``-O3`` and the target's vector instructions, slower at ``-O2``, so only the ``"c"``
-    engine, which compiles it so, asks for it."""
+           max_nodes: Optional[int] = None, for_engine: bool = False) -> Exported:
+    """``export_c``. ``for_engine``: the children in the forms of the ``"c"`` engine, which compiles with
+    ``-O3`` and the target's vector instructions for this process: a problem whose child is a loop (its plant's
+    sub-steps) computes its children operation by operation across the control set
+    (``translate_children(across=True)``, slower at ``-O2``); any other computes what a child derives from its
+    input alone at export, into tables (``translate_children(rows=)``: static data a small target may not
+    want)."""
     if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
         raise ValueError(f"name must be a C identifier (letters, digits, _), got {name!r}")
     prepare = tracker = None
@@ -193,7 +195,7 @@ def export(problem_or_controller, directory, *, name: str = "firhc", params=None
         if max_nodes is not None:
             raise TypeError("max_nodes is the controller's own (FIRHC(..., max_nodes=)); give it for a Problem only")
     return _write(problem, controller, Path(directory).expanduser(), name, params, x0, max_nodes, prepare,
-                  across_loops, tracker)
+                  for_engine, tracker)
 
 
 def _tracking(lt: LinearTracking, data, max_nodes):
@@ -236,8 +238,7 @@ class _Unit:
         self.has_params = params is not None
         self.controller = False
         self.raw_specs = None  # the parameters the C code takes, when a map fills the callables' (prepare)
-        self.across_loops = False  # children across the control set where a child is a loop (export)
-        self.fold_inputs = False  # what a child computes from its input alone, computed at export (export)
+        self.for_engine = False  # the "c" engine's forms of the children (export)
 
     def p(self, leaves):
         return jax.tree_util.tree_unflatten(self.treedef, leaves) if self.has_params else None
@@ -296,11 +297,11 @@ def _variant(unit: _Unit, problem: Problem, tag: str, controls: str, drop=()) ->
     unit.add(f"fj_{tag}_child_raw", child, [_x(n), u_spec, k_spec], ["x", "u", "k"],
              ["double", "double", "unsigned char"], culprit)
     specs = [_x(n), u_spec, k_spec] + unit.specs
-    across = unit.across_loops and bool({"while", "scan"} & primitives(jax.make_jaxpr(child)(*specs)))
+    across = unit.for_engine and bool({"while", "scan"} & primitives(jax.make_jaxpr(child)(*specs)))
     unit.functions.append(translate_children(
         f"fj_{tag}_children_raw", child, specs, ["x", "u", "k"] + unit.p_names, controls, problem.num_controls,
         ["double", "double", "unsigned char"], unit.tables, culprit, across=across,
-        rows=np.asarray(problem.controls) if unit.fold_inputs and not across else None))
+        rows=np.asarray(problem.controls) if unit.for_engine and not across else None))
     unit.functions.append(
         f"static void fj_{tag}_child(const double *x, int input, int32_t k, const fj_params *p, double *x_next, "
         f"double *stage, unsigned char *allowed) {{\n"
@@ -400,7 +401,7 @@ def state_size(problem: Problem, params, x0, observe=None) -> tuple[int, int]:
 
 
 def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, params, x0, max_nodes,
-           prepare=None, across_loops: bool = False, tracker: Optional[LinearTracking] = None) -> Exported:
+           prepare=None, for_engine: bool = False, tracker: Optional[LinearTracking] = None) -> Exported:
     """Write the two files. ``prepare``: the map from the parameters the C code takes (``params``) to those the
     callables take, translated too (None: the same); ``tracker``: the ``LinearTracking`` exported (its
     ``NAME_track``)."""
@@ -413,7 +414,7 @@ def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, 
     n, n_plant = state_size(problem, params, x0, observe)
     check_state(problem, jnp.zeros((n,), _real()), params)
     unit = _Unit(problem, params, n)
-    unit.across_loops = unit.fold_inputs = across_loops
+    unit.for_engine = for_engine
     N, M, m = problem.horizon, problem.num_controls, problem.input_dim
     flat, _ = ravel_pytree(raw) if raw is not None else (np.zeros(0), None)
     num_params = int(np.size(flat))
