@@ -304,13 +304,18 @@ class FIRHC:
         else:
             u_prev = np.zeros(*self._input_form) if u_prev is None else np.asarray(u_prev, self._input_form[1])
         u, info, alarm = run(x, params, u_prev, budget_of(self.options))
-        if alarm:  # the checks of the first call on these values, then the search's error flags, then no input
-            self.init(x, u_prev)
-            check_params(params)
-            raise_on_errors(info.result)
-            if info.held:
-                raise InfeasibleError(no_input_message(self.options, info))
+        if alarm:
+            self._raise_one_shot(x, params, u_prev, info)
         return u, info
+
+    def _raise_one_shot(self, x, params, u_prev, info: StepInfo) -> None:
+        """A one-shot decision's alarm: the checks of a first call on these values, then the search's error
+        flags, then no input found (each raises with its own message)."""
+        self.init(x, u_prev)
+        check_params(params)
+        raise_on_errors(info.result)
+        if info.held:
+            raise InfeasibleError(no_input_message(self.options, info))
 
     def _call_engine(self, x, params, u_prev):
         """``__call__`` through the step of an engine other than XLA: one decision from scratch, then the
@@ -321,11 +326,7 @@ class FIRHC:
                                 budget=budget_of(self.options))
         u, _, info = self.step(start, x, params)
         if info.held or info.result.nan_encountered or info.result.negative_cost or info.result.overflow:
-            self.init(x, u_prev)
-            check_params(params)
-            raise_on_errors(info.result)
-            if info.held:
-                raise InfeasibleError(no_input_message(self.options, info))
+            self._raise_one_shot(x, params, u_prev, info)
         return u, info
 
     def solve(self, x: ArrayLike, params: PyTree = None,

@@ -102,6 +102,19 @@ def _casts(record: np.dtype, floats: dict) -> tuple:
     return tuple((field, np.dtype(a.dtype)) for field, a in floats.items() if np.dtype(a.dtype) != record[field].base)
 
 
+def _result_function(lib, suffix: str, inputs: int):
+    """The generated ``NAME_<suffix>(inputs..., seed, budgeted, max_nodes, result)`` of ``lib``, typed."""
+    fn = getattr(lib.lib, f"{lib.exported.name}_{suffix}")
+    fn.restype = ctypes.c_int
+    fn.argtypes = [ctypes.c_void_p] * (inputs + 1) + [ctypes.c_int, ctypes.c_int32, ctypes.c_void_p]
+    return fn
+
+
+def _indices(warm_start: np.ndarray, count: int) -> bool:
+    """``warm_start`` is all -1 (none) or indices in ``[0, count)``: what ``checks.as_sequence`` accepts."""
+    return bool(np.all(warm_start == -1) or (np.all(warm_start >= 0) and np.all(warm_start < count)))
+
+
 def _search_outputs(r: np.ndarray, casts: tuple, code: int) -> tuple:
     """``(SearchResult, alarm)`` from a filled ``NAME_result`` record ``r`` (a copy) and the call's return code:
     the alarm of the XLA search (a value the checks refuse, an error flag)."""
@@ -144,9 +157,7 @@ class CSearch:
         out = jax.eval_shape(lambda x, p: sdfs_search(problem, x, p, None, INT32_MAX, pop_width=1,
                                                       budgeted=budgeted), x0, params)
         self.lib = _compiled(problem, params, x0)
-        self._fn = getattr(self.lib.lib, f"{self.lib.exported.name}_search")
-        self._fn.restype = ctypes.c_int
-        self._fn.argtypes = [ctypes.c_void_p] * 3 + [ctypes.c_int, ctypes.c_int32, ctypes.c_void_p]
+        self._fn = _result_function(self.lib, "search", 2)
         e = self.lib.exported
         self._budgeted, self._N, self._M = int(budgeted), e.horizon, e.num_controls
         self._n_x, self._n_p, self._shapes = e.state_size, e.num_params, _shapes(params)
@@ -168,7 +179,7 @@ class CSearch:
         """``(result, alarm)`` as ``fj.sdfs``'s compiled search gives them."""
         raw, xb, pb, seed, ra, xa, pa, sa = self._buffers()
         if warm_start is not None:
-            if not (np.all(warm_start == -1) or (np.all(warm_start >= 0) and np.all(warm_start < self._M))):
+            if not _indices(warm_start, self._M):
                 return None, True  # refused by the checks the caller runs on an alarm, before the result is read
             seed[:] = warm_start
         xb[:] = x0
@@ -188,9 +199,7 @@ class CTrack:
         raw = (np.asarray(y_ref, np.float64), np.zeros(self._d_shape) if d is None else np.asarray(d, np.float64))
         self.lib = _compiled(lt, raw, x)
         e = self.lib.exported
-        self._fn = getattr(self.lib.lib, f"{e.name}_track")
-        self._fn.restype = ctypes.c_int
-        self._fn.argtypes = [ctypes.c_void_p] * 4 + [ctypes.c_int, ctypes.c_int32, ctypes.c_void_p]
+        self._fn = _result_function(self.lib, "track", 3)
         self._budgeted, self._class_of = int(budgeted), np.asarray(lt.class_of, np.int32)
         self._n_x, self._n_u, self._N, self._shapes = e.plant_state_size, lt.m, e.horizon, _shapes(raw)
         self._record = result_dtype(e.input_size, e.horizon)
@@ -210,10 +219,9 @@ class CTrack:
         """``(result, alarm)`` as ``LinearTracking.solve``'s compiled search gives them."""
         raw, xb, ub, (yv, dv), seed, ra, xa, ua, pa, sa = self._buffers()
         if warm_start is not None:
-            M = self._class_of.shape[0]
-            if not (np.all(warm_start == -1) or (np.all(warm_start >= 0) and np.all(warm_start < M))):
-                return None, True  # refused by the checks the caller runs on an alarm, before the result is read
-            seed[:] = np.where(warm_start >= 0, self._class_of[np.maximum(warm_start, 0)], -1)
+            if not _indices(warm_start, self._class_of.shape[0]):
+                return None, True  # as in CSearch
+            seed[:] = np.where(warm_start >= 0, self._class_of[np.maximum(warm_start, 0)], -1)  # inputs -> classes
         xb[:], ub[:], yv[...] = x, u_prev, y_ref
         dv[...] = 0.0 if d is None else d
         code = self._fn(xa, ua, pa, None if warm_start is None else sa, self._budgeted, int(max_nodes), ra)

@@ -592,15 +592,7 @@ int {name}_track(const double *x, const double *u_prev, const double *params, co
     fj_incumbent out;
     int count = seed != NULL && seed[0] >= 0;
     int complete = fj_search(&fj_main, &pr, z0, seed, count, max_nodes, budgeted, 0, &out, &w);
-    int found = isfinite(out.cost);
-    r->cost = out.cost;
-    r->nodes = (int32_t)out.nodes;
-    r->iterations = (int32_t)out.iterations;
-    r->feasible = found;
-    r->complete = complete;
-    r->negative_cost = (out.flags & FJ_NEGATIVE) != 0;
-    r->nan_encountered = (out.flags & FJ_NONFINITE) != 0;
-    r->overflow = (out.flags & FJ_OVERFLOW) != 0;
+    int found = fj_result(r, &out, complete);
     if (found) fj_members(z0, out.path{unit.p_args('pr.')}, r->sequence);
     else for (int j = 0; j < FJ_N; j++) r->sequence[j] = -1;
     for (int j = 0; j < FJ_NU; j++) r->first_input[j] = found ? fj_inputs[r->sequence[0] * FJ_NU + j] : NAN;
@@ -614,6 +606,20 @@ def _solve(unit: _Unit, name: str, budget: int) -> str:
     budgeted = int(budget != INT32_MAX)
     return f"""
 size_t {name}_work_bytes(void) {{ return sizeof(fj_work) + {2 if unit.controller else 1} * sizeof(fj_incumbent); }}
+
+/* A search's outcome in NAME_result but its sequence and input; returns whether it found a sequence. */
+static int fj_result({name}_result *r, const fj_incumbent *out, int complete) {{
+    int found = isfinite(out->cost);
+    r->cost = out->cost;
+    r->nodes = (int32_t)out->nodes;
+    r->iterations = (int32_t)out->iterations;
+    r->feasible = found;
+    r->complete = complete;
+    r->negative_cost = (out->flags & FJ_NEGATIVE) != 0;
+    r->nan_encountered = (out->flags & FJ_NONFINITE) != 0;
+    r->overflow = (out->flags & FJ_OVERFLOW) != 0;
+    return found;
+}}
 
 int {name}_solve(const double *x0, const double *params, int *sequence, double *cost, long long *nodes) {{
     if (!fj_all_finite(x0, FJ_NX)) return {CODES['BAD_STATE']};
@@ -636,15 +642,7 @@ int {name}_search(const double *x0, const double *params, const int32_t *seed, i
     fj_incumbent out;
     int count = seed != NULL && seed[0] >= 0;
     int complete = fj_search(&fj_main, &pr, x0, seed, count, max_nodes, budgeted, 0, &out, &w);
-    int found = isfinite(out.cost);
-    r->cost = out.cost;
-    r->nodes = (int32_t)out.nodes;
-    r->iterations = (int32_t)out.iterations;
-    r->feasible = found;
-    r->complete = complete;
-    r->negative_cost = (out.flags & FJ_NEGATIVE) != 0;
-    r->nan_encountered = (out.flags & FJ_NONFINITE) != 0;
-    r->overflow = (out.flags & FJ_OVERFLOW) != 0;
+    int found = fj_result(r, &out, complete);
     for (int j = 0; j < FJ_N; j++) r->sequence[j] = found ? out.path[j] : -1;
     if (found) fj_main_first_input(x0, out.path, &pr, r->first_input);
     else for (int j = 0; j < FJ_NU; j++) r->first_input[j] = NAN;
