@@ -1,15 +1,15 @@
-"""The ``"c"`` engine: eager searches (``fj.sdfs``) and a controller's eager decisions (``ctrl.step``,
-``ctrl(x)``) in generated C.
+"""The ``"c"`` engine: eager searches (``fj.sdfs``, ``lt.solve``) and a controller's eager decisions
+(``ctrl.step``, ``ctrl(x)``) in generated C.
 
-On the first eager call for a signature of arguments the problem or controller is exported (``export_c``, with these
-parameters' shapes), compiled with the system's C compiler (``$CC``, else ``cc``) into a shared library in a
-folder of this process, and called through ``ctypes`` from then on: one C call a decision, no XLA program.
+On the first eager call for a signature of arguments the problem, tracker or controller is exported (``export_c``,
+with these parameters' shapes), compiled with the system's C compiler (``$CC``, else ``cc``) into a shared library
+in a folder of this process, and called through ``ctypes`` from then on: one C call a decision, no XLA program.
 The arguments are written into buffers of fixed address (one set per thread: the C code is reentrant) and the
 outputs read back in place from the record the C code fills (``export.RESULT_FIELDS``, the controller state's
 report ``export.STATE_FIELDS``), as NumPy arrays of the dtypes the XLA program returns. The C code computes the
-callables in the session's float, as the export does, and rounds as the C compiler does (ISO C: no contraction
-into fused multiply-adds), so costs can differ from XLA's in the last bits, and an exact tie can be broken
-towards another optimal sequence.
+callables in the session's float, as the export does, and rounds as the C compiler does (no contraction into fused
+multiply-adds: ``FLAGS``), so costs can differ from XLA's in the last bits, and an exact tie can be broken towards
+another optimal sequence.
 """
 from __future__ import annotations
 
@@ -34,7 +34,9 @@ from ..search.sdfs import INT32_MAX
 from ..search.sdfs import search as sdfs_search
 from .export import _check_controller, compile_shared, export, result_dtype, state_dtype
 
-FLAGS = (("-O3", "-march=native"), ("-O3",))  # the first set the compiler takes
+# The first set the compiler takes; contraction into fused multiply-adds off, as ISO C mode gives with GCC (clang
+# contracts by default).
+FLAGS = (("-O3", "-march=native", "-ffp-contract=off"), ("-O3", "-ffp-contract=off"))
 _folder: Optional[str] = None
 _names = itertools.count()
 _lock = threading.Lock()
