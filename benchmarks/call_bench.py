@@ -67,10 +67,10 @@ def cases(calls: int):
             argsets)
         fj.sdfs(problem, *argsets[0], engine="c")
         c_run = lean.recall(entry[:-1] + ("c",), (argsets[0][0], None, None))
-        _, _, _, _, *addresses = c_run._buffers()
+        x_at, p_at, _, record_at = c_run._buffers()[-1]
         out[f"`fj.sdfs`, pendulum (2 states, 3 inputs), N = {N}, `engine=\"c\"`"] = (
             lambda x, p=problem: fj.sdfs(p, x, engine="c"),
-            lambda x, f=c_run._fn, a=addresses, b=int(budget): f(a[1], a[2], None, 0, b, a[0]), None, argsets)
+            lambda x, f=c_run._fn, a=(x_at, p_at, None, 0, int(budget), record_at): f(*a), None, argsets)
 
     prm = inverter.InverterParams()
     for N in (1, 3):
@@ -108,10 +108,10 @@ def cases(calls: int):
         lt._on_device(np.float64) + (lt._controls, lt._class_of) + largs[0] + (None, None, budget), largs)
     lt.solve(*largs[0], engine="c")
     c_run = lean.recall(("lt.solve", lt, True, "c"), largs[0] + (None, None))
-    _, _, _, _, _, ra, xa, ua, pa, _ = c_run._buffers()
+    x_at, u_at, p_at, _, record_at = c_run._buffers()[-1]
     out["`lt.solve`, three-level inverter, N = 5, `engine=\"c\"`"] = (
         lambda x, u, y: lt.solve(x, u, y, engine="c"),
-        lambda x, u, y, f=c_run._fn, b=int(budget): f(xa, ua, pa, None, 0, b, ra), None, largs)
+        lambda x, u, y, f=c_run._fn, a=(x_at, u_at, p_at, None, 0, int(budget), record_at): f(*a), None, largs)
     return out
 
 

@@ -152,82 +152,85 @@ class CEngine:
         return CStep(ctrl, state, x, params)
 
 
-class CSearch:
+class _Searched:
+    """A generated ``NAME_search`` or ``NAME_track`` for one signature of checked arguments: its typed function,
+    its result record and, per thread, the buffers it reads and writes (vectors, parameters, seed, record)."""
+
+    def __init__(self, lib, suffix: str, sizes: tuple, params, budgeted: bool, out):
+        self.lib, e = lib, lib.exported
+        self._fn = _result_function(lib, suffix, len(sizes) + 1)
+        self._sizes, self._shapes = sizes, _shapes(params)
+        self._budgeted, self._N = int(budgeted), e.horizon
+        self._record = result_dtype(e.input_size, e.horizon)
+        self._casts = _casts(self._record, {"cost": out.cost, "first_input": out.first_input})
+        self._local = threading.local()
+
+    def _buffers(self) -> tuple:
+        """``(record bytes, vectors, parameter views, seed, pointers)``; pointers in the function's order: the
+        vectors, the parameters, the seed, the record."""
+        b = getattr(self._local, "buffers", None)
+        if b is None:
+            record, seed = np.zeros((), self._record), np.zeros(self._N, np.int32)
+            vectors = [np.zeros(size) for size in self._sizes]
+            p = np.zeros(sum(int(np.prod(s)) for s in self._shapes))
+            pointers = (*(_address(v) for v in vectors), _address(p) if p.size else None, _address(seed),
+                        _address(record))
+            b = self._local.buffers = (record.reshape(1).view(np.uint8), vectors, _param_views(p, self._shapes), seed,
+                                       pointers)
+        return b
+
+    def _run(self, vectors, params, seed, max_nodes) -> tuple:
+        """``(result, alarm)`` of a call on these values (``seed``: indices, or None)."""
+        raw, buffers, views, seed_buffer, pointers = self._buffers()
+        for buffer, value in zip(buffers, vectors, strict=True):
+            buffer[...] = value
+        if views:
+            _write_params(views, params)
+        if seed is not None:
+            seed_buffer[:] = seed
+        code = self._fn(*pointers[:-2], None if seed is None else pointers[-2], self._budgeted, int(max_nodes),
+                        pointers[-1])
+        return _search_outputs(np.ndarray((), self._record, raw.copy()), self._casts, code)
+
+
+class CSearch(_Searched):
     """``fj.sdfs`` of one problem in C for one signature of ``(x0, params)`` (checked arguments)."""
 
     def __init__(self, problem, x0, params, budgeted: bool):
         out = jax.eval_shape(lambda x, p: sdfs_search(problem, x, p, None, INT32_MAX, pop_width=1,
                                                       budgeted=budgeted), x0, params)
-        self.lib = _compiled(problem, params, x0)
-        self._fn = _result_function(self.lib, "search", 2)
-        e = self.lib.exported
-        self._budgeted, self._N, self._M = int(budgeted), e.horizon, e.num_controls
-        self._n_x, self._n_p, self._shapes = e.state_size, e.num_params, _shapes(params)
-        self._record = result_dtype(e.input_size, e.horizon)
-        self._casts = _casts(self._record, {"cost": out.cost, "first_input": out.first_input})
-        self._local = threading.local()
-
-    def _buffers(self):
-        b = getattr(self._local, "buffers", None)
-        if b is None:
-            record, x, p, seed = (np.zeros((), self._record), np.zeros(self._n_x), np.zeros(self._n_p),
-                                  np.zeros(self._N, np.int32))
-            b = self._local.buffers = (record.reshape(1).view(np.uint8), x, _param_views(p, self._shapes), seed,
-                                       _address(record), _address(x), _address(p) if self._n_p else None,
-                                       _address(seed))
-        return b
+        lib = _compiled(problem, params, x0)
+        super().__init__(lib, "search", (lib.exported.state_size,), params, budgeted, out)
+        self._M = lib.exported.num_controls
 
     def __call__(self, x0, params, warm_start, max_nodes):
         """``(result, alarm)`` as ``fj.sdfs``'s compiled search gives them."""
-        raw, xb, pb, seed, ra, xa, pa, sa = self._buffers()
-        if warm_start is not None:
-            if not _indices(warm_start, self._M):
-                return None, True  # refused by the checks the caller runs on an alarm, before the result is read
-            seed[:] = warm_start
-        xb[:] = x0
-        if self._n_p:
-            _write_params(pb, params)
-        code = self._fn(xa, pa, None if warm_start is None else sa, self._budgeted, int(max_nodes), ra)
-        return _search_outputs(np.ndarray((), self._record, raw.copy()), self._casts, code)
+        if warm_start is not None and not _indices(warm_start, self._M):
+            return None, True  # refused by the checks the caller runs on an alarm, before the result is read
+        return self._run((x0,), params, warm_start, max_nodes)
 
 
-class CTrack:
+class CTrack(_Searched):
     """``LinearTracking.solve`` of one tracker in C for one signature of its arguments (checked)."""
 
     def __init__(self, lt, x, u_prev, y_ref, d, budgeted: bool):
         out = jax.eval_shape(lambda *a: lt.solve(*a, max_nodes=INT32_MAX if budgeted else None), x, u_prev, y_ref,
                              d)
-        self._d_shape = (lt.horizon, lt.n)
-        raw = (np.asarray(y_ref, np.float64), np.zeros(self._d_shape) if d is None else np.asarray(d, np.float64))
-        self.lib = _compiled(lt, raw, x)
-        e = self.lib.exported
-        self._fn = _result_function(self.lib, "track", 3)
-        self._budgeted, self._class_of = int(budgeted), np.asarray(lt.class_of, np.int32)
-        self._n_x, self._n_u, self._N, self._shapes = e.plant_state_size, lt.m, e.horizon, _shapes(raw)
-        self._record = result_dtype(e.input_size, e.horizon)
-        self._casts = _casts(self._record, {"cost": out.cost, "first_input": out.first_input})
-        self._local = threading.local()
-
-    def _buffers(self):
-        b = getattr(self._local, "buffers", None)
-        if b is None:
-            record, x, u, p, seed = (np.zeros((), self._record), np.zeros(self._n_x), np.zeros(self._n_u),
-                                     np.zeros(sum(int(np.prod(s)) for s in self._shapes)), np.zeros(self._N, np.int32))
-            b = self._local.buffers = (record.reshape(1).view(np.uint8), x, u, _param_views(p, self._shapes), seed,
-                                       _address(record), _address(x), _address(u), _address(p), _address(seed))
-        return b
+        self._no_d = np.zeros((lt.horizon, lt.n))
+        raw = (np.asarray(y_ref, np.float64), self._no_d if d is None else np.asarray(d, np.float64))
+        lib = _compiled(lt, raw, x)
+        super().__init__(lib, "track", (lib.exported.plant_state_size, lt.m), raw, budgeted, out)
+        self._class_of = np.asarray(lt.class_of, np.int32)
 
     def __call__(self, x, u_prev, y_ref, d, warm_start, max_nodes):
         """``(result, alarm)`` as ``LinearTracking.solve``'s compiled search gives them."""
-        raw, xb, ub, (yv, dv), seed, ra, xa, ua, pa, sa = self._buffers()
+        seed = None
         if warm_start is not None:
             if not _indices(warm_start, self._class_of.shape[0]):
                 return None, True  # as in CSearch
-            seed[:] = np.where(warm_start >= 0, self._class_of[np.maximum(warm_start, 0)], -1)  # inputs -> classes
-        xb[:], ub[:], yv[...] = x, u_prev, y_ref
-        dv[...] = 0.0 if d is None else d
-        code = self._fn(xa, ua, pa, None if warm_start is None else sa, self._budgeted, int(max_nodes), ra)
-        return _search_outputs(np.ndarray((), self._record, raw.copy()), self._casts, code)
+            seed = np.where(warm_start >= 0, self._class_of[np.maximum(warm_start, 0)], -1)  # inputs -> classes
+        return self._run((x, u_prev), (y_ref, self._no_d if d is None else d), seed, max_nodes)
+
 
 class CStep:
     """One controller's decision in C for one signature of ``(state, x, params)`` (checked arguments)."""
