@@ -1,13 +1,16 @@
-"""One decision on several lanes: ``FIRHC(solver="pool", lanes=L)`` against ``solver="sdfs"``.
+"""One decision on several lanes: ``FIRHC(solver="pool", lanes=L)`` against ``solver="sdfs"``, each decided by
+XLA and by the C engine (``engine="c"``).
 
 The work pool as a controller's solver: the root on one slot, the other
 slots steal nodes of the same search, so each iteration expands up to
 ``L * K * M`` children in one call. Timed as a controller runs: the closed
 loop of ``simulate(..., compiled=False)``, every decision its own compiled
-call, timed in ``solve_times`` (compilation never counted). Every variant
-runs the same closed loop (the decisions' costs are checked equal), in
-rounds that alternate the variants, in one process; the table gives the
-median over rounds of each variant's mean time per decision.
+call (or, with ``engine="c"``, its own call of the generated C), timed in
+``solve_times`` (compilation never counted). Every variant runs the same
+closed loop (the decisions' costs are checked equal, the C engine's node
+counts equal XLA's), in rounds that alternate the variants, in one process;
+the table gives the median over rounds of each variant's mean time per
+decision.
 
     python benchmarks/pool_decision_bench.py [--rounds 3] [--lanes 1,2,4,8]
 """
@@ -49,9 +52,11 @@ def tanks_case(horizon: int = 5, steps: int = 100):
 
 def measure(case, lanes, rounds: int) -> list[dict]:
     name, problem, options, run = case
-    variants = {"sdfs": fj.FIRHC(problem, **options)}
+    solvers = {"sdfs": ("sdfs", {})}
     for L in lanes:
-        variants[f"pool lanes={L}"] = fj.FIRHC(problem, "pool", lanes=L, **options)
+        solvers[f"pool lanes={L}"] = ("pool", {"lanes": L})
+    variants = {(v, engine): fj.FIRHC(problem, solver, engine=engine, **extra, **options)
+                for v, (solver, extra) in solvers.items() for engine in ("xla", "c")}
     times = {v: [] for v in variants}
     loops = {}
     for _ in range(rounds + 1):  # the first round compiles
@@ -60,13 +65,17 @@ def measure(case, lanes, rounds: int) -> list[dict]:
                                  compiled=False)
             times[v].append(float(np.mean(np.asarray(loop.solve_times))))
             loops[v] = loop
-    ref = loops["sdfs"]
+    ref = loops["sdfs", "xla"]
     rows = []
-    for v, loop in loops.items():
-        np.testing.assert_allclose(np.asarray(loop.predicted_costs), np.asarray(ref.predicted_costs), rtol=1e-9)
-        t = statistics.median(times[v][1:])
-        rows.append({"case": name, "solver": v, "ms": 1e3 * t, "nodes": float(np.mean(np.asarray(loop.nodes))),
-                     "ratio": t / statistics.median(times["sdfs"][1:])})
+    for v in solvers:
+        xla, c = loops[v, "xla"], loops[v, "c"]
+        for loop in (xla, c):
+            np.testing.assert_allclose(np.asarray(loop.predicted_costs), np.asarray(ref.predicted_costs), rtol=1e-9)
+        np.testing.assert_array_equal(np.asarray(c.nodes), np.asarray(xla.nodes))
+        t_xla, t_c = (statistics.median(times[v, e][1:]) for e in ("xla", "c"))
+        rows.append({"case": name, "solver": v, "xla": 1e3 * t_xla, "c": 1e3 * t_c,
+                     "nodes": float(np.mean(np.asarray(xla.nodes))),
+                     "ratio": t_xla / statistics.median(times["sdfs", "xla"][1:]), "c_ratio": t_c / t_xla})
     return rows
 
 
@@ -79,11 +88,13 @@ def main() -> None:
     lanes = [int(v) for v in args.lanes.split(",")]
     print(f"jax {jax.__version__}, {jax.devices()[0].platform}; mean time per decision, median of "
           f"{args.rounds} rounds (same closed loop, costs checked equal)")
-    print("| case | solver | ms / decision | nodes / decision | time vs sdfs |")
-    print("|---|---|---|---|---|")
+    print("| case | solver | nodes / decision | XLA ms / decision | XLA vs sdfs | C engine ms / decision "
+          "| C / XLA |")
+    print("|---|---|---|---|---|---|---|")
     for case in (inverter_case(10, args.steps), tanks_case(5, args.steps)):
         for r in measure(case, lanes, args.rounds):
-            print(f"| {r['case']} | {r['solver']} | {r['ms']:.3f} | {r['nodes']:.0f} | {r['ratio']:.2f}x |")
+            print(f"| {r['case']} | {r['solver']} | {r['nodes']:.0f} | {r['xla']:.3f} | {r['ratio']:.2f}x "
+                  f"| {r['c']:.3f} | {r['c_ratio']:.3f}x |")
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@
     python -m firhc_jax export inverter --horizon 2 --out out/c-inverter --compare 20
 
 Writes ``firhc.h`` and ``firhc.c`` (``--name`` changes the prefix) for the application's controller as the
-application builds it, with the search at ``pop_width=1`` (the generated code's): the hopper (its fallback,
+application builds it, with the default search (``"sdfs"`` at ``pop_width=1``): the hopper (its fallback,
 observe, actuate and safe input), the three tanks (its fallback when a terminal box is set), the two-level
 inverter (its switching penalty, per-decision reference as parameters) and the three-level inverter
 (``LinearTracking``'s controller, the reference and disturbance as parameters). Prints the sizes and the

@@ -41,8 +41,8 @@ def same_outputs(xla, c, rtol=1e-9):
 
 @settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.integers(0, 2**31 - 1), st.integers(1, 5), st.integers(1, 5), st.sampled_from(["none", "loose", "tight"]),
-       st.sampled_from([None, 7, 40]), st.booleans(), st.booleans())
-def test_c_searches_give_fj_sdfs_results(seed, N, M, terminal, max_nodes, warm, params):
+       st.sampled_from([None, 7, 40]), st.booleans(), st.booleans(), st.integers(1, 3))
+def test_c_searches_give_fj_sdfs_results(seed, N, M, terminal, max_nodes, warm, params, pop_width):
     rp = make(seed, 2, 1, M, N, terminal)
     problem = rp.problem()
     if params:
@@ -53,8 +53,20 @@ def test_c_searches_give_fj_sdfs_results(seed, N, M, terminal, max_nodes, warm, 
     for x0 in rng.uniform(-1, 1, (3, 2)):
         p = {"ref": rng.normal(0, 0.3, (N, 2)), "w": np.float64(0.2)} if params else None
         ws = rng.integers(0, M, N) if warm else None
-        same_outputs(fj.sdfs(problem, x0, params=p, warm_start=ws, max_nodes=max_nodes),
-                     fj.sdfs(problem, x0, params=p, warm_start=ws, max_nodes=max_nodes, engine="c"))
+        same_outputs(fj.sdfs(problem, x0, params=p, warm_start=ws, max_nodes=max_nodes, pop_width=pop_width),
+                     fj.sdfs(problem, x0, params=p, warm_start=ws, max_nodes=max_nodes, pop_width=pop_width,
+                             engine="c"))
+
+
+@pytest.mark.parametrize("pop_width", [2, 3])
+def test_c_searches_popping_several_nodes_give_fj_sdfs_results(pop_width):
+    """No warm start: the leaves of every popped node decide."""
+    for seed in range(3):
+        rp = make(seed, 2, 1, 4, 4, "none")
+        problem = rp.problem()
+        for x0 in np.random.default_rng(seed).uniform(-1, 1, (5, 2)):
+            same_outputs(fj.sdfs(problem, x0, pop_width=pop_width), fj.sdfs(problem, x0, pop_width=pop_width,
+                                                                             engine="c"))
 
 
 def test_a_c_search_checks_and_raises_as_fj_sdfs():
@@ -69,8 +81,6 @@ def test_a_c_search_checks_and_raises_as_fj_sdfs():
         with pytest.raises(ValueError, match=match):  # the values of a call that skips the checks (lean)
             x0, p, ws = call
             fj.sdfs(problem, x0, params=p, warm_start=ws, engine="c")
-    with pytest.raises(ValueError, match="pop_width=1"):
-        fj.sdfs(problem, np.array([0.3]), params=good, pop_width=2, engine="c")
     with pytest.raises(ValueError, match="engine must be one of"):
         fj.sdfs(problem, np.array([0.3]), params=good, engine="C")
     traced = jax.jit(lambda x: fj.sdfs(problem, x, params=good, engine="c").cost)(jnp.array([0.3]))  # XLA
@@ -104,6 +114,46 @@ def test_c_steps_give_the_xla_steps_outputs(seed, terminal, fallback, warm, max_
         same_outputs(out_xla, out_c)
         (u, s_xla, _), (_, s_c, _) = out_xla, out_c
         x = np.asarray(rp.dynamics(jnp.asarray(x), jnp.asarray(u[:1])))
+
+
+SOLVERS = [("sdfs", {"pop_width": 2}), ("sdfs-vmap", {"pop_width": 3}), ("pool", {}),
+           ("pool", {"lanes": 3, "pop_width": 2}), ("pool", {"lanes": 1}), ("exhaustive", {}),
+           ("exhaustive", {"method": "dfs", "pop_width": 2})]
+
+
+@pytest.mark.parametrize("solver, options", SOLVERS)
+@settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 2**31 - 1), st.integers(2, 5), st.integers(2, 4), st.sampled_from(["none", "loose", "tight"]),
+       st.sampled_from([None, 20, 60]))
+def test_c_steps_of_every_solver_give_the_xla_steps_outputs(solver, options, seed, M, N, terminal, max_nodes):
+    """Each solver's search in C, node for node: the pool's slots and steals, K nodes a pop, the level search's
+    lexicographic order and the exhaustive depth-first search, with budgets, warm starts and the fallback."""
+    rp = make(seed, 2, 1, M, N, terminal)
+    budget = {} if max_nodes is None or solver == "exhaustive" else {"max_nodes": max_nodes}
+    kwargs = dict(options, fallback="unconstrained" if terminal == "tight" else None,
+                  warm_start=solver != "exhaustive", **budget)
+    xla, c = fj.FIRHC(rp.problem(), solver, **kwargs), fj.FIRHC(rp.problem(), solver, engine="c", **kwargs)
+    x = np.random.default_rng(seed).uniform(-1, 1, 2)
+    s_xla, s_c = xla.init(x), c.init(x)
+    for _ in range(5):
+        out_xla, out_c = xla.step(s_xla, x), c.step(s_c, x)
+        same_outputs(out_xla, out_c)
+        (u, s_xla, _), (_, s_c, _) = out_xla, out_c
+        x = np.asarray(rp.dynamics(jnp.asarray(x), jnp.asarray(u)))
+
+
+@pytest.mark.parametrize("solver, options", SOLVERS + [("sdfs", {}), ("pool", {"lanes": 4, "pop_width": 2})])
+def test_exact_ties_go_to_the_sequence_xla_picks(solver, options):
+    """Integer costs: many sequences cost exactly the same, and the order of pops, steals and leaves decides which
+    one a search returns; the C engine returns XLA's, with its node count."""
+    problem = fj.Problem(lambda x, u: x + u, np.array([[-1.0, 0.0], [0.0, 1.0], [1.0, -1.0], [0.0, 0.0]]),
+                         lambda x, u: jnp.sum(jnp.abs(x)), 5)
+    for budget in [None] if solver == "exhaustive" else [None, 60]:
+        kwargs = dict(options, **({} if budget is None else {"max_nodes": budget}))
+        xla, c = fj.FIRHC(problem, solver, **kwargs), fj.FIRHC(problem, solver, engine="c", **kwargs)
+        for x in ([2.0, -1.0], [3.0, 2.0], [-2.0, 1.0], [0.0, 3.0]):
+            x = np.array(x)
+            same_outputs(xla.step(xla.init(x), x), c.step(c.init(x), x))
 
 
 def test_the_inverter_controller_decides_as_in_xla():
@@ -150,10 +200,6 @@ def test_the_engine_is_checked_when_the_controller_is_made(monkeypatch):
     problem = fj.Problem(lambda x, u: x + u, np.array([-1.0, 1.0]), lambda x, u: jnp.sum(x**2), 2)
     with pytest.raises(ValueError, match="engine must be one of"):
         fj.FIRHC(problem, engine="fortran")
-    with pytest.raises(ValueError, match="'sdfs' solver"):
-        fj.FIRHC(problem, "exhaustive", engine="c")
-    with pytest.raises(ValueError, match="pop_width=1"):
-        fj.FIRHC(problem, engine="c", pop_width=2)
     with pytest.raises(ValueError, match="callable warm_start"):
         fj.FIRHC(problem, engine="c", warm_start=lambda problem, x, prev, p: prev)
     monkeypatch.setenv("CC", "no-such-compiler-here")

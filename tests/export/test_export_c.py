@@ -215,8 +215,31 @@ def test_an_unsupported_primitive_is_refused_by_name(tmp_path):
         fj.export_c(problem, tmp_path, x0=np.zeros(2))
     with pytest.raises(ValueError, match="C identifier"):
         fj.export_c(problem, tmp_path, name="not a name", x0=np.zeros(2))
-    with pytest.raises(ValueError, match="pop_width=1"):
-        fj.export_c(fj.FIRHC(problem, pop_width=2), tmp_path, x0=np.zeros(2))
+    with pytest.raises(ValueError, match="callable warm_start"):
+        fj.export_c(fj.FIRHC(problem, warm_start=lambda problem, x, prev, p: prev), tmp_path, x0=np.zeros(2))
+
+
+@pytest.mark.parametrize("solver, options", [("sdfs", {"pop_width": 3}), ("pool", {"lanes": 3, "pop_width": 2}),
+                                             ("exhaustive", {}), ("exhaustive", {"method": "dfs"})])
+def test_a_controller_of_any_solver_is_exported_with_its_search(tmp_path, solver, options):
+    """The generated step runs the controller's solver: the node counts and iterations of each decision are
+    that solver's, and the work arrays are those ``work_bytes`` states."""
+    import ctypes
+
+    rp = make(3, 2, 1, 3, 4, "loose")
+    ctrl = fj.FIRHC(rp.problem(), solver, **options)
+    exported = fj.export_c(ctrl, tmp_path, name="any", x0=np.zeros(2))
+    lib = exported.compile()
+    lib.lib.any_work_bytes.restype = ctypes.c_size_t
+    assert lib.lib.any_work_bytes() == exported.work_bytes
+    x = np.random.default_rng(3).uniform(-1, 1, 2)
+    state, c_state = ctrl.init(x), lib.init(x)
+    for _ in range(4):
+        u, state, info = ctrl.step(state, x)
+        code, c_u = lib.step(c_state, x)
+        np.testing.assert_allclose(c_u, np.asarray(u), rtol=1e-12)
+        assert (c_state.nodes, c_state.iterations) == (int(info.nodes), int(info.result.iterations))
+        x = np.asarray(rp.dynamics(jnp.asarray(x), jnp.asarray(u[:1])))
 
 
 def test_the_state_size_is_found_from_the_callables(tmp_path):

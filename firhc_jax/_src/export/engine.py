@@ -62,11 +62,13 @@ def _have_compiler() -> None:
                            "machine's PATH; use engine='xla'")
 
 
-def _compiled(what, params, x0):
-    """``what`` (a problem or controller) exported into this process's folder and compiled: the ``Compiled``."""
+def _compiled(what, params, x0, pop_width: int = 1):
+    """``what`` (a problem, its search's ``pop_width``, or a controller) exported into this process's folder and
+    compiled: the ``Compiled``."""
     with _lock:
         name = f"fj{next(_names)}"
-    exported = export(what, _build_folder(), name=name, params=params, x0=np.asarray(x0), for_engine=True)
+    exported = export(what, _build_folder(), name=name, params=params, x0=np.asarray(x0), for_engine=True,
+                      pop_width=pop_width)
     for flags in FLAGS:
         try:
             return compile_shared(exported, cc=compiler(), flags=flags)
@@ -130,13 +132,11 @@ def _search_outputs(r: np.ndarray, casts: tuple, code: int) -> tuple:
 class CEngine:
     name = "c"
 
-    def check_search(self, pop_width: int) -> None:
-        if pop_width != 1:
-            raise ValueError(f"engine='c' runs the paper's search, pop_width=1; got pop_width={pop_width}")
+    def check_search(self) -> None:
         _have_compiler()
 
-    def build_search(self, problem, x0, params, budgeted: bool):
-        return CSearch(problem, x0, params, budgeted)
+    def build_search(self, problem, x0, params, budgeted: bool, pop_width: int):
+        return CSearch(problem, x0, params, budgeted, pop_width)
 
     def check_tracking(self) -> None:
         _have_compiler()
@@ -196,10 +196,10 @@ class _Searched:
 class CSearch(_Searched):
     """``fj.sdfs`` of one problem in C for one signature of ``(x0, params)`` (checked arguments)."""
 
-    def __init__(self, problem, x0, params, budgeted: bool):
-        out = jax.eval_shape(lambda x, p: sdfs_search(problem, x, p, None, INT32_MAX, pop_width=1,
+    def __init__(self, problem, x0, params, budgeted: bool, pop_width: int):
+        out = jax.eval_shape(lambda x, p: sdfs_search(problem, x, p, None, INT32_MAX, pop_width=pop_width,
                                                       budgeted=budgeted), x0, params)
-        lib = _compiled(problem, params, x0)
+        lib = _compiled(problem, params, x0, pop_width)
         super().__init__(lib, "search", (lib.exported.state_size,), params, budgeted, out)
         self._M = lib.exported.num_controls
 

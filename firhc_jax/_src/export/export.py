@@ -1,7 +1,7 @@
 """``fj.export_c``: a problem's search, or a controller's decision, as plain C99 with no Python and no XLA.
 
 The callables are translated from their jaxprs (``c_code``); the search is the template ``search.c``, the
-library's sDFS at ``pop_width=1`` rule for rule. The callables are traced in the session's types (float64
+library's searches of one state (the solvers' ``search``) rule for rule. The callables are traced in the session's types (float64
 with x64 enabled, else float32) and computed in them; the generated functions take and return ``double``
 states, parameters and inputs. No JAX setting is changed: a trace under a temporary x64 setting would leave
 JAX's caches of the user's jitted functions with constants of the wrong type (docs/dev/xla_notes.md).
@@ -27,6 +27,7 @@ from ..control.decision import budget_of
 from ..linear.tracking import LinearTracking
 from ..problem.callables import check_state
 from ..problem.problem import Problem, call, input_dtype
+from ..search import exhaustive, solvers
 from ..search.nodes import one_child
 from ..search.sdfs import INT32_MAX, node_budget
 from .c_code import PRELUDE, c_type, literal, primitives, translate, translate_children
@@ -146,11 +147,11 @@ class Exported:
 def export_c(problem_or_controller, directory, *, name: str = "firhc", params=None, x0=None,
              max_nodes: Optional[int] = None) -> Exported:
     """Write ``name.h`` and ``name.c``: C99 for the exact search of a ``Problem`` or the decision of a
-    ``FIRHC``, equal to ``fj.sdfs`` (and ``ctrl.step``) at ``pop_width=1``.
+    ``FIRHC``, equal to ``fj.sdfs`` (and ``ctrl.step``, whatever its solver).
 
     Args:
-      problem_or_controller: an ``fj.Problem`` (generates ``NAME_solve`` and ``NAME_search``), an
-        ``fj.FIRHC`` with the ``"sdfs"`` solver (also ``NAME_init`` and ``NAME_step``), or an
+      problem_or_controller: an ``fj.Problem`` (generates ``NAME_solve`` and ``NAME_search``, ``fj.sdfs`` at
+        ``pop_width=1``), an ``fj.FIRHC`` (also ``NAME_init`` and ``NAME_step``, its solver and options), or an
         ``fj.LinearTracking``: its controller ``FIRHC(lt.problem, observe=lt.observe, warm_start=True)``
         (with ``max_nodes``), whose parameters are the raw data ``(y_ref [N, p], d [N, n])``, mapped in the
         generated code as ``lt.params`` maps them (``params``: that pair, default zeros), and ``NAME_track``,
@@ -165,14 +166,15 @@ def export_c(problem_or_controller, directory, *, name: str = "firhc", params=No
 
     Returns an ``Exported`` with the paths and the memory the generated functions need. Refused with a
     ``ValueError`` naming the cause: a primitive the C translation does not cover (named, with the callable
-    it is in), a solver or option the template does not implement, a callable ``warm_start``.
+    it is in), a callable ``warm_start``.
     """
     return export(problem_or_controller, directory, name=name, params=params, x0=x0, max_nodes=max_nodes)
 
 
 def export(problem_or_controller, directory, *, name: str = "firhc", params=None, x0=None,
-           max_nodes: Optional[int] = None, for_engine: bool = False) -> Exported:
-    """``export_c``. ``for_engine``: the children in the forms of the ``"c"`` engine, which compiles with
+           max_nodes: Optional[int] = None, for_engine: bool = False, pop_width: int = 1) -> Exported:
+    """``export_c``; ``pop_width``: a problem's search's (``fj.sdfs``'s). ``for_engine``: the children in the forms
+    of the ``"c"`` engine, which compiles with
     ``-O3`` and the target's vector instructions for this process: a problem whose child is a loop (its plant's
     sub-steps) computes its children operation by operation across the control set
     (``translate_children(across=True)``, slower at ``-O2``); any other computes what a child derives from its
@@ -194,8 +196,10 @@ def export(problem_or_controller, directory, *, name: str = "firhc", params=None
         _check_controller(controller)
         if max_nodes is not None:
             raise TypeError("max_nodes is the controller's own (FIRHC(..., max_nodes=)); give it for a Problem only")
+    solver = (controller.options.solver, controller.options.search_options) if controller else \
+        ("sdfs", {"pop_width": pop_width})
     return _write(problem, controller, Path(directory).expanduser(), name, params, x0, max_nodes, prepare,
-                  for_engine, tracker)
+                  for_engine, tracker, solver)
 
 
 def _tracking(lt: LinearTracking, data, max_nodes):
@@ -215,13 +219,7 @@ def _tracking(lt: LinearTracking, data, max_nodes):
 
 
 def _check_controller(ctrl: FIRHC) -> None:
-    opts = ctrl.options
-    if opts.solver != "sdfs":
-        raise ValueError(f"the C export implements the 'sdfs' solver only, this controller uses {opts.solver!r}")
-    if opts.solver_options.get("pop_width", 1) != 1:
-        raise ValueError("the C export implements pop_width=1 (the paper's search); this controller has "
-                         f"pop_width={opts.solver_options['pop_width']}")
-    if callable(opts.warm_start):
+    if callable(ctrl.options.warm_start):
         raise ValueError("a callable warm_start is Python; the C export takes warm_start=True or False")
 
 
@@ -239,6 +237,7 @@ class _Unit:
         self.controller = False
         self.raw_specs = None  # the parameters the C code takes, when a map fills the callables' (prepare)
         self.for_engine = False  # the "c" engine's forms of the children (export)
+        self.solver: tuple = ("sdfs", {"pop_width": 1})  # the solver's name and its search options (export)
 
     def p(self, leaves):
         return jax.tree_util.tree_unflatten(self.treedef, leaves) if self.has_params else None
@@ -342,8 +341,23 @@ def _variant(unit: _Unit, problem: Problem, tag: str, controls: str, drop=()) ->
     constrained = int(problem.constraint is not None)
     unit.functions.append(
         f"static const fj_problem fj_{tag} = {{fj_{tag}_children, fj_{tag}_child, {fields['terminal']}, "
-        f"{fields['terminal_cost']}, {fields['lower_bound']}, {constrained}}};\n")
+        f"{fields['terminal_cost']}, {fields['lower_bound']}, {constrained}, {_exhaustive(unit, problem)}}};\n")
     return f"fj_{tag}"
+
+
+def _exhaustive(unit: _Unit, problem: Problem) -> str:
+    """``fj_problem``'s ``exhaustive, level_iterations`` for the unit's solver: which search ``solvers``'s
+    ``"exhaustive"`` runs on ``problem`` (the level search, or where XLA:CPU cannot compile it the sDFS with
+    pruning off) and the level search's batched calls."""
+    name, options = unit.solver
+    if name != "exhaustive":
+        return "0, 0"
+    x = jax.ShapeDtypeStruct((unit.n,), _real())
+    if options["method"] == "dfs" or exhaustive.levels_executable(problem, x, unit.p(unit.specs),
+                                                                   options["chunk_nodes"]) is None:
+        return "2, 0"
+    split, _, chunks = exhaustive.plan(problem, options["chunk_nodes"])
+    return f"1, {split + chunks * (problem.horizon - split)}"
 
 
 def _controls_table(unit: _Unit, problem: Problem, tag: str) -> str:
@@ -401,10 +415,11 @@ def state_size(problem: Problem, params, x0, observe=None) -> tuple[int, int]:
 
 
 def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, params, x0, max_nodes,
-           prepare=None, for_engine: bool = False, tracker: Optional[LinearTracking] = None) -> Exported:
+           prepare=None, for_engine: bool = False, tracker: Optional[LinearTracking] = None,
+           solver: tuple = ("sdfs", {"pop_width": 1})) -> Exported:
     """Write the two files. ``prepare``: the map from the parameters the C code takes (``params``) to those the
     callables take, translated too (None: the same); ``tracker``: the ``LinearTracking`` exported (its
-    ``NAME_track``)."""
+    ``NAME_track``); ``solver``: the search's solver and its search options."""
     raw = params
     if prepare is not None:
         params = prepare(jax.tree_util.tree_map(jnp.asarray, raw))
@@ -414,14 +429,15 @@ def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, 
     n, n_plant = state_size(problem, params, x0, observe)
     check_state(problem, jnp.zeros((n,), _real()), params)
     unit = _Unit(problem, params, n)
-    unit.for_engine = for_engine
+    unit.for_engine, unit.solver = for_engine, solver
     N, M, m = problem.horizon, problem.num_controls, problem.input_dim
     flat, _ = ravel_pytree(raw) if raw is not None else (np.zeros(0), None)
     num_params = int(np.size(flat))
     if prepare is not None:
         unit.prepare(prepare, raw)
 
-    variants = {"main": _variant(unit, problem, "main", _controls_table(unit, problem, "main"))}
+    unused = ("lower_bound",) if solver[0] == "exhaustive" else ()  # the reference search takes no bound
+    variants = {"main": _variant(unit, problem, "main", _controls_table(unit, problem, "main"), unused)}
     relaxed = opts.relaxed if opts else None
     if relaxed is not None:
         if relaxed.horizon != N or relaxed.num_controls != M or relaxed.input_dim != m:
@@ -430,11 +446,12 @@ def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, 
         if same and relaxed.terminal is None and relaxed.lower_bound is None:
             unit.functions.append(f"static const fj_problem fj_fallback = {{fj_main_children, fj_main_child, NULL, "
                                   f"{'fj_main_terminal_cost' if problem.terminal_cost else 'NULL'}, NULL, "
-                                  f"{int(problem.constraint is not None)}}};\n"
+                                  f"{int(problem.constraint is not None)}, {_exhaustive(unit, relaxed)}}};\n"
                                   "#define fj_fallback_first_input fj_main_first_input\n")
             variants["fallback"] = "fj_fallback"
         else:
-            variants["fallback"] = _variant(unit, relaxed, "fallback", _controls_table(unit, relaxed, "fallback"))
+            variants["fallback"] = _variant(unit, relaxed, "fallback", _controls_table(unit, relaxed, "fallback"),
+                                            unused)
     plant_m = m
     if ctrl is not None:
         _controller_functions(unit, opts, n_plant)
@@ -456,7 +473,8 @@ def _write(problem: Problem, ctrl: Optional[FIRHC], directory: Path, name: str, 
     directory.mkdir(parents=True, exist_ok=True)
     (directory / f"{name}.h").write_text(header)
     (directory / f"{name}.c").write_text(source)
-    work = work_bytes(N, M, n, searches=2 if ctrl is not None else 1)
+    K, lanes = _pop_width(unit), _lanes(unit)
+    work = work_bytes(N, M, n, searches=2 if ctrl is not None else 1, pop_width=K, lanes=lanes)
     state_bytes = 0 if ctrl is None else ctypes.sizeof(state_struct(m, N))
     return Exported(header=directory / f"{name}.h", source=directory / f"{name}.c", name=name, state_size=n,
                     plant_state_size=n_plant, input_size=m, plant_input_size=plant_m, horizon=N, num_controls=M,
@@ -467,13 +485,27 @@ def _align(size: int, to: int) -> int:
     return -(-size // to) * to
 
 
-def work_bytes(N: int, M: int, n: int, searches: int = 1) -> int:
+def work_bytes(N: int, M: int, n: int, searches: int = 1, pop_width: int = 1, lanes: int = 0) -> int:
     """Bytes of the search's arrays on the C stack: ``fj_work`` and one ``fj_incumbent`` a search, laid out as
     a C compiler lays out ``search.c``'s structures (``NAME_work_bytes()`` returns the same)."""
+    K = pop_width
+    L = K * M
     children = _align(_align(8 * (M * n + 2 * M) + M, 4) + 4 * M + M, 8)
-    work = _align(8 * ((N + 1) * M * n + 2 * (N + 1) * M + (N + 1)) + 4 * (N + 1) * N, 8) + children
+    stack = _align(8 * ((N + 1) * L * n + 2 * (N + 1) * L + (N + 1)) + 4 * (N + 1) * K * N, 8)
     incumbent = _align(_align(8 + 4 * N, 8) + 8 + 8 + 4, 8)
-    return work + searches * incumbent
+    return max(1, lanes) * stack + K * children + searches * incumbent
+
+
+def _pop_width(unit: _Unit) -> int:
+    return unit.solver[1].get("pop_width", 1)
+
+
+def _lanes(unit: _Unit) -> int:
+    """``FJ_LANES``: a decision's pool slots (0: not the pool)."""
+    name, options = unit.solver
+    if name != "pool":
+        return 0
+    return solvers.DECISION_LANES if options.get("lanes") is None else options["lanes"]
 
 
 def _controller_functions(unit: _Unit, opts, n_plant: int) -> None:
@@ -568,7 +600,8 @@ extern "C" {{
 """
     tables = "\n".join(definition for _, definition in unit.tables.values())
     source = [f"/* Generated by firhc_jax.export_c. */\n#include <stdint.h>\n#include <stddef.h>\n#include <tgmath.h>\n"
-              f'#include "{name}.h"\n\n#define FJ_N {N}\n#define FJ_M {M}\n#define FJ_NX {n}\n#define FJ_NU {m}\n',
+              f'#include "{name}.h"\n\n#define FJ_N {N}\n#define FJ_M {M}\n#define FJ_NX {n}\n#define FJ_NU {m}\n'
+              f'#define FJ_K {_pop_width(unit)}\n#define FJ_LANES {_lanes(unit)}\n',
               PRELUDE, _params_struct(unit), TYPES, tables, *unit.functions, SEARCH,
               _solve(unit, name, budget)]
     if ctrl is not None:

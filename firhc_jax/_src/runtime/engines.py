@@ -11,10 +11,10 @@ from typing import Any, Callable, Protocol
 
 
 class Engine(Protocol):
-    def check_search(self, pop_width: int) -> None:
-        """Raise where this engine cannot run an ``fj.sdfs`` of these options."""
+    def check_search(self) -> None:
+        """Raise where this engine cannot run an ``fj.sdfs``."""
 
-    def build_search(self, problem, x0, params, budgeted: bool) -> Callable[..., tuple]:
+    def build_search(self, problem, x0, params, budgeted: bool, pop_width: int) -> Callable[..., tuple]:
         """``run(x0, params, warm_start, max_nodes) -> (result, alarm)`` for arguments of these shapes and dtypes,
         as ``fj.sdfs``'s compiled search."""
 

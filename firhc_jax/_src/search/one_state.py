@@ -52,8 +52,8 @@ def sdfs(problem: Problem, x0: ArrayLike, *, params: PyTree = None, pop_width: i
       engine: what runs an eager call: ``"xla"`` (default), the compiled JAX
         search; ``"c"``, the search exported as C (``fj.export_c``), compiled
         with the system's C compiler on the first call for each argument
-        shape and called through ``ctypes`` (``pop_width=1``; the result's
-        fields, shapes and dtypes as ``"xla"``'s, costs to the last bits as
+        shape and called through ``ctypes`` (the result's fields, shapes
+        and dtypes as ``"xla"``'s, costs to the last bits as
         the C compiler rounds). A traced call runs in XLA either way.
 
     Works under ``jax.jit`` and ``jax.vmap`` over ``x0`` and ``params``. In an
@@ -77,8 +77,8 @@ def sdfs(problem: Problem, x0: ArrayLike, *, params: PyTree = None, pop_width: i
         checked = (x0, params, ws, node_budget(max_nodes))
         outside = engines.engine(engine)
         if outside is not None:
-            outside.check_search(options["pop_width"])
-            build = lambda: outside.build_search(problem, x0, params, budgeted)  # noqa: E731
+            outside.check_search()
+            build = lambda: outside.build_search(problem, x0, params, budgeted, options["pop_width"])  # noqa: E731
         else:
             build = lambda: compile_packed(_eager_search(problem, options["pop_width"], budgeted), *checked)  # noqa: E731
         run = lean.first_call(entry, args, lambda: cached(
