@@ -1,8 +1,9 @@
 """``fj.export_c``: a problem's search, or a controller's decision, as plain C99 with no Python and no XLA.
 
 The callables are translated from their jaxprs (``c_code``); the search is the template ``search.c``, the
-library's searches of one state (the solvers' ``search``) rule for rule. The callables are traced in the session's types (float64
-with x64 enabled, else float32) and computed in them; the generated functions take and return ``double``
+library's searches of one state (the solvers' ``search``) rule for rule. The callables are traced in the
+session's types (float64 with x64 enabled, else float32) and computed in them; the generated functions take and
+return ``double``
 states, parameters and inputs. No JAX setting is changed: a trace under a temporary x64 setting would leave
 JAX's caches of the user's jitted functions with constants of the wrong type (docs/dev/xla_notes.md).
 Memory is sized at export: ``NAME_solve`` and ``NAME_step`` keep their work arrays on the C stack
