@@ -3,9 +3,9 @@
 The callables are translated from their jaxprs (``c_code``); the search is the template ``search.c``, the
 library's searches of one state (the solvers' ``search``) rule for rule. The callables are traced in the
 session's types (float64 with x64 enabled, else float32) and computed in them; the generated functions take and
-return ``double``
-states, parameters and inputs. No JAX setting is changed: a trace under a temporary x64 setting would leave
-JAX's caches of the user's jitted functions with constants of the wrong type (docs/dev/xla_notes.md).
+return ``double`` states, parameters and inputs. No JAX setting is changed: a trace under a temporary x64
+setting would leave JAX's caches of the user's jitted functions with constants of the wrong type
+(docs/dev/xla_notes.md).
 Memory is sized at export: ``NAME_solve`` and ``NAME_step`` keep their work arrays on the C stack
 (``NAME_work_bytes()``), allocate nothing and need only libm.
 """
