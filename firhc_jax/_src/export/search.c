@@ -2,9 +2,11 @@
 (sdfs.py) popping FJ_K nodes an iteration, the same stack of one batch a depth, the same pops (cheapest key,
 lowest index among equals), the same incumbent rule, the same node budget with its seeds and rollouts; one
 decision's work pool of FJ_LANES slots (pool.py, FJ_LANES > 0); the exhaustive searches (exhaustive.py:
-fj_problem's `exhaustive`: every node in the order of the level search, or the sDFS with pruning off), so that
-costs, sequences and node counts agree with the library's. Sizes: FJ_N, FJ_M, FJ_NX, FJ_NU and the solver's FJ_K
-and FJ_LANES, set by the generated code that includes this template. */
+FJ_EXHAUSTIVE, and per problem fj_problem's `exhaustive`: every node in the order of the level search, or the
+sDFS with pruning off), so that costs, sequences and node counts agree with the library's. Sizes: FJ_N, FJ_M,
+FJ_NX, FJ_NU and the solver's FJ_K, FJ_LANES and FJ_EXHAUSTIVE, set by the generated code that includes this
+template (the exhaustive searches are compiled only where they run: a branch to them kept GCC from specialising
+the sDFS for its problem, 1.15x slower). */
 
 #define FJ_NEGATIVE 1
 #define FJ_NONFINITE 2
@@ -12,7 +14,7 @@ and FJ_LANES, set by the generated code that includes this template. */
 #define FJ_INT32_MAX 2147483647LL
 #define FJ_L (FJ_K * FJ_M)
 #define FJ_STACKS (FJ_LANES > 0 ? FJ_LANES : 1)
-#if defined(__GNUC__)  /* the search loop's steps inlined into it: GCC leaves them calls (about 10 % slower) */
+#if defined(__GNUC__)  /* the search loop's steps inlined into it: GCC leaves them calls (1.2x slower) */
 #define FJ_STEP static inline __attribute__((always_inline))
 #else
 #define FJ_STEP static inline
@@ -265,6 +267,7 @@ static void fj_none(fj_incumbent *s) {
     s->flags = 0;
 }
 
+#if !FJ_EXHAUSTIVE
 /* The first index of the smallest entry (index 0 when every entry is +inf, as jnp's two reductions give). */
 static int fj_first_min(const double *a, int n, double *low) {
     double m = a[0];
@@ -396,6 +399,7 @@ static void fj_seed(const fj_problem *P, const fj_params *p, const double *x0, f
     }
 }
 
+#else
 /* exhaustive._exhaustive: every node below a usable one, the leaves in the lexicographic order of their
    sequences, the first of the cheapest kept; iterations as the level search counts its batched calls. */
 static void fj_levels(const fj_problem *P, const fj_params *p, const double *x0, fj_incumbent *out, fj_work *w) {
@@ -441,6 +445,7 @@ static void fj_levels(const fj_problem *P, const fj_params *p, const double *x0,
     }
     out->iterations = P->level_iterations;
 }
+#endif
 
 #if FJ_LANES > 0
 /* pool._pool_one: one decision on the work pool (pool.pool_search of one row) of FJ_LANES slots, each an sDFS
@@ -566,28 +571,30 @@ static int fj_search(const fj_problem *P, const fj_params *p, const double *x0, 
                      int count, long long max_nodes, int budgeted, long long reserve, fj_incumbent *out,
                      fj_work *w) {
     fj_none(out);
+#if FJ_EXHAUSTIVE
+    (void)candidates; (void)count; (void)max_nodes; (void)budgeted; (void)reserve;
     int done = 1;
     if (P->exhaustive == 1) fj_levels(P, p, x0, out, w);
-    else if (P->exhaustive) done = fj_dfs(P, p, x0, out, FJ_INT32_MAX - FJ_L, 0, FJ_N, NULL, 0, w);
-    else {
-        long long own = max_nodes - reserve;
-        for (int c = 0; c < count; c++) {
-            const int32_t *seq = candidates + c * FJ_N;
-            if (!budgeted) {
-                fj_candidate(P, p, x0, seq, own, out);
-                continue;
-            }
-            int k = 0;
-            while (k < FJ_N && seq[k] >= 0) k++;
-            if (k > 0 && out->nodes + k + (long long)(FJ_N - k) * FJ_M <= own) fj_rollout(P, p, x0, seq, k, out, w);
-        }
-        if (budgeted) fj_seed(P, p, x0, out, own, w);
-#if FJ_LANES > 0
-        done = fj_pool(P, p, x0, out, max_nodes, reserve, w);
+    else done = fj_dfs(P, p, x0, out, FJ_INT32_MAX - FJ_L, 0, FJ_N, NULL, 0, w);
 #else
-        done = fj_dfs(P, p, x0, out, max_nodes - FJ_L, reserve, FJ_N, NULL, 1, w);
-#endif
+    long long own = max_nodes - reserve;
+    for (int c = 0; c < count; c++) {
+        const int32_t *seq = candidates + c * FJ_N;
+        if (!budgeted) {
+            fj_candidate(P, p, x0, seq, own, out);
+            continue;
+        }
+        int k = 0;
+        while (k < FJ_N && seq[k] >= 0) k++;
+        if (k > 0 && out->nodes + k + (long long)(FJ_N - k) * FJ_M <= own) fj_rollout(P, p, x0, seq, k, out, w);
     }
+    if (budgeted) fj_seed(P, p, x0, out, own, w);
+#if FJ_LANES > 0
+    int done = fj_pool(P, p, x0, out, max_nodes, reserve, w);
+#else
+    int done = fj_dfs(P, p, x0, out, max_nodes - FJ_L, reserve, FJ_N, NULL, 1, w);
+#endif
+#endif
     if (!isfinite(out->cost))
         for (int j = 0; j < FJ_N; j++) out->path[j] = -1;
     return done;
