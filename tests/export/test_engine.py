@@ -207,6 +207,13 @@ def test_the_engine_is_checked_when_the_controller_is_made(monkeypatch):
         fj.FIRHC(problem, engine="c")
 
 
+def test_a_search_too_large_for_the_threads_stack_is_refused():
+    problem = fj.Problem(lambda x, u: x + u, np.array([-1.0, 0.0, 1.0]), lambda x, u: jnp.sum(x**2), 40)
+    ctrl = fj.FIRHC(problem, "pool", lanes=128, pop_width=16, engine="c")
+    with pytest.raises(ValueError, match="stack: this one needs"):
+        ctrl.step(ctrl.init(np.zeros(2)), np.zeros(2))
+
+
 def test_an_untranslatable_callable_is_named_at_the_first_step():
     problem = fj.Problem(lambda x, u: x + u, np.array([-1.0, 1.0]), lambda x, u: jnp.sort(x)[0] ** 2, 2)
     ctrl = fj.FIRHC(problem, engine="c")

@@ -37,6 +37,7 @@ from .export import _check_controller, compile_shared, export, result_dtype, sta
 # The first set the compiler takes; contraction into fused multiply-adds off, as ISO C mode gives with GCC (clang
 # contracts by default).
 FLAGS = (("-O3", "-march=native", "-ffp-contract=off"), ("-O3", "-ffp-contract=off"))
+MAX_WORK_BYTES = 4 << 20  # the generated search's arrays live on the calling thread's stack (8 MiB by default)
 _folder: Optional[str] = None
 _names = itertools.count()
 _lock = threading.Lock()
@@ -69,6 +70,10 @@ def _compiled(what, params, x0, pop_width: int = 1):
         name = f"fj{next(_names)}"
     exported = export(what, _build_folder(), name=name, params=params, x0=np.asarray(x0), for_engine=True,
                       pop_width=pop_width)
+    if exported.work_bytes > MAX_WORK_BYTES:
+        raise ValueError(f"engine='c' keeps the search's arrays on the calling thread's stack: this one needs "
+                         f"{exported.work_bytes:,} bytes, more than {MAX_WORK_BYTES:,}; lower pop_width or lanes, "
+                         "shorten the horizon, or use engine='xla'")
     for flags in FLAGS:
         try:
             return compile_shared(exported, cc=compiler(), flags=flags)
