@@ -175,6 +175,14 @@ class FIRHC:
         for the searched input (module docstring); default ``u``.
       u_safe: ``[m]`` the searched input applied (through ``actuate``) when a
         decision finds no input; default: hold the input applied last.
+      engine: what runs the eager decisions (``step`` and ``ctrl(x)``
+        called from Python): ``"xla"`` (default), the compiled JAX decision;
+        ``"c"``, the decision exported as C (``fj.export_c``), compiled with
+        the system's C compiler (``$CC``, else ``cc``; checked here) on the
+        first call for each argument signature and called through
+        ``ctypes``, every solver node for node as in XLA
+        (docs/guide/realtime.md). Traced calls and ``simulate``'s compiled
+        loop run in XLA either way.
       **solver_options: the solver's options (``SOLVERS[solver].options``):
         ``pop_width``, ``max_nodes``, ``max_memory``, ``lanes`` for the sDFS
         solvers; ``method``, ``chunk_nodes``, ``pop_width``, ``max_memory``
