@@ -456,7 +456,6 @@ static int fj_pool(const fj_problem *P, const fj_params *p, const double *x0, fj
                    long long max_nodes, long long reserve, fj_work *w) {
     enum { S = FJ_LANES };
     const double inf = INFINITY;
-    static const int steal = 1;
     fj_popped work[S], given[S];
     int row[S], depth[S], head = 0;  /* row 1: none yet */
     long long cut = max_nodes < FJ_L;
@@ -471,7 +470,7 @@ static int fj_pool(const fj_problem *P, const fj_params *p, const double *x0, fj
     for (;;) {
         /* pool.plan */
         long long budget_row = max_nodes - (out->cost < inf ? 0 : reserve);
-        unsigned char live[S][FJ_N + 1], busy[S], stealable[S][FJ_N + 1];
+        unsigned char live[S][FJ_N + 1], busy[S];
         int top[S], free_[S], can[S], free_rank[S], can_rank[S], shallowest[S], root[S], victim[S], robbed[S];
         int by_rank[S], new_row[S], sharing0 = 0, sharing1 = 0, nfree = 0, ncan = 0;
         for (int s = 0; s < S; s++) {
@@ -495,8 +494,7 @@ static int fj_pool(const fj_problem *P, const fj_params *p, const double *x0, fj
             can[s] = 0;
             shallowest[s] = 0;
             for (int d = FJ_N; d >= 0; d--) {
-                stealable[s][d] = live[s][d] && roomy && d < top[s] && steal;
-                if (stealable[s][d]) { can[s] = 1; shallowest[s] = d; }
+                if (live[s][d] && roomy && d < top[s]) { can[s] = 1; shallowest[s] = d; }  /* stealable */
             }
             free_rank[s] = nfree + free_[s] - 1;
             can_rank[s] = ncan + can[s] - 1;
